@@ -13,22 +13,30 @@ import sys
 # name -> (module, help). Modules are imported lazily so `hdmap --help` stays fast.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("hdmap.commands.demo", "run the main job on embedded defaults"),
+    "router": ("hdmap.commands.router", "run a Zenoh router"),
+    "service": ("hdmap.commands.service", "run one service (ingest, matcher, solver, publisher)"),
+    "up": ("hdmap.commands.up", "router + one of each service, until Ctrl-C"),
+    "status": ("hdmap.commands.status", "live services, their regions and counters"),
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``only``, just that subcommand's module is imported."""
     parser = argparse.ArgumentParser(prog="hdmap", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, help_text) in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
-        mod = importlib.import_module(module)
-        mod.add_arguments(p)
-        p.set_defaults(_run=mod.run)
+        if only is None or name == only:
+            mod = importlib.import_module(module)
+            mod.add_arguments(p)
+            p.set_defaults(_run=mod.run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    only = argv[0] if argv and argv[0] in SUBCOMMANDS else None
+    args = build_parser(only).parse_args(argv)
     return int(args._run(args) or 0)
 
 

@@ -302,6 +302,28 @@ class TableCodec:
                     flag(below | (w > hi), name, f"out of range {lb}{_fmt(lo)}, {_fmt(hi)}]")
         return bad, fld, why
 
+    @property
+    def record_dtype(self) -> np.dtype:
+        """A packed numpy structured dtype with one field per column (for row storage)."""
+        return np.dtype(
+            [(n, np.dtype(c.dtype).newbyteorder("<"), (c.width,) if c.width > 1 else ())
+             for n, c in self.cols]
+        )
+
+    def to_records(self, obj: Any) -> np.ndarray:
+        rec = np.empty(len(getattr(obj, self.cols[0][0])), dtype=self.record_dtype)
+        for name, _ in self.cols:
+            rec[name] = getattr(obj, name)
+        return rec
+
+    def from_records(self, rec: np.ndarray) -> Any:
+        return self.cls(
+            **{
+                name: np.ascontiguousarray(rec[name]).astype(np.dtype(c.dtype), copy=True)
+                for name, c in self.cols
+            }
+        )
+
     def take(self, obj: Any, idx: np.ndarray) -> Any:
         """Rows ``idx`` (mask or indices) of a table."""
         return self.cls(**{name: getattr(obj, name)[idx] for name, _ in self.cols})

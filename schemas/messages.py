@@ -351,16 +351,24 @@ class LogEntry(Message):
 
 @dataclass(frozen=True, eq=False)
 class LogQuery(Message):
-    """Consumer -> producers: entries after these offsets, at most ``limit`` per reply set."""
+    """Consumer -> producers: entries after these offsets for tiles of these prefixes."""
 
     TYPE: ClassVar[str] = "log_query"
     stage: str
     offsets: dict[str, dict[str, int]]
     """producer -> tile -> last applied seq (absent = 0)."""
+    prefixes: list[str] = field(default_factory=list)
+    """Quadkey prefixes of the consumer's region (empty = every tile)."""
     limit: int = 1000
+    """At most this many entries per producer in one answer."""
 
     def _encode(self) -> dict[str, Any]:
-        return {"stage": self.stage, "offsets": self.offsets, "limit": int(self.limit)}
+        return {
+            "stage": self.stage,
+            "offsets": self.offsets,
+            "prefixes": list(self.prefixes),
+            "limit": int(self.limit),
+        }
 
     @classmethod
     def from_bytes(cls, data: bytes) -> LogQuery:
@@ -372,7 +380,16 @@ class LogQuery(Message):
             for t, s in tiles.items():
                 if not isinstance(t, str) or not isinstance(s, int) or isinstance(s, bool) or s < 0:
                     raise DecodeError(f"offsets.{p}", "expected tile -> non-negative seq")
-        return cls(get_str(m, "stage", _STAGE_RE), offsets, get_int(m, "limit", 1, 100_000))
+        prefixes = get_list(m, "prefixes", 10_000)
+        for i, p in enumerate(prefixes):
+            if not isinstance(p, str) or (p and not _TILE_RE.match(p)):
+                raise DecodeError("prefixes", "expected quadkey prefixes", i)
+        return cls(
+            stage=get_str(m, "stage", _STAGE_RE),
+            offsets=offsets,
+            prefixes=prefixes,
+            limit=get_int(m, "limit", 1, 100_000),
+        )
 
 
 @dataclass(frozen=True, eq=False)

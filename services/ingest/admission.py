@@ -1,0 +1,44 @@
+"""Admission policy beyond the wire schema: what ingest refuses even if well-formed.
+
+>>> import numpy as np
+>>> from schemas import Observations
+>>> obs = Observations.empty()
+>>> admit(obs, AdmissionPolicy(), now=1.7e9)[1]
+[]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from schemas import Observations, Rejection
+
+
+@dataclass(frozen=True)
+class AdmissionPolicy:
+    max_age_s: float = 30 * 24 * 3600.0
+    """Observations older than this (capture time vs arrival) are refused."""
+    max_future_s: float = 300.0
+    """Clock skew tolerated for capture times ahead of the ingest clock."""
+    min_score: float = 0.0
+    """Detections below this detector score are refused."""
+
+
+def admit(
+    obs: Observations, policy: AdmissionPolicy, now: float
+) -> tuple[Observations, list[Rejection]]:
+    """Split schema-valid observations into admitted ones and rejections with reasons."""
+    too_old = obs.t < now - policy.max_age_s
+    future = obs.t > now + policy.max_future_s
+    low = (obs.score < policy.min_score) & ~too_old & ~future
+    bad = too_old | future | low
+    if not bad.any():
+        return obs, []
+    rejected: list[Rejection] = []
+    for mask, field, reason in (
+        (too_old, "obs.t", f"older than {policy.max_age_s:g} s"),
+        (future, "obs.t", f"more than {policy.max_future_s:g} s in the future"),
+        (low, "obs.score", f"below the minimum score {policy.min_score:g}"),
+    ):
+        rejected += [Rejection(int(i), field, reason) for i in obs.obs_id[mask]]
+    return obs.take(~bad), rejected

@@ -1,0 +1,105 @@
+"""Publisher: owns the tile maps, pushes deltas, answers snapshots.
+
+Consumes the solver's update log for its region (exactly once, see
+:mod:`hdmap.stage`), coalesces changes, and every ``interval_s`` publishes one
+:class:`schemas.MapDelta` per changed tile on ``hdmap/v1/map/<tile>/delta``
+(version + 1 per change set). The ``hdmap/v1/map/<tile>`` queryable answers
+:class:`schemas.MapSnapshot` for any tile of the region, also empty ones.
+
+The flush commits the new version before publishing it: after a crash between
+the two, vehicles see the next delta's ``from_version`` ahead of theirs and
+fetch the snapshot, which already holds the lost change set.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+from dataclasses import dataclass
+
+import zenoh
+
+from hdmap import keys
+from hdmap.stage import StageService
+from hdmap.store import StorageError, transaction
+from hdmap.stream import QueryServer
+from hdmap.tiles import in_region, valid_quadkey
+from schemas import DecodeError, ErrorReply, LandmarkUpdates, LogEntry
+from services.publisher.tilemap import TileMaps, snapshot
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PublisherConfig:
+    interval_s: float = 0.5
+    """Changes are coalesced into one delta per tile at this interval."""
+
+
+class PublisherService(StageService):
+    name = "publisher"
+    input_stage = "update"
+    upstream = "solver"
+
+    def __init__(self, opts, config: PublisherConfig | None = None):
+        super().__init__(opts)
+        self.config = config or PublisherConfig()
+        self.maps = TileMaps(self.db)
+        self._snapshots: list[QueryServer] = []
+        self._counts = self.maps.counts()
+
+    def setup(self) -> None:
+        super().setup()
+        for prefix in self.region or [""]:
+            self._snapshots.append(
+                QueryServer(
+                    self.session,
+                    keys.map_snapshot(keys.region(prefix)),
+                    self.db_path,
+                    self._answer_snapshot,
+                    "snapshots",
+                )
+            )
+        self.every(self.config.interval_s, lambda _now: self.flush())
+
+    def teardown(self) -> None:
+        for s in self._snapshots:
+            s.close()
+        super().teardown()
+
+    def apply(self, entries: list[LogEntry]) -> None:
+        for e in entries:
+            try:
+                upd = LandmarkUpdates.from_bytes(e.body)
+            except DecodeError as exc:
+                self.reject(f"update.{exc.field}")
+                continue
+            self.count("changes", self.maps.apply(e.tile, upd))
+
+    def flush(self) -> None:
+        try:
+            with transaction(self.db):
+                deltas = self.maps.flush()
+        except StorageError as exc:
+            log.error("publisher flush: %s", exc)
+            self.count("storage_errors")
+            return
+        self._counts = self.maps.counts()  # worker thread: the stats thread reads the copy
+        for d in deltas:
+            self.pubs.put(keys.map_delta(d.tile), d.to_bytes())
+        self.count("deltas", len(deltas))
+        self.count("delta_upserts", sum(len(d.upserts) for d in deltas))
+
+    def _answer_snapshot(self, conn: sqlite3.Connection, q: zenoh.Query) -> None:
+        tile = keys.chunk(str(q.key_expr), 3)
+        if not valid_quadkey(tile) or not in_region(tile, self.region):
+            err = DecodeError("tile", f"{tile!r} is not one quadkey of this region")
+            q.reply_err(ErrorReply.of(err).to_bytes())
+            return
+        q.reply(keys.map_snapshot(tile), snapshot(conn, tile).to_bytes())
+        self.count("snapshots")
+
+    def extra_counters(self) -> dict[str, float]:
+        out = super().extra_counters()
+        out.update(self._counts)
+        return out

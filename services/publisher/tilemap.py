@@ -1,0 +1,213 @@
+"""Tile maps with versions: the publisher's state, in SQLite.
+
+Three tables keep the contract "snapshot at version v = every delta up to v":
+
+- ``current``: the newest estimate of every landmark (by revision) and its tile;
+- ``dirty``: (tile, landmark) pairs changed since the tile's last published version;
+- ``published`` + ``versions``: what vehicles have been told, per tile.
+
+``apply`` folds solver updates into ``current`` (older revisions are ignored, so a
+replay republishes nothing stale) and marks ``dirty``; ``flush`` turns each dirty
+tile into one :class:`schemas.MapDelta` (version + 1), applies it to ``published``
+and clears ``dirty``, all inside the caller's transaction. Snapshots read
+``published`` only, so they always match a delta boundary.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import time
+
+import numpy as np
+
+from hdmap.store import i64_to_u64, u64_to_i64
+from schemas import Landmarks, LandmarkUpdates, MapDelta, MapSnapshot, Removals
+
+_FIELDS = (
+    "sign_class",
+    "lat",
+    "lon",
+    "h",
+    "cov",
+    "status",
+    "n_obs",
+    "n_passes",
+    "revision",
+    "updated_at",
+)
+_COLS = "id, " + ", ".join(_FIELDS)
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS current (
+    id INTEGER PRIMARY KEY, tile TEXT NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
+    cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
+    updated_at REAL);
+CREATE TABLE IF NOT EXISTS published (
+    tile TEXT NOT NULL, id INTEGER NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
+    cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
+    updated_at REAL, PRIMARY KEY (tile, id)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS versions (tile TEXT PRIMARY KEY, version INTEGER NOT NULL)
+    WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS dirty (
+    tile TEXT NOT NULL, id INTEGER NOT NULL, revision INTEGER NOT NULL,
+    PRIMARY KEY (tile, id)) WITHOUT ROWID;
+"""
+_ = _COLS
+
+
+def _rows(lm: Landmarks) -> list[tuple]:
+    ids = u64_to_i64(lm.id)
+    cov = np.ascontiguousarray(lm.cov, dtype="<f8")
+    return [
+        (
+            int(ids[i]),
+            int(lm.sign_class[i]),
+            float(lm.lat[i]),
+            float(lm.lon[i]),
+            float(lm.h[i]),
+            cov[i].tobytes(),
+            int(lm.status[i]),
+            int(lm.n_obs[i]),
+            int(lm.n_passes[i]),
+            int(lm.revision[i]),
+            float(lm.updated_at[i]),
+        )
+        for i in range(len(lm))
+    ]
+
+
+def landmarks_from_rows(rows: list[tuple]) -> Landmarks:
+    """Rows (id, sign_class, lat, lon, h, cov, status, n_obs, n_passes, revision, updated_at)."""
+    if not rows:
+        return Landmarks.empty()
+    cols = list(zip(*rows, strict=True))
+    return Landmarks(
+        id=i64_to_u64(np.array(cols[0], np.int64)),
+        sign_class=np.array(cols[1], np.uint16),
+        lat=np.array(cols[2], float),
+        lon=np.array(cols[3], float),
+        h=np.array(cols[4], float),
+        cov=np.frombuffer(b"".join(cols[5]), "<f8").reshape(-1, 6).copy(),
+        status=np.array(cols[6], np.uint8),
+        n_obs=np.array(cols[7], np.uint32),
+        n_passes=np.array(cols[8], np.uint32),
+        revision=np.array(cols[9], np.uint64),
+        updated_at=np.array(cols[10], float),
+    )
+
+
+class TileMaps:
+    """The publisher's tile maps on one SQLite connection (the worker's)."""
+
+    def __init__(self, conn: sqlite3.Connection):
+        self._conn = conn
+        conn.executescript(SCHEMA)
+
+    def apply(self, tile: str, upd: LandmarkUpdates) -> int:
+        """Fold one solver entry for ``tile`` into ``current``; the number of changes."""
+        changed = 0
+        c = self._conn
+        for row in _rows(upd.landmarks):
+            lid, rev = row[0], row[9]
+            old = c.execute("SELECT tile, revision FROM current WHERE id=?", (lid,)).fetchone()
+            if old is not None and old[1] >= rev:
+                continue
+            if old is not None and old[0] != tile:
+                self._mark(old[0], lid, rev)  # moved: the old tile loses it
+            c.execute(
+                "INSERT OR REPLACE INTO current(id, tile, sign_class, lat, lon, h, cov, status,"
+                " n_obs, n_passes, revision, updated_at) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                (lid, tile, *row[1:]),
+            )
+            self._mark(tile, lid, rev)
+            changed += 1
+        for lid, rev in zip(
+            u64_to_i64(upd.removed.id).tolist(), upd.removed.revision.tolist(), strict=True
+        ):
+            old = c.execute("SELECT tile, revision FROM current WHERE id=?", (lid,)).fetchone()
+            if old is None or old[0] != tile or old[1] > rev:
+                continue
+            c.execute("DELETE FROM current WHERE id=?", (lid,))
+            self._mark(tile, lid, rev)
+            changed += 1
+        return changed
+
+    def _mark(self, tile: str, lid: int, rev: int) -> None:
+        self._conn.execute(
+            "INSERT INTO dirty(tile, id, revision) VALUES (?, ?, ?) ON CONFLICT(tile, id) "
+            "DO UPDATE SET revision=MAX(revision, excluded.revision)",
+            (tile, lid, rev),
+        )
+
+    def dirty_tiles(self) -> list[str]:
+        return [r[0] for r in self._conn.execute("SELECT DISTINCT tile FROM dirty")]
+
+    def flush(self, now: float | None = None, max_tiles: int = 10_000) -> list[MapDelta]:
+        """One delta per dirty tile (version + 1), applied to ``published``."""
+        now = time.time() if now is None else now
+        c = self._conn
+        deltas = []
+        for tile in self.dirty_tiles()[:max_tiles]:
+            marks = c.execute("SELECT id, revision FROM dirty WHERE tile=?", (tile,)).fetchall()
+            ids = [m[0] for m in marks]
+            upserts: list[tuple] = []
+            removed: list[tuple[int, int]] = []
+            for lid, rev in marks:
+                row = c.execute(
+                    f"SELECT {_COLS} FROM current WHERE id=? AND tile=?", (lid, tile)
+                ).fetchone()
+                if row is not None:
+                    upserts.append(row)
+                elif c.execute(
+                    "SELECT 1 FROM published WHERE tile=? AND id=?", (tile, lid)
+                ).fetchone():
+                    removed.append((lid, rev))
+            c.executemany("DELETE FROM dirty WHERE tile=? AND id=?", [(tile, i) for i in ids])
+            if not upserts and not removed:
+                continue
+            c.executemany(
+                f"INSERT OR REPLACE INTO published(tile, {_COLS}) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                [(tile, *r) for r in upserts],
+            )
+            c.executemany(
+                "DELETE FROM published WHERE tile=? AND id=?", [(tile, r[0]) for r in removed]
+            )
+            version = version_of(c, tile)
+            c.execute(
+                "INSERT OR REPLACE INTO versions(tile, version) VALUES (?, ?)", (tile, version + 1)
+            )
+            rem = Removals(
+                id=i64_to_u64(np.array([r[0] for r in removed], np.int64)),
+                revision=np.array([r[1] for r in removed], np.uint64),
+            )
+            deltas.append(
+                MapDelta(tile, version, version + 1, now, landmarks_from_rows(upserts), rem)
+            )
+        return deltas
+
+    def counts(self) -> dict[str, int]:
+        c = self._conn
+        return {
+            "landmarks": c.execute("SELECT COUNT(*) FROM current").fetchone()[0],
+            "tiles": c.execute("SELECT COUNT(*) FROM versions").fetchone()[0],
+            "dirty": c.execute("SELECT COUNT(*) FROM dirty").fetchone()[0],
+        }
+
+
+def version_of(conn: sqlite3.Connection, tile: str) -> int:
+    row = conn.execute("SELECT version FROM versions WHERE tile=?", (tile,)).fetchone()
+    return 0 if row is None else int(row[0])
+
+
+def snapshot(conn: sqlite3.Connection, tile: str) -> MapSnapshot:
+    """The published map of one tile (any tile; an unknown one is empty at version 0).
+
+    Read in one transaction so the version and the rows agree.
+    """
+    conn.execute("BEGIN")
+    try:
+        version = version_of(conn, tile)
+        rows = conn.execute(f"SELECT {_COLS} FROM published WHERE tile=?", (tile,)).fetchall()
+    finally:
+        conn.execute("COMMIT")
+    return MapSnapshot(tile, version, landmarks_from_rows(rows))

@@ -1,0 +1,199 @@
+"""The vehicle's copy of the map: tiles around it, kept current by deltas.
+
+``update_position`` subscribes to the deltas of the tiles within ``radius_m`` and
+drops the others. A tile starts with its snapshot; each delta applies only on top
+of the version it names (``from_version``): an older one is ignored, a newer one
+means a gap and the tile is re-fetched. Deltas that arrive while a snapshot is in
+flight are buffered and applied after it. Zenoh callbacks only queue; the
+client's own thread applies, so ``near()`` reads a consistent map.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from hdmap import keys
+from hdmap.bus import query
+from hdmap.geodesy import EnuFrame
+from hdmap.tiles import DEFAULT_ZOOM, tiles_around
+from schemas import DecodeError, Landmarks, MapDelta, MapSnapshot
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TileCopy:
+    version: int = -1
+    """-1 until the snapshot arrived."""
+    rows: dict[int, Landmarks] = field(default_factory=dict)
+    buffered: list[MapDelta] = field(default_factory=list)
+
+
+@dataclass
+class ClientStats:
+    deltas_applied: int = 0
+    deltas_stale: int = 0
+    gaps: int = 0
+    snapshots: int = 0
+    subscribed: int = 0
+    dropped: int = 0
+
+
+class MapClient:
+    """Local map of the tiles around a moving vehicle."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        radius_m: float = 500.0,
+        zoom: int = DEFAULT_ZOOM,
+        snapshot_timeout: float = 5.0,
+    ):
+        self._session = session
+        self.radius_m = radius_m
+        self.zoom = zoom
+        self._timeout = snapshot_timeout
+        self._tiles: dict[str, TileCopy] = {}
+        self._subs: dict[str, zenoh.Subscriber] = {}
+        self._lock = threading.Lock()
+        self._inbox: queue.Queue[tuple[str, str, bytes | threading.Event] | None] = queue.Queue()
+        self.stats = ClientStats()
+        self._thread = threading.Thread(target=self._run, name="mapclient", daemon=True)
+        self._thread.start()
+
+    # -- subscriptions -------------------------------------------------------------------
+
+    def update_position(self, lat: float, lon: float) -> list[str]:
+        """Follow the vehicle: subscribe to near tiles, drop far ones; the near tiles."""
+        want = set(tiles_around(lat, lon, self.radius_m, self.zoom))
+        for tile in sorted(want - set(self._subs)):
+            self.follow(tile)
+        for tile in sorted(set(self._subs) - want):
+            self.unfollow(tile)
+        return sorted(want)
+
+    def follow(self, tile: str) -> None:
+        if tile in self._subs:
+            return
+        with self._lock:
+            self._tiles[tile] = TileCopy()
+
+        def cb(sample: zenoh.Sample, tile: str = tile) -> None:
+            self._inbox.put(("delta", tile, sample.payload.to_bytes()))
+
+        self._subs[tile] = self._session.declare_subscriber(keys.map_delta(tile), cb)
+        self.stats.subscribed += 1
+        self._inbox.put(("fetch", tile, b""))
+
+    def unfollow(self, tile: str) -> None:
+        sub = self._subs.pop(tile, None)
+        if sub is not None:
+            sub.undeclare()
+        with self._lock:
+            self._tiles.pop(tile, None)
+        self.stats.dropped += 1
+
+    def close(self) -> None:
+        for tile in list(self._subs):
+            sub = self._subs.pop(tile)
+            sub.undeclare()
+        self._inbox.put(None)
+        self._thread.join(timeout=5)
+
+    # -- worker ----------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while (item := self._inbox.get()) is not None:
+            kind, tile, payload = item
+            try:
+                if isinstance(payload, threading.Event):
+                    payload.set()
+                elif kind == "fetch":
+                    self._fetch(tile)
+                else:
+                    self._on_delta(tile, payload)
+            except (DecodeError, zenoh.ZError) as exc:
+                log.warning("map client: %s on tile %s: %s", kind, tile, exc)
+
+    def _fetch(self, tile: str) -> None:
+        snap = None
+        for _k, ok, _err in query(self._session, keys.map_snapshot(tile), timeout=self._timeout):
+            if ok is not None:
+                snap = MapSnapshot.from_bytes(ok)
+        with self._lock:
+            copy = self._tiles.get(tile)
+            if copy is None:
+                return
+            if snap is None:
+                copy.version = -1  # no publisher answered: try again on the next delta
+                return
+            self.stats.snapshots += 1
+            copy.version = snap.version
+            copy.rows = {
+                int(i): snap.landmarks.take(np.array([k])) for k, i in enumerate(snap.landmarks.id)
+            }
+            pending, copy.buffered = copy.buffered, []
+        for d in sorted(pending, key=lambda d: d.from_version):
+            self._apply(tile, d)
+
+    def _on_delta(self, tile: str, payload: bytes) -> None:
+        self._apply(tile, MapDelta.from_bytes(payload))
+
+    def _apply(self, tile: str, d: MapDelta) -> None:
+        refetch = False
+        with self._lock:
+            copy = self._tiles.get(tile)
+            if copy is None:
+                return
+            if copy.version < 0:
+                copy.buffered.append(d)
+                if len(copy.buffered) == 1:
+                    refetch = True
+            elif d.to_version <= copy.version:
+                self.stats.deltas_stale += 1
+            elif d.from_version != copy.version:
+                self.stats.gaps += 1
+                copy.version = -1
+                copy.buffered = [d]
+                refetch = True
+            else:
+                for k, i in enumerate(d.upserts.id):
+                    copy.rows[int(i)] = d.upserts.take(np.array([k]))
+                for i in d.removed.id:
+                    copy.rows.pop(int(i), None)
+                copy.version = d.to_version
+                self.stats.deltas_applied += 1
+        if refetch:
+            self._inbox.put(("fetch", tile, b""))
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def versions(self) -> dict[str, int]:
+        with self._lock:
+            return {t: c.version for t, c in self._tiles.items()}
+
+    def landmarks(self) -> Landmarks:
+        """Every landmark held, over all followed tiles."""
+        with self._lock:
+            rows = [r for c in self._tiles.values() for r in c.rows.values()]
+        return Landmarks.concat(rows)
+
+    def near(self, lat: float, lon: float, radius_m: float) -> Landmarks:
+        """Landmarks within ``radius_m`` (horizontal) of a point."""
+        lm = self.landmarks()
+        if len(lm) == 0:
+            return lm
+        enu = EnuFrame(lat, lon, 0.0).from_geodetic(lm.lat, lm.lon, lm.h)
+        return lm.take(np.hypot(enu[:, 0], enu[:, 1]) <= radius_m)
+
+    def wait_idle(self, timeout: float = 5.0) -> bool:
+        """Until everything queued before this call is applied (bounded); whether it was."""
+        marker = threading.Event()
+        self._inbox.put(("marker", "", marker))
+        return marker.wait(timeout)

@@ -1,0 +1,175 @@
+"""Store-and-forward uploads: nothing leaves the vehicle's queue until ingest acks it.
+
+Observations go into a local SQLite queue first (it survives a restart of the
+vehicle process); ``flush`` sends the oldest ones as :class:`schemas.ObservationBatch`
+requests (one pass per batch) and deletes exactly what the ack says was recorded
+(accepted, including duplicates of an earlier upload) or refused for good
+(rejected rows). Timeouts, transport errors and "retry later" answers keep them
+queued; ``flush`` is retried with backoff by the caller's loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from hdmap import keys
+from hdmap.bus import query
+from hdmap.store import connect, i64_to_u64, transaction, u64_to_i64
+from schemas import DecodeError, ObservationBatch, Observations, Rejection, UploadAck
+
+log = logging.getLogger(__name__)
+
+_REC = Observations.CODEC.record_dtype
+
+
+@dataclass
+class UploadResult:
+    sent: int = 0
+    accepted: int = 0
+    duplicates: int = 0
+    rejected: int = 0
+    failed_batches: int = 0
+    """Batches with no usable answer (timeout, transport, retry-later); still queued."""
+
+
+class Uploader:
+    """One vehicle's upload stream with its durable local queue."""
+
+    SCHEMA = """
+    CREATE TABLE IF NOT EXISTS outbox (
+        obs_id INTEGER PRIMARY KEY, pass_id INTEGER NOT NULL, rec BLOB NOT NULL);
+    CREATE TABLE IF NOT EXISTS rejected (
+        obs_id INTEGER PRIMARY KEY, field TEXT NOT NULL, reason TEXT NOT NULL, at REAL);
+    CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
+    """
+
+    def __init__(self, vehicle_id: str, queue_path: str | Path, batch_size: int = 500):
+        self.vehicle_id = vehicle_id
+        self.batch_size = batch_size
+        self._db = connect(queue_path)
+        self._db.executescript(self.SCHEMA)
+        self._next_batch = self._counter("batch_id")
+
+    def close(self) -> None:
+        self._db.close()
+
+    def _counter(self, name: str) -> int:
+        row = self._db.execute("SELECT value FROM counters WHERE name=?", (name,)).fetchone()
+        return 0 if row is None else int(row[0])
+
+    def next_obs_ids(self, n: int) -> np.ndarray:
+        """Fresh observation ids, unique for this vehicle across restarts."""
+        with transaction(self._db):
+            start = self._counter("obs_id")
+            self._db.execute(
+                "INSERT OR REPLACE INTO counters(name, value) VALUES ('obs_id', ?)", (start + n,)
+            )
+        return np.arange(start + 1, start + n + 1, dtype=np.uint64)
+
+    def enqueue(self, pass_id: int, obs: Observations) -> None:
+        """Store observations durably before any upload is attempted."""
+        rec = Observations.CODEC.to_records(obs)
+        ids = u64_to_i64(obs.obs_id).tolist()
+        with transaction(self._db):
+            self._db.executemany(
+                "INSERT OR IGNORE INTO outbox(obs_id, pass_id, rec) VALUES (?, ?, ?)",
+                [(ids[i], int(pass_id), rec[i].tobytes()) for i in range(len(ids))],
+            )
+
+    @property
+    def pending(self) -> int:
+        return int(self._db.execute("SELECT COUNT(*) FROM outbox").fetchone()[0])
+
+    def _oldest_batch(self) -> tuple[int, Observations] | None:
+        row = self._db.execute("SELECT pass_id FROM outbox ORDER BY obs_id LIMIT 1").fetchone()
+        if row is None:
+            return None
+        pass_id = int(row[0])
+        recs = self._db.execute(
+            "SELECT rec FROM outbox WHERE pass_id=? ORDER BY obs_id LIMIT ?",
+            (pass_id, self.batch_size),
+        ).fetchall()
+        arr = np.frombuffer(b"".join(r[0] for r in recs), dtype=_REC)
+        return pass_id, Observations.CODEC.from_records(arr)
+
+    def flush(
+        self, session: zenoh.Session, timeout: float = 5.0, max_batches: int = 1000
+    ) -> UploadResult:
+        """Send queued observations until the queue is empty or a batch fails (bounded)."""
+        res = UploadResult()
+        for _ in range(max_batches):
+            nxt = self._oldest_batch()
+            if nxt is None:
+                break
+            pass_id, obs = nxt
+            self._next_batch += 1
+            batch = ObservationBatch(self.vehicle_id, pass_id, self._next_batch, time.time(), obs)
+            res.sent += len(obs)
+            ack = self._send(session, batch, timeout)
+            if ack is None or ack.error is not None:
+                res.failed_batches += 1
+                if ack is not None:
+                    log.warning("%s: batch refused: %s", self.vehicle_id, ack.error)
+                break
+            self._settle(ack)
+            res.accepted += len(ack.accepted)
+            res.duplicates += len(ack.duplicates)
+            res.rejected += len(ack.rejected)
+        return res
+
+    def _send(self, session: zenoh.Session, batch: ObservationBatch, timeout: float):
+        try:
+            replies = query(
+                session,
+                keys.upload(self.vehicle_id),
+                batch.to_bytes(),
+                timeout=timeout,
+                target=zenoh.QueryTarget.BEST_MATCHING,
+            )
+        except zenoh.ZError as exc:
+            log.warning("%s: upload failed: %s", self.vehicle_id, exc)
+            return None
+        for _key, ok, _err in replies:
+            if ok is not None:
+                try:
+                    return UploadAck.from_bytes(ok)
+                except DecodeError as exc:
+                    log.warning("%s: bad ack: %s", self.vehicle_id, exc)
+        return None
+
+    def _settle(self, ack: UploadAck) -> None:
+        done = u64_to_i64(np.concatenate([ack.accepted, ack.duplicates])).tolist()
+        refused: list[Rejection] = ack.rejected
+        with transaction(self._db):
+            self._db.executemany("DELETE FROM outbox WHERE obs_id=?", [(i,) for i in done])
+            self._db.executemany(
+                "DELETE FROM outbox WHERE obs_id=?",
+                [(int(u64_to_i64(np.array([r.obs_id], np.uint64))[0]),) for r in refused],
+            )
+            self._db.executemany(
+                "INSERT OR REPLACE INTO rejected(obs_id, field, reason, at) VALUES (?, ?, ?, ?)",
+                [
+                    (
+                        int(u64_to_i64(np.array([r.obs_id], np.uint64))[0]),
+                        r.field,
+                        r.reason,
+                        time.time(),
+                    )
+                    for r in refused
+                ],
+            )
+            self._db.execute(
+                "INSERT OR REPLACE INTO counters(name, value) VALUES ('batch_id', ?)",
+                (self._next_batch,),
+            )
+
+    def rejected(self) -> list[Rejection]:
+        rows = self._db.execute("SELECT obs_id, field, reason FROM rejected").fetchall()
+        ids = i64_to_u64(np.array([r[0] for r in rows], np.int64))
+        return [Rejection(int(i), r[1], r[2]) for i, r in zip(ids, rows, strict=True)]
