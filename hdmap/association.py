@@ -1,0 +1,259 @@
+"""Ray-to-landmark association: gating, per-image assignment, per-pass offset.
+
+All geometry is in one local metric frame (ENU of the tile being processed).
+
+Gating statistic of ray j (origin a, measured azimuth/elevation) against a
+landmark at x with covariance C: with v = x - a, the predicted angles
+``az(v), el(v)`` and their Jacobian J (2x3),
+
+    chi2 = r^T S^-1 r,  r = (wrap(az(v) - az_j), el(v) - el_j),
+    S = diag(s_az^2, s_el^2) + J (C + Sigma_a) J^T,
+
+where Sigma_a is the origin's position covariance. Under the ray's noise model
+chi2 ~ chi-square with 2 degrees of freedom.
+
+One pass shares its GNSS bias (metres, unknown to the vehicle). Before anything
+is known, that bias is part of Sigma_a (``pass_bias_sigma_m``), which makes the
+gate wide. Rays of one unit (one vehicle pass, one tile, one upload) that gate
+to landmarks then estimate the pass's offset delta by weighted least squares on
+their perpendicular residuals,
+
+    (sum_j w_j P_j + I / s_b^2) delta = sum_j w_j P_j (x_L(j) - a_j),
+
+and the gate is re-run with origins a_j + delta and Sigma_a = white + Cov(delta).
+That is what keeps two same-class signs a few metres apart apart: the offset is
+shared by all rays of the pass, so one sign the pass sees well fixes it for all.
+
+Detections of one image never share a landmark: each image's assignment is a
+small linear assignment problem (scipy.optimize.linear_sum_assignment) on chi2.
+
+>>> import numpy as np
+>>> wrap(np.array([3.5, -3.5])).round(4).tolist()
+[-2.7832, 2.7832]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_BIG = 1e12
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    chi2_gate: float = 13.82
+    """Gate on the 2-dof statistic (13.82 = 99.9%)."""
+    pass_bias_sigma_m: float = 3.0
+    """Assumed per-axis std of a pass's unknown GNSS bias before the offset is estimated."""
+    vertical_bias_sigma_m: float = 3.0
+    angle_floor_rad: float = 0.003
+    """Added in quadrature to reported angular sigmas (unmodelled calibration, timing)."""
+    min_range_m: float = 2.0
+    max_range_m: float = 120.0
+    range_k: float = 3.0
+    """A range estimate must agree with the landmark distance within range_k sigma."""
+    offset_iterations: int = 2
+    min_offset_rays: int = 3
+    """Rays needed before a unit's offset is estimated (fewer: the wide gate stays)."""
+
+
+@dataclass(frozen=True)
+class LocalRays:
+    """Rays of one unit in a local metric frame (struct of arrays)."""
+
+    origin: Array
+    direction: Array
+    sigma_az: Array
+    sigma_el: Array
+    sigma_pos_h: Array
+    sigma_pos_v: Array
+    range_m: Array
+    sigma_range_m: Array
+    image: IntArray
+    sign_class: IntArray
+
+    def __len__(self) -> int:
+        return int(self.origin.shape[0])
+
+    def take(self, idx: NDArray) -> LocalRays:
+        return LocalRays(**{k: getattr(self, k)[idx] for k in self.__dataclass_fields__})
+
+
+def wrap(a: Array) -> Array:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def angles(v: Array) -> tuple[Array, Array]:
+    """(azimuth clockwise from North, elevation) of vectors (..., 3) in ENU."""
+    az = np.arctan2(v[..., 0], v[..., 1])
+    el = np.arctan2(v[..., 2], np.hypot(v[..., 0], v[..., 1]))
+    return az, el
+
+
+def angle_jacobian(v: Array) -> Array:
+    """d(az, el)/dx at x = a + v, shape (..., 2, 3)."""
+    e, n, u = v[..., 0], v[..., 1], v[..., 2]
+    rho2 = np.maximum(e * e + n * n, 1e-12)
+    rho = np.sqrt(rho2)
+    r2 = rho2 + u * u
+    j = np.zeros((*v.shape[:-1], 2, 3))
+    j[..., 0, 0] = n / rho2
+    j[..., 0, 1] = -e / rho2
+    j[..., 1, 0] = -u * e / (r2 * rho)
+    j[..., 1, 1] = -u * n / (r2 * rho)
+    j[..., 1, 2] = rho / r2
+    return j
+
+
+def origin_cov(rays: LocalRays, bias_h: float, bias_v: float) -> Array:
+    """(n, 3, 3) position covariance of the origins, with an assumed shared bias."""
+    n = len(rays)
+    c = np.zeros((n, 3, 3))
+    c[:, 0, 0] = c[:, 1, 1] = rays.sigma_pos_h**2 + bias_h**2
+    c[:, 2, 2] = rays.sigma_pos_v**2 + bias_v**2
+    return c
+
+
+def pair_chi2(
+    rays: LocalRays,
+    ri: IntArray,
+    x: Array,
+    cov: Array,
+    a_cov: Array,
+    cfg: GateConfig,
+    offset: Array | None = None,
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Gating statistic for pairs (ray ri[k], landmark k of x/cov) and the plausibility mask.
+
+    ``a_cov`` is the (len(rays), 3, 3) origin covariance; ``offset`` shifts origins.
+    """
+    a = rays.origin[ri] + (0.0 if offset is None else offset)
+    v = x - a
+    rng = np.linalg.norm(v, axis=-1)
+    az, el = angles(v)
+    az_m, el_m = angles(rays.direction[ri])
+    res = np.stack([wrap(az - az_m), el - el_m], axis=-1)
+    j = angle_jacobian(v)
+    s = np.einsum("kij,kjl,kml->kim", j, cov + a_cov[ri], j)
+    floor2 = cfg.angle_floor_rad**2
+    s[:, 0, 0] += rays.sigma_az[ri] ** 2 + floor2
+    s[:, 1, 1] += rays.sigma_el[ri] ** 2 + floor2
+    det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+    det = np.where(det > 0, det, 1e-30)
+    chi2 = (
+        res[:, 0] ** 2 * s[:, 1, 1]
+        - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
+        + res[:, 1] ** 2 * s[:, 0, 0]
+    ) / det
+    front = np.einsum("kj,kj->k", v, rays.direction[ri]) > 0
+    ok = front & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
+    r_est = rays.range_m[ri]
+    has_r = r_est > 0
+    # landmark distance uncertainty along the ray: origin and landmark position spread
+    along = np.sqrt(
+        np.einsum("ki,kij,kj->k", rays.direction[ri], cov + a_cov[ri], rays.direction[ri])
+    )
+    r_tol = cfg.range_k * np.hypot(rays.sigma_range_m[ri], along)
+    ok &= ~has_r | (np.abs(rng - r_est) <= r_tol)
+    return chi2, ok
+
+
+def assign_per_image(
+    n_rays: int, images: IntArray, ri: IntArray, li: IntArray, cost: Array, gate: float
+) -> IntArray:
+    """Best landmark per ray (-1 = none), no landmark used twice within one image.
+
+    Pairs (ri, li) with ``cost`` above ``gate`` are not allowed.
+    """
+    out = np.full(n_rays, -1, np.int64)
+    keep = cost <= gate
+    ri, li, cost = ri[keep], li[keep], cost[keep]
+    if ri.size == 0:
+        return out
+    img = images[ri]
+    order = np.lexsort((cost, ri, img))
+    ri, li, cost, img = ri[order], li[order], cost[order], img[order]
+    bounds = np.flatnonzero(np.diff(img)) + 1
+    for s, e in zip(np.r_[0, bounds], np.r_[bounds, ri.size], strict=True):
+        r, lm, c = ri[s:e], li[s:e], cost[s:e]
+        ur, rinv = np.unique(r, return_inverse=True)
+        ul, linv = np.unique(lm, return_inverse=True)
+        if ur.size == 1:
+            out[ur[0]] = lm[0]  # sorted by cost within the ray: the best
+            continue
+        m = np.full((ur.size, ul.size), _BIG)
+        np.minimum.at(m, (rinv, linv), c)
+        rows, cols = linear_sum_assignment(m)
+        good = m[rows, cols] < _BIG
+        out[ur[rows[good]]] = ul[cols[good]]
+    return out
+
+
+def estimate_offset(
+    rays: LocalRays, assigned: IntArray, x: Array, bias_h: float, bias_v: float
+) -> tuple[Array, Array]:
+    """Shared origin offset of a unit from its assigned rays, and its covariance.
+
+    Weighted least squares on perpendicular residuals with a zero-mean prior of
+    the assumed bias size (so an unobservable direction stays at 0).
+    """
+    m = assigned >= 0
+    prior = np.diag([1 / bias_h**2, 1 / bias_h**2, 1 / bias_v**2])
+    if not m.any():
+        return np.zeros(3), np.linalg.inv(prior)
+    d = rays.direction[m]
+    a = rays.origin[m]
+    xl = x[assigned[m]]
+    rng = np.linalg.norm(xl - a, axis=1)
+    sig_ang = np.hypot(rays.sigma_az[m], rays.sigma_el[m]) / np.sqrt(2)
+    w = 1.0 / ((rng * sig_ang) ** 2 + rays.sigma_pos_h[m] ** 2)
+    p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    info = np.einsum("k,kij->ij", w, p) + prior
+    rhs = np.einsum("k,kij,kj->i", w, p, xl - a)
+    cov = np.linalg.inv(info)
+    return cov @ rhs, cov
+
+
+@dataclass(frozen=True)
+class Association:
+    landmark: IntArray
+    """Per ray, the index into the candidate landmarks (-1 = unmatched)."""
+    chi2: Array
+    offset: Array
+    offset_cov: Array
+
+
+def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateConfig) -> Association:
+    """Associate a unit's rays with landmarks (positions ``x``, covariances, classes)."""
+    n, m = len(rays), x.shape[0]
+    none = Association(np.full(n, -1, np.int64), np.full(n, np.inf), np.zeros(3), np.zeros((3, 3)))
+    if n == 0 or m == 0:
+        return none
+    ri, li = np.nonzero(rays.sign_class[:, None] == cls[None, :])
+    if ri.size == 0:
+        return none
+    bias_h, bias_v = cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m
+    wide = origin_cov(rays, bias_h, bias_v)
+    chi2, ok = pair_chi2(rays, ri, x[li], cov[li], wide, cfg)
+    cost = np.where(ok, chi2, np.inf)
+    best = assign_per_image(n, rays.image, ri, li, cost, cfg.chi2_gate)
+    offset, offset_cov = np.zeros(3), np.diag([bias_h**2, bias_h**2, bias_v**2])
+    for _ in range(cfg.offset_iterations):
+        if int((best >= 0).sum()) < cfg.min_offset_rays:
+            break
+        offset, offset_cov = estimate_offset(rays, best, x, bias_h, bias_v)
+        narrow = origin_cov(rays, 0.0, 0.0) + offset_cov[None]
+        chi2, ok = pair_chi2(rays, ri, x[li], cov[li], narrow, cfg, offset)
+        cost = np.where(ok, chi2, np.inf)
+        best = assign_per_image(n, rays.image, ri, li, cost, cfg.chi2_gate)
+    out_chi2 = np.full(n, np.inf)
+    sel = best[ri] == li
+    out_chi2[ri[sel]] = cost[sel]
+    return Association(best, out_chi2, offset, offset_cov)

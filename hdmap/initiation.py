@@ -1,0 +1,139 @@
+"""Landmark initiation: consistent rays of one pass become a candidate landmark.
+
+The map starts empty. Rays that match no landmark wait in the matcher's pending
+pool. Rays of one pass share that pass's GNSS bias, so they intersect
+consistently with each other even when the bias is metres: candidates are formed
+within a pass (same vehicle, same pass, same class), from distinct images and
+viewpoints. The candidate's position is then biased by that pass's offset; later
+passes refine it (and their own offsets are estimated against it).
+
+Triangulation combines the orthogonal-distance (bearing) terms with the size-based
+range of each ray as a pseudo-measurement along the ray, so a sign seen almost
+straight ahead (little parallax) still gets a position:
+
+    A = sum w_j P_j + sum v_j d_j d_j^T,   b = sum w_j P_j a_j + sum v_j d_j (d_j^T a_j + r_j)
+
+with w_j = 1 / (r_j^2 s_j^2 + s_pos^2) and v_j = 1 / s_r,j^2 (0 without a range).
+
+>>> import numpy as np
+>>> d = np.array([[1.0, 0, 0], [0, 1.0, 0]])
+>>> a = np.array([[-10.0, 0, 0], [0, -10.0, 0]])
+>>> r = LocalRays(a, d, *np.full((2, 2), 0.01), *np.full((2, 2), 1.0), np.zeros(2),
+...               np.zeros(2), np.array([0, 1]), np.array([4, 4]))
+>>> triangulate(r)[0].round(6).tolist()
+[0.0, 0.0, 0.0]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hdmap.association import GateConfig, LocalRays, origin_cov, pair_chi2
+
+Array = NDArray[np.float64]
+
+DEFAULT_RANGE_M = 30.0
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    min_rays: int = 4
+    min_images: int = 4
+    min_parallax_rad: float = 0.035
+    """Spread of bearings a candidate needs unless >= 2 of its rays carry a range."""
+    min_ranged: int = 2
+    max_cond: float = 1e8
+
+
+@dataclass(frozen=True)
+class Candidate:
+    x: Array
+    cov: Array
+    members: NDArray[np.int64]
+    """Indices into the rays passed to :func:`propose`."""
+
+
+def triangulate(rays: LocalRays, ranges: bool = True) -> tuple[Array, Array]:
+    """Least-squares point of rays (bearing terms + range pseudo-measurements) and its cov."""
+    d, a = rays.direction, rays.origin
+    r_hat = np.where(rays.range_m > 0, rays.range_m, DEFAULT_RANGE_M)
+    s_ang2 = (rays.sigma_az**2 + rays.sigma_el**2) / 2.0
+    w = 1.0 / (r_hat**2 * s_ang2 + rays.sigma_pos_h**2)
+    p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    big_a = np.einsum("k,kij->ij", w, p)
+    b = np.einsum("k,kij,kj->i", w, p, a)
+    if ranges:
+        has = (rays.range_m > 0) & (rays.sigma_range_m > 0)
+        v = np.where(has, 1.0 / np.where(has, rays.sigma_range_m, 1.0) ** 2, 0.0)
+        dd = d[:, :, None] * d[:, None, :]
+        big_a = big_a + np.einsum("k,kij->ij", v, dd)
+        b = b + np.einsum("k,ki,k->i", v, d, np.einsum("ki,ki->k", d, a) + rays.range_m)
+    cov = np.linalg.pinv(big_a)
+    return cov @ b, cov
+
+
+def bearing_spread(rays: LocalRays, x: Array) -> float:
+    """Largest angle (rad) between directions from x back to the ray origins."""
+    v = rays.origin - x
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    c = np.clip(v @ v.T, -1.0, 1.0)
+    return float(np.arccos(c.min()))
+
+
+def _best_per_image(idx: NDArray[np.int64], chi2: Array, images: NDArray) -> NDArray[np.int64]:
+    order = np.lexsort((chi2, images[idx]))
+    idx, img = idx[order], images[idx][order]
+    first = np.r_[True, img[1:] != img[:-1]]
+    return np.sort(idx[first])
+
+
+def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidate]:
+    """Candidates from the rays of ONE pass and ONE class (greedy, deterministic)."""
+    n = len(rays)
+    if n < cfg.min_rays:
+        return []
+    used = np.zeros(n, bool)
+    white = origin_cov(rays, 0.0, 0.0)
+    out: list[Candidate] = []
+    seeds = np.flatnonzero(rays.range_m > 0)
+    if seeds.size == 0:
+        seeds = np.arange(n)
+    for s in seeds:
+        if used[s]:
+            continue
+        r = rays.range_m[s] if rays.range_m[s] > 0 else DEFAULT_RANGE_M
+        x = rays.origin[s] + r * rays.direction[s]
+        s_along = rays.sigma_range_m[s] if rays.range_m[s] > 0 else r
+        s_across = r * max(rays.sigma_az[s], rays.sigma_el[s]) + rays.sigma_pos_h[s]
+        d = rays.direction[s]
+        cov = s_across**2 * (np.eye(3) - np.outer(d, d)) + s_along**2 * np.outer(d, d)
+        members = np.array([], np.int64)
+        for _ in range(3):
+            free = np.flatnonzero(~used)
+            chi2, ok = pair_chi2(
+                rays,
+                free,
+                np.broadcast_to(x, (free.size, 3)),
+                np.broadcast_to(cov, (free.size, 3, 3)),
+                white,
+                gate,
+            )
+            hit = ok & (chi2 <= gate.chi2_gate)
+            members = _best_per_image(free[hit], chi2[hit], rays.image)
+            if members.size < 2:
+                break
+            x, cov = triangulate(rays.take(members))
+        if members.size < cfg.min_rays or np.unique(rays.image[members]).size < cfg.min_images:
+            continue
+        sub = rays.take(members)
+        ranged = int(((sub.range_m > 0) & (sub.sigma_range_m > 0)).sum())
+        if bearing_spread(sub, x) < cfg.min_parallax_rad and ranged < cfg.min_ranged:
+            continue
+        if not np.all(np.isfinite(x)) or np.linalg.cond(np.linalg.pinv(cov)) > cfg.max_cond:
+            continue
+        used[members] = True
+        out.append(Candidate(x, cov, members))
+    return out

@@ -1,0 +1,323 @@
+"""Matcher: the single writer of landmark identities for its region.
+
+Per obs entry (one upload's rays for one tile, in order; see :mod:`hdmap.stage`):
+
+1. rays into the tile's ENU frame; candidate landmarks of the same classes from
+   the tile and its 8 neighbours (so a sign near a border is one landmark);
+2. :func:`hdmap.association.associate`: gate, per-pass offset, per-image assignment;
+3. unmatched rays join the pending pool; the pass's pending rays (this tile and
+   its neighbours) may form candidate landmarks (:mod:`hdmap.initiation`); then
+   pending rays of other passes are offered to the new landmarks;
+4. matched rays update the matcher's own gating sums (the same estimator as the
+   solver, so gating is deterministic given the input order), and one
+   :class:`schemas.AssocGroup` per landmark home tile goes to the assoc log.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hdmap.association import Association, GateConfig, LocalRays, associate
+from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.geodesy import GEODESY
+from hdmap.initiation import InitConfig, propose
+from hdmap.stage import StageService
+from hdmap.store import transaction
+from hdmap.tiles import TileFrames, in_region, neighbours, quadkeys_of
+from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
+from services.matcher.state import Landmark, MatcherState, pass_key
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MatcherConfig:
+    gate: GateConfig = field(default_factory=GateConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    pending_ttl_s: float = 3600.0
+    """Unmatched rays older than this are dropped (counted as expired)."""
+
+
+def to_local(frame, obs: Observations) -> LocalRays:
+    """Wire observations -> rays in a tile's ENU frame."""
+    return LocalRays(
+        origin=frame.from_geodetic(obs.lat, obs.lon, obs.h),
+        direction=frame.vectors_from_enu_at(obs.direction, obs.lat, obs.lon),
+        sigma_az=obs.sigma_az,
+        sigma_el=obs.sigma_el,
+        sigma_pos_h=obs.sigma_pos_h,
+        sigma_pos_v=obs.sigma_pos_v,
+        range_m=obs.range_m,
+        sigma_range_m=obs.sigma_range_m,
+        image=obs.image.astype(np.int64),
+        sign_class=obs.sign_class.astype(np.int64),
+    )
+
+
+def to_rays(r: LocalRays) -> Rays:
+    return Rays(r.origin, r.direction, r.sigma_az, r.sigma_el, r.sigma_pos_h, r.sigma_pos_v)
+
+
+@dataclass
+class _Out:
+    """Assoc output being built for one home tile during one apply."""
+
+    vehicles: list[str] = field(default_factory=list)
+    links: list[tuple[int, int, int]] = field(default_factory=list)
+    obs: list[Observations] = field(default_factory=list)
+    created: list[tuple[int, int, float, float, float]] = field(default_factory=list)
+
+    def vehicle_index(self, v: str) -> int:
+        if v not in self.vehicles:
+            self.vehicles.append(v)
+        return self.vehicles.index(v)
+
+
+class MatcherService(StageService):
+    name = "matcher"
+    input_stage = "obs"
+    upstream = "ingest"
+    output_stage = "assoc"
+
+    def __init__(self, opts, config: MatcherConfig | None = None):
+        super().__init__(opts)
+        self.config = config or MatcherConfig()
+        self.frames = TileFrames()
+        self.sums = LandmarkSums(self.config.estimator)
+        self.state = MatcherState(self.db)
+        self._reload()
+        self._out: dict[str, _Out] = {}
+        self._counts: dict[str, float] = {}
+        self._snapshot_counts()
+
+    # -- transaction participants: on failure, memory is rebuilt from the database --------
+
+    def _reload(self) -> None:
+        self.sums = LandmarkSums(self.config.estimator)
+        self.state.load(self.sums.unpack_rows)
+
+    def on_commit(self) -> None:
+        pass
+
+    def on_rollback(self) -> None:
+        self._reload()
+
+    def participants(self) -> list:
+        return [self]
+
+    def setup(self) -> None:
+        super().setup()
+        self.every(60.0, lambda _now: self.expire())
+
+    # -- apply -----------------------------------------------------------------------------
+
+    def apply(self, entries: list[LogEntry]) -> None:
+        self._out = defaultdict(_Out)
+        for e in entries:
+            try:
+                group = ObsGroup.from_bytes(e.body)
+            except DecodeError as exc:
+                self.reject(f"obs.{exc.field}")
+                continue
+            self._unit(e.tile, group)
+        for home, out in sorted(self._out.items()):
+            self.emit(home, self._assoc_body(out))
+        self.state.save(self.sums.pack_row)
+
+    def _unit(self, tile: str, g: ObsGroup) -> None:
+        frame = self.frames(tile)
+        rays = to_local(frame, g.obs)
+        area = [tile, *neighbours(tile)]
+        cands = self.state.near(area)
+        matched = np.full(len(rays), -1, np.int64)
+        if cands:
+            x = frame.from_ecef(np.array([c.x for c in cands]))
+            cov = np.array([c.cov for c in cands])
+            cls = np.array([c.cls for c in cands], np.int64)
+            res: Association = associate(rays, x, cov, cls, self.config.gate)
+            matched = res.landmark
+        hit = matched >= 0
+        self.count("received", len(rays))
+        self.count("associated", int(hit.sum()))
+        touched: set[int] = set()
+        for i in np.flatnonzero(hit):
+            touched.add(cands[matched[i]].id)
+        self._link(g.obs.take(hit), [cands[k] for k in matched[hit]], g.vehicle_id, g.pass_id)
+        self.state.add_pending(tile, g.obs.take(~hit), g.vehicle_id, g.pass_id, time.time())
+        touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id)
+        self._refresh(sorted(touched))
+
+    def _link(self, obs: Observations, lms: list[Landmark], vehicle: str, pass_id: int) -> None:
+        """Record associations: gating sums now, assoc output per home tile."""
+        if not len(obs):
+            return
+        key = pass_key(vehicle, pass_id)
+        by_home: dict[str, list[int]] = defaultdict(list)
+        for k, lm in enumerate(lms):
+            by_home[lm.home].append(k)
+        for home, idx in sorted(by_home.items()):
+            sel = np.array(idx)
+            sub = obs.take(sel)
+            local = to_local(self.frames(home), sub)
+            rows = np.array([lms[k].row for k in idx], np.int64)
+            self.sums.accumulate(rows, np.full(len(idx), key, np.int64), to_rays(local))
+            out = self._out[home]
+            vi = out.vehicle_index(vehicle)
+            out.links += [(lms[k].id, vi, pass_id) for k in idx]
+            out.obs.append(sub)
+
+    def _initiate(self, tile: str, area: list[str], vehicle: str, pass_id: int) -> set[int]:
+        """Candidate landmarks from this pass's pending rays around ``tile``."""
+        frame = self.frames(tile)
+        pools = [(t, self.state.pending[t]) for t in area if t in self.state.pending]
+        parts, where = [], []
+        for t, p in pools:
+            mine = np.array([v == vehicle for v in p.vehicle], bool) & (p.pass_id == pass_id)
+            if mine.any():
+                parts.append(p.obs.take(mine))
+                where += [(t, int(i)) for i in np.flatnonzero(mine)]
+        if not parts:
+            return set()
+        obs = Observations.concat(parts)
+        rays = to_local(frame, obs)
+        created: set[int] = set()
+        used = np.zeros(len(rays), bool)
+        for cls in np.unique(rays.sign_class):
+            idx = np.flatnonzero(rays.sign_class == cls)
+            for cand in propose(rays.take(idx), self.config.gate, self.config.init):
+                members = idx[cand.members]
+                lat, lon, h = frame.to_geodetic(cand.x[None])
+                home_tile = str(quadkeys_of(lat, lon, self.opts.zoom)[0])
+                if not in_region(home_tile, self.region):
+                    home_tile = tile
+                lm = self._create(home_tile, int(cls), frame.to_ecef(cand.x[None])[0], cand.cov)
+                out = self._out[lm.home]
+                out.created.append((lm.id, int(cls), float(lat[0]), float(lon[0]), float(h[0])))
+                self._link(obs.take(members), [lm] * len(members), vehicle, pass_id)
+                used[members] = True
+                created.add(lm.id)
+        self._drop_used(where, used)
+        if created:
+            self.count("created", len(created))
+            self._adopt(area, [self.state.landmarks[i] for i in sorted(created)])
+        return created
+
+    def _create(self, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray) -> Landmark:
+        lid = self.state.next_id(home)
+        frame = self.frames(home)
+        row = int(self.sums.new_rows(1, frame.from_ecef(x_ecef[None]))[0])
+        bias = self.config.gate.pass_bias_sigma_m
+        gate_cov = cov + np.diag([bias**2, bias**2, self.config.gate.vertical_bias_sigma_m**2])
+        lm = Landmark(lid, cls, home, self._tile_of(x_ecef), x_ecef, gate_cov, row, time.time())
+        self.state.put(lm)
+        return lm
+
+    def _adopt(self, area: list[str], new: list[Landmark]) -> None:
+        """Offer pending rays of other passes to freshly created landmarks."""
+        for t in area:
+            p = self.state.pending.get(t)
+            if p is None or not len(p):
+                continue
+            frame = self.frames(t)
+            x = frame.from_ecef(np.array([c.x for c in new]))
+            cov = np.array([c.cov for c in new])
+            cls = np.array([c.cls for c in new], np.int64)
+            groups: dict[tuple[str, int], list[int]] = defaultdict(list)
+            for i, (v, pid) in enumerate(zip(p.vehicle, p.pass_id.tolist(), strict=True)):
+                groups[(v, pid)].append(i)
+            take = np.zeros(len(p), bool)
+            links: list[tuple[np.ndarray, np.ndarray, str, int]] = []
+            for (v, pid), idx in sorted(groups.items()):
+                sel = np.array(idx)
+                res = associate(to_local(frame, p.obs.take(sel)), x, cov, cls, self.config.gate)
+                hit = res.landmark >= 0
+                if hit.any():
+                    take[sel[hit]] = True
+                    links.append((sel[hit], res.landmark[hit], v, pid))
+            for sel, lmi, v, pid in links:
+                self._link(p.obs.take(sel), [new[k] for k in lmi], v, pid)
+                self.count("adopted", len(sel))
+            self.state.drop_pending(t, take)
+
+    def _drop_used(self, where: list[tuple[str, int]], used: np.ndarray) -> None:
+        by_tile: dict[str, list[int]] = defaultdict(list)
+        for (t, i), u in zip(where, used, strict=True):
+            if u:
+                by_tile[t].append(i)
+        for t, idx in by_tile.items():
+            mask = np.zeros(len(self.state.pending[t]), bool)
+            mask[idx] = True
+            self.state.drop_pending(t, mask)
+
+    def _refresh(self, ids: list[int]) -> None:
+        """Re-solve touched landmarks' gating estimates (vectorised over them)."""
+        if not ids:
+            return
+        lms = [self.state.landmarks[i] for i in ids]
+        sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64))
+        for k, lm in enumerate(lms):
+            if not sol.ok[k]:
+                continue
+            frame = self.frames(lm.home)
+            lm.x = frame.to_ecef(sol.x[k][None])[0]
+            lm.cov = sol.cov[k]
+            lm.tile = self._tile_of(lm.x)
+        for lm in lms:
+            self.state.put(lm)
+
+    def _tile_of(self, x_ecef: np.ndarray) -> str:
+        lat, lon, _ = GEODESY.to_geodetic(x_ecef[None])
+        return str(quadkeys_of(lat, lon, self.opts.zoom)[0])
+
+    def _assoc_body(self, out: _Out) -> bytes:
+        links = np.array(out.links, dtype=np.uint64).reshape(-1, 3)
+        created = out.created
+        return AssocGroup(
+            vehicles=out.vehicles,
+            links=Links(links[:, 0], links[:, 1].astype(np.uint32), links[:, 2]),
+            obs=Observations.concat(out.obs),
+            created=NewLandmarks(
+                id=np.array([c[0] for c in created], np.uint64),
+                sign_class=np.array([c[1] for c in created], np.uint16),
+                lat=np.array([c[2] for c in created], float),
+                lon=np.array([c[3] for c in created], float),
+                h=np.array([c[4] for c in created], float),
+            ),
+        ).to_bytes()
+
+    # -- timers and stats -----------------------------------------------------------------------
+
+    def expire(self) -> None:
+        cutoff = time.time() - self.config.pending_ttl_s
+        n = 0
+        for t, p in list(self.state.pending.items()):
+            old = p.added_at < cutoff
+            if old.any():
+                self.state.drop_pending(t, old)
+                n += int(old.sum())
+        if n:
+            with transaction(self.db, [self]):
+                self.state.save(self.sums.pack_row)
+            self.count("expired", n)
+        self._snapshot_counts()
+
+    def after_commit(self) -> None:
+        self._snapshot_counts()
+
+    def _snapshot_counts(self) -> None:
+        """Counts for the stats thread, taken on the worker thread."""
+        self._counts = {
+            "landmarks": len(self.state.landmarks),
+            "pending": self.state.pending_count(),
+        }
+
+    def extra_counters(self) -> dict[str, float]:
+        out = super().extra_counters()
+        out.update(self._counts)
+        return out

@@ -1,0 +1,251 @@
+"""The matcher's state: landmark identities with gating estimates, and the pending pool.
+
+In memory as numpy struct-of-arrays; in SQLite as one row per landmark and one per
+pending ray, rewritten for what each transaction touched. ``load`` rebuilds the
+memory from the database (start, or after a failed transaction).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sqlite3
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hdmap.store import i64_to_u64, u64_to_i64
+from hdmap.tiles import tile_id
+from schemas import Observations
+
+_REC = Observations.CODEC.record_dtype
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS landmarks (
+    id INTEGER PRIMARY KEY, cls INTEGER NOT NULL, home TEXT NOT NULL, tile TEXT NOT NULL,
+    x BLOB NOT NULL, cov BLOB NOT NULL, sums BLOB NOT NULL, created_at REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS pending (
+    vehicle TEXT NOT NULL, obs_id INTEGER NOT NULL, pass_id INTEGER NOT NULL,
+    tile TEXT NOT NULL, added_at REAL NOT NULL, rec BLOB NOT NULL,
+    PRIMARY KEY (vehicle, obs_id)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS id_counters (tile TEXT PRIMARY KEY, n INTEGER NOT NULL) WITHOUT ROWID;
+"""
+
+COUNTER_BITS = 24
+
+
+def landmark_id(home_tile: str, counter: int) -> int:
+    """A landmark id embeds its creation tile: (quadkey as base-4 int) << 24 | counter.
+
+    >>> hex(landmark_id('0123', 5))
+    '0x1b000005'
+    """
+    if not 0 < counter < (1 << COUNTER_BITS):
+        raise ValueError("landmark counter out of range for its tile")
+    return (tile_id(home_tile) << COUNTER_BITS) | counter
+
+
+def pass_key(vehicle: str, pass_id: int) -> int:
+    """Stable 63-bit cluster key of (vehicle, pass), the same in every process.
+
+    >>> pass_key("veh-1", 7) == pass_key("veh-1", 7) != pass_key("veh-1", 8)
+    True
+    """
+    h = hashlib.blake2b(f"{vehicle}\x00{pass_id}".encode(), digest_size=8).digest()
+    return int.from_bytes(h, "little") & ((1 << 63) - 1)
+
+
+@dataclass
+class Landmark:
+    """One landmark's matcher-side record (the numeric state lives in the sums row)."""
+
+    id: int
+    cls: int
+    home: str
+    tile: str
+    x: np.ndarray
+    """Gating position, ECEF metres."""
+    cov: np.ndarray
+    """Gating covariance, local ENU, m^2."""
+    row: int
+    created_at: float
+
+
+@dataclass
+class PendingTile:
+    """Rays routed to one tile that wait for a landmark (columnar)."""
+
+    obs: Observations = field(default_factory=Observations.empty)
+    vehicle: list[str] = field(default_factory=list)
+    pass_id: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    added_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+
+    def __len__(self) -> int:
+        return len(self.obs)
+
+    def add(self, obs: Observations, vehicle: str, pass_id: int, now: float) -> None:
+        self.obs = Observations.concat([self.obs, obs])
+        self.vehicle += [vehicle] * len(obs)
+        self.pass_id = np.r_[self.pass_id, np.full(len(obs), pass_id, np.int64)]
+        self.added_at = np.r_[self.added_at, np.full(len(obs), now)]
+
+    def keep(self, mask: NDArray[np.bool_]) -> None:
+        self.obs = self.obs.take(mask)
+        self.vehicle = [v for v, k in zip(self.vehicle, mask, strict=True) if k]
+        self.pass_id = self.pass_id[mask]
+        self.added_at = self.added_at[mask]
+
+
+class MatcherState:
+    """Landmarks (by id, by tile) and pending rays (by tile), with their persistence."""
+
+    def __init__(self, conn: sqlite3.Connection):
+        self._conn = conn
+        conn.executescript(SCHEMA)
+        self.landmarks: dict[int, Landmark] = {}
+        self.by_tile: dict[str, set[int]] = defaultdict(set)
+        self.pending: dict[str, PendingTile] = defaultdict(PendingTile)
+        self.counters: dict[str, int] = {}
+        self._dirty: set[int] = set()
+        self._pending_dirty: set[str] = set()
+        self._removed_pending: list[tuple[str, int]] = []
+
+    # -- landmarks ------------------------------------------------------------------------
+
+    def next_id(self, home: str) -> int:
+        n = self.counters.get(home, 0) + 1
+        self.counters[home] = n
+        self._conn.execute("INSERT OR REPLACE INTO id_counters(tile, n) VALUES (?, ?)", (home, n))
+        return landmark_id(home, n)
+
+    def put(self, lm: Landmark) -> None:
+        old = self.landmarks.get(lm.id)
+        if old is not None and old.tile != lm.tile:
+            self.by_tile[old.tile].discard(lm.id)
+        self.landmarks[lm.id] = lm
+        self.by_tile[lm.tile].add(lm.id)
+        self._dirty.add(lm.id)
+
+    def near(self, tiles: list[str]) -> list[Landmark]:
+        ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))
+        return [self.landmarks[i] for i in ids]
+
+    # -- pending ----------------------------------------------------------------------------
+
+    def add_pending(
+        self, tile: str, obs: Observations, vehicle: str, pass_id: int, now: float
+    ) -> None:
+        if len(obs):
+            self.pending[tile].add(obs, vehicle, pass_id, now)
+            self._pending_dirty.add(tile)
+
+    def drop_pending(self, tile: str, mask_remove: NDArray[np.bool_]) -> None:
+        if not mask_remove.any():
+            return
+        p = self.pending[tile]
+        ids = u64_to_i64(p.obs.obs_id[mask_remove]).tolist()
+        vehicles = [v for v, k in zip(p.vehicle, mask_remove, strict=True) if k]
+        self._removed_pending += list(zip(vehicles, ids, strict=True))
+        p.keep(~mask_remove)
+        self._pending_dirty.add(tile)
+
+    def pending_count(self) -> int:
+        return sum(len(p) for p in self.pending.values())
+
+    # -- persistence --------------------------------------------------------------------------
+
+    def save(self, pack_row) -> None:
+        """Write what changed (inside the caller's transaction)."""
+        c = self._conn
+        rows = []
+        for lid in sorted(self._dirty):
+            lm = self.landmarks[lid]
+            rows.append(
+                (
+                    int(u64_to_i64(np.array([lid], np.uint64))[0]),
+                    lm.cls,
+                    lm.home,
+                    lm.tile,
+                    np.asarray(lm.x, "<f8").tobytes(),
+                    np.asarray(lm.cov, "<f8").tobytes(),
+                    pack_row(lm.row),
+                    lm.created_at,
+                )
+            )
+        c.executemany(
+            "INSERT OR REPLACE INTO landmarks(id, cls, home, tile, x, cov, sums, created_at) "
+            "VALUES (?,?,?,?,?,?,?,?)",
+            rows,
+        )
+        c.executemany("DELETE FROM pending WHERE vehicle=? AND obs_id=?", self._removed_pending)
+        for tile in sorted(self._pending_dirty):
+            p = self.pending.get(tile)
+            if p is None or not len(p):
+                continue
+            rec = Observations.CODEC.to_records(p.obs)
+            ids = u64_to_i64(p.obs.obs_id).tolist()
+            c.executemany(
+                "INSERT OR IGNORE INTO pending(vehicle, obs_id, pass_id, tile, added_at, rec) "
+                "VALUES (?,?,?,?,?,?)",
+                [
+                    (
+                        p.vehicle[i],
+                        ids[i],
+                        int(p.pass_id[i]),
+                        tile,
+                        float(p.added_at[i]),
+                        rec[i].tobytes(),
+                    )
+                    for i in range(len(p))
+                ],
+            )
+        self.clear_marks()
+
+    def clear_marks(self) -> None:
+        self._dirty.clear()
+        self._pending_dirty.clear()
+        self._removed_pending = []
+
+    def load(self, unpack_rows) -> None:
+        """Rebuild memory from SQLite; ``unpack_rows(blobs) -> rows`` restores the sums."""
+        c = self._conn
+        self.landmarks.clear()
+        self.by_tile.clear()
+        self.pending.clear()
+        self.clear_marks()
+        self.counters = dict(c.execute("SELECT tile, n FROM id_counters").fetchall())
+        rows = c.execute(
+            "SELECT id, cls, home, tile, x, cov, sums, created_at FROM landmarks ORDER BY id"
+        ).fetchall()
+        sums_rows = unpack_rows([r[6] for r in rows]) if rows else []
+        for r, srow in zip(rows, sums_rows, strict=True):
+            lid = int(i64_to_u64(np.array([r[0]], np.int64))[0])
+            lm = Landmark(
+                lid,
+                int(r[1]),
+                r[2],
+                r[3],
+                np.frombuffer(r[4], "<f8").copy(),
+                np.frombuffer(r[5], "<f8").reshape(3, 3).copy(),
+                int(srow),
+                float(r[7]),
+            )
+            self.landmarks[lid] = lm
+            self.by_tile[lm.tile].add(lid)
+        prow = c.execute(
+            "SELECT tile, vehicle, pass_id, added_at, rec FROM pending "
+            "ORDER BY tile, added_at, vehicle, obs_id"
+        ).fetchall()
+        by: dict[str, list] = defaultdict(list)
+        for t, v, pid, at, rec in prow:
+            by[t].append((v, pid, at, rec))
+        for t, items in by.items():
+            recs = np.frombuffer(b"".join(i[3] for i in items), dtype=_REC)
+            self.pending[t] = PendingTile(
+                Observations.CODEC.from_records(recs),
+                [i[0] for i in items],
+                np.array([i[1] for i in items], np.int64),
+                np.array([i[2] for i in items], float),
+            )
+        self.clear_marks()

@@ -1,0 +1,77 @@
+"""The solver's per-landmark records and their persistence (sums rows live in the estimator)."""
+
+from __future__ import annotations
+
+import sqlite3
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdmap.store import i64_to_u64, u64_to_i64
+from services.matcher.state import COUNTER_BITS
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS landmarks (
+    id INTEGER PRIMARY KEY, cls INTEGER NOT NULL, home TEXT NOT NULL, tile TEXT NOT NULL,
+    revision INTEGER NOT NULL, sums BLOB NOT NULL);
+"""
+
+
+@dataclass
+class SolverLandmark:
+    id: int
+    cls: int
+    home: str
+    row: int
+    tile: str = ""
+    """Tile it was last published in ('' = never published)."""
+    revision: int = 0
+
+
+def _i64(v: int) -> int:
+    return int(u64_to_i64(np.array([v], np.uint64))[0])
+
+
+class SolverState:
+    def __init__(self, conn: sqlite3.Connection):
+        self._conn = conn
+        conn.executescript(SCHEMA)
+        self.landmarks: dict[int, SolverLandmark] = {}
+        self._dirty: set[int] = set()
+
+    @staticmethod
+    def home_of(landmark_id: int, zoom: int) -> str:
+        """The creation tile embedded in a landmark id (see services.matcher.state)."""
+        q = landmark_id >> COUNTER_BITS
+        digits = []
+        for _ in range(zoom):
+            digits.append(str(q & 3))
+            q >>= 2
+        return "".join(reversed(digits))
+
+    def put(self, lm: SolverLandmark) -> None:
+        self.landmarks[lm.id] = lm
+        self._dirty.add(lm.id)
+
+    def save(self, pack_row) -> None:
+        self._conn.executemany(
+            "INSERT OR REPLACE INTO landmarks(id, cls, home, tile, revision, sums) "
+            "VALUES (?,?,?,?,?,?)",
+            [
+                (_i64(i), lm.cls, lm.home, lm.tile, lm.revision, pack_row(lm.row))
+                for i in sorted(self._dirty)
+                for lm in (self.landmarks[i],)
+            ],
+        )
+        self._dirty.clear()
+
+    def load(self, unpack_rows) -> None:
+        self.landmarks.clear()
+        self._dirty.clear()
+        rows = self._conn.execute(
+            "SELECT id, cls, home, tile, revision, sums FROM landmarks ORDER BY id"
+        ).fetchall()
+        srows = unpack_rows([r[5] for r in rows]) if rows else []
+        for r, srow in zip(rows, srows, strict=True):
+            lid = int(i64_to_u64(np.array([r[0]], np.int64))[0])
+            self.landmarks[lid] = SolverLandmark(lid, int(r[1]), r[2], int(srow), r[3], int(r[4]))
