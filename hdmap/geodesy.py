@@ -47,9 +47,10 @@ class Geodesy:
 
     def to_ecef(self, lat: ArrayLike, lon: ArrayLike, h: ArrayLike) -> Array:
         """Geodetic (deg, deg, m) -> ECEF (..., 3) metres."""
-        x, y, z = self._tr.transform(
+        lo, la, hh = np.broadcast_arrays(
             np.asarray(lon, float), np.asarray(lat, float), np.asarray(h, float)
         )
+        x, y, z = self._tr.transform(lo, la, hh)
         return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
 
     def to_geodetic(self, ecef: ArrayLike) -> tuple[Array, Array, Array]:

@@ -136,6 +136,7 @@ class StageService(Service):
             self._outbox = []
             return
         self.count("entries_applied", len(entries))
+        self.count("log_entries", len(self._outbox))
         for e in self._outbox:
             self.pubs.put(STAGE_KEYS[e.stage](e.tile), e.to_bytes())
         self._outbox = []

@@ -39,12 +39,17 @@ def quadkey_of(lat: float, lon: float, zoom: int = DEFAULT_ZOOM) -> str:
 
 def tile_xy(lat: ArrayLike, lon: ArrayLike, zoom: int = DEFAULT_ZOOM):
     """Vectorised ``mercantile.tile``: (x, y) integer arrays at ``zoom``."""
-    la = np.clip(np.asarray(lat, float), -MAX_LAT, MAX_LAT)
+    la = np.asarray(lat, float)
     lo = np.asarray(lon, float)
     n = 1 << zoom
-    x = np.floor((lo + 180.0) / 360.0 * n)
+    eps = 1e-14  # exactly as mercantile.tile, so both agree on points at a tile edge
+    fx = lo / 360.0 + 0.5
     s = np.sin(np.radians(la))
-    y = np.floor((0.5 - 0.25 * np.log((1.0 + s) / (1.0 - s)) / np.pi) * n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fy = 0.5 - 0.25 * np.log((1.0 + s) / (1.0 - s)) / np.pi
+    fy = np.nan_to_num(fy, nan=0.0, posinf=1.0, neginf=0.0)
+    x = np.where(fx <= 0, 0, np.where(fx >= 1, n - 1, np.floor((fx + eps) * n)))
+    y = np.where(fy <= 0, 0, np.where(fy >= 1, n - 1, np.floor((fy + eps) * n)))
     return np.clip(x, 0, n - 1).astype(np.int64), np.clip(y, 0, n - 1).astype(np.int64)
 
 
@@ -109,7 +114,7 @@ def neighbours(qk: str) -> list[str]:
 
 def tiles_around(lat: float, lon: float, radius_m: float, zoom: int = DEFAULT_ZOOM) -> list[str]:
     """Quadkeys of the tiles touching a square of half-side ``radius_m`` around a point."""
-    dlat = radius_m / 111_320.0
+    dlat = radius_m / 110_574.0  # shortest metres per degree of latitude (equator)
     dlon = radius_m / (111_320.0 * max(np.cos(np.radians(lat)), 1e-6))
     west, east = lon - dlon, lon + dlon
     south, north = max(lat - dlat, -MAX_LAT), min(lat + dlat, MAX_LAT)

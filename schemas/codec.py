@@ -90,7 +90,7 @@ def check_envelope(m: Mapping[str, Any], expected_type: str) -> None:
 
 # --- scalar header fields -----------------------------------------------------------
 
-_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+_ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 U64_MAX = (1 << 64) - 1
 
 
@@ -113,7 +113,10 @@ def get_float(
     v = m[name]
     if not isinstance(v, int | float) or isinstance(v, bool):
         raise DecodeError(name, f"expected a number, got {type(v).__name__}")
-    v = float(v)
+    try:
+        v = float(v)
+    except OverflowError:
+        raise DecodeError(name, "out of range") from None
     if not math.isfinite(v):
         raise DecodeError(name, "not finite")
     if not lo <= v <= hi:
@@ -121,15 +124,25 @@ def get_float(
     return v
 
 
-def get_str(m: Mapping[str, Any], name: str, pattern: re.Pattern[str] = _ID_RE) -> str:
+def get_str(
+    m: Mapping[str, Any],
+    name: str,
+    pattern: re.Pattern[str] = _ID_RE,
+    expected: str = "1-64 characters of [A-Za-z0-9_.-]",
+) -> str:
     if name not in m:
         raise DecodeError(name, "missing")
     v = m[name]
     if not isinstance(v, str):
         raise DecodeError(name, f"expected a string, got {type(v).__name__}")
-    if not pattern.match(v):
-        raise DecodeError(name, f"{v[:80]!r} is not 1-64 characters of [A-Za-z0-9_.-]")
+    if not pattern.fullmatch(v):
+        raise DecodeError(name, f"{v[:80]!r} is not {expected}")
     return v
+
+
+def valid_id(v: object) -> bool:
+    """Whether ``v`` is an identifier as vehicle ids and producer names must be."""
+    return isinstance(v, str) and _ID_RE.fullmatch(v) is not None
 
 
 def get_bytes(m: Mapping[str, Any], name: str) -> bytes:
@@ -306,8 +319,10 @@ class TableCodec:
     def record_dtype(self) -> np.dtype:
         """A packed numpy structured dtype with one field per column (for row storage)."""
         return np.dtype(
-            [(n, np.dtype(c.dtype).newbyteorder("<"), (c.width,) if c.width > 1 else ())
-             for n, c in self.cols]
+            [
+                (n, np.dtype(c.dtype).newbyteorder("<"), (c.width,) if c.width > 1 else ())
+                for n, c in self.cols
+            ]
         )
 
     def to_records(self, obj: Any) -> np.ndarray:

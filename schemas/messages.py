@@ -33,6 +33,7 @@ from schemas.codec import (
     pack,
     table,
     unpack,
+    valid_id,
 )
 
 MAX_BATCH = 10_000
@@ -40,9 +41,12 @@ MAX_BATCH = 10_000
 MAX_TABLE_ROWS = 1_000_000
 """Upper bound on rows in internal tables (log entries, snapshots)."""
 
-_TILE_RE = re.compile(r"^[0-3]{1,24}$")
-_STAGE_RE = re.compile(r"^(obs|assoc|update)$")
-_REASON_RE = re.compile(r"^.{1,200}$", re.S)
+_TILE_RE = re.compile(r"[0-3]{1,24}")
+_STAGE_RE = re.compile(r"obs|assoc|update")
+_REASON_RE = re.compile(r".{1,200}", re.S)
+_TILE = "a quadkey (1-24 digits 0-3)"
+_STAGE = "one of obs, assoc, update"
+_TEXT = "1-200 characters"
 _FLOAT_EPOCH_MAX = 4.1e9  # year 2100
 
 
@@ -117,7 +121,7 @@ STATUS_CANDIDATE, STATUS_CONFIRMED, STATUS_RETIRED = 0, 1, 2
 
 
 def _table(m: dict, name: str, cls: type, max_rows: int, strict: bool = True) -> Any:
-    n = get_int(m, f"n_{name}" if f"n_{name}" in m else "n", 0, max_rows)
+    n = get_int(m, f"n_{name}", 0, max_rows)
     return cls.CODEC.decode(get_map(m, name), n, name, strict=strict)
 
 
@@ -282,6 +286,8 @@ class UploadAck(Message):
                 or not 0 <= r[0] < 2**64
                 or not isinstance(r[1], str)
                 or not isinstance(r[2], str)
+                or not 0 < len(r[1]) <= 200
+                or not 0 < len(r[2]) <= 200
             ):
                 raise DecodeError("rejected", "expected [obs_id, field, reason]", i)
             rejected.append(Rejection(r[0], r[1], r[2]))
@@ -294,7 +300,8 @@ class UploadAck(Message):
             if not isinstance(f, str) or not isinstance(why, str):
                 raise DecodeError("error", "expected field and reason strings")
             idx = err.get("index")
-            error = DecodeError(f, why, idx if isinstance(idx, int) else None)
+            ok_idx = isinstance(idx, int) and not isinstance(idx, bool) and idx >= 0
+            error = DecodeError(f, why, idx if ok_idx else None)
         return cls(
             vehicle_id=get_str(m, "vehicle_id"),
             batch_id=get_int(m, "batch_id"),
@@ -340,9 +347,9 @@ class LogEntry(Message):
     def from_bytes(cls, data: bytes) -> LogEntry:
         m = cls._open(data)
         return cls(
-            stage=get_str(m, "stage", _STAGE_RE),
+            stage=get_str(m, "stage", _STAGE_RE, _STAGE),
             producer=get_str(m, "producer"),
-            tile=get_str(m, "tile", _TILE_RE),
+            tile=get_str(m, "tile", _TILE_RE, _TILE),
             seq=get_int(m, "seq", 1),
             gseq=get_int(m, "gseq", 1),
             body=get_bytes(m, "body"),
@@ -374,18 +381,26 @@ class LogQuery(Message):
     def from_bytes(cls, data: bytes) -> LogQuery:
         m = cls._open(data)
         offsets = get_map(m, "offsets")
+        if len(offsets) > 10_000:
+            raise DecodeError("offsets", f"{len(offsets)} producers exceeds the limit of 10000")
         for p, tiles in offsets.items():
-            if not isinstance(p, str) or not isinstance(tiles, dict):
-                raise DecodeError("offsets", "expected producer -> {tile: seq}")
+            if not valid_id(p) or not isinstance(tiles, dict):
+                raise DecodeError("offsets", "expected producer id -> {tile: seq}")
             for t, s in tiles.items():
-                if not isinstance(t, str) or not isinstance(s, int) or isinstance(s, bool) or s < 0:
-                    raise DecodeError(f"offsets.{p}", "expected tile -> non-negative seq")
+                if (
+                    not isinstance(t, str)
+                    or not _TILE_RE.fullmatch(t)
+                    or not isinstance(s, int)
+                    or isinstance(s, bool)
+                    or not 0 <= s < 2**63
+                ):
+                    raise DecodeError(f"offsets.{p}", "expected quadkey -> non-negative seq")
         prefixes = get_list(m, "prefixes", 10_000)
         for i, p in enumerate(prefixes):
-            if not isinstance(p, str) or (p and not _TILE_RE.match(p)):
+            if not isinstance(p, str) or (p and not _TILE_RE.fullmatch(p)):
                 raise DecodeError("prefixes", "expected quadkey prefixes", i)
         return cls(
-            stage=get_str(m, "stage", _STAGE_RE),
+            stage=get_str(m, "stage", _STAGE_RE, _STAGE),
             offsets=offsets,
             prefixes=prefixes,
             limit=get_int(m, "limit", 1, 100_000),
@@ -525,7 +540,7 @@ class MapDelta(Message):
         if to <= frm:
             raise DecodeError("to_version", f"{to} is not after from_version {frm}")
         return cls(
-            tile=get_str(m, "tile", _TILE_RE),
+            tile=get_str(m, "tile", _TILE_RE, _TILE),
             from_version=frm,
             to_version=to,
             published_at=get_float(m, "published_at", 0.0, _FLOAT_EPOCH_MAX),
@@ -552,7 +567,7 @@ class MapSnapshot(Message):
     def from_bytes(cls, data: bytes) -> MapSnapshot:
         m = cls._open(data)
         return cls(
-            tile=get_str(m, "tile", _TILE_RE),
+            tile=get_str(m, "tile", _TILE_RE, _TILE),
             version=get_int(m, "version"),
             landmarks=_table(m, "landmarks", Landmarks, MAX_TABLE_ROWS),
         )
@@ -583,7 +598,7 @@ class ErrorReply(Message):
     @classmethod
     def of(cls, exc: DecodeError, code: str = "bad_request") -> ErrorReply:
         where = exc.field if exc.index is None else f"{exc.field}[{exc.index}]"
-        return cls(code, where, exc.reason[:200])
+        return cls(code, where[:200] or "message", exc.reason[:200] or "invalid")
 
 
 @dataclass(frozen=True, eq=False)
@@ -614,10 +629,17 @@ class Stats(Message):
         region = get_list(m, "region", 1000)
         counters = get_map(m, "counters")
         rejected = get_map(m, "rejected")
-        for name, d in (("counters", counters), ("rejected", rejected)):
-            for k, v in d.items():
-                if not isinstance(k, str) or not isinstance(v, int | float) or isinstance(v, bool):
-                    raise DecodeError(name, f"expected name -> number, got {k!r}")
+        for k, v in counters.items():
+            if (
+                not isinstance(k, str)
+                or not isinstance(v, int | float)
+                or isinstance(v, bool)
+                or not math.isfinite(v)
+            ):
+                raise DecodeError("counters", f"expected name -> finite number, got {k!r}")
+        for k, v in rejected.items():
+            if not isinstance(k, str) or not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise DecodeError("rejected", f"expected reason -> count, got {k!r}")
         if not all(isinstance(r, str) for r in region):
             raise DecodeError("region", "expected quadkey prefixes")
         return cls(

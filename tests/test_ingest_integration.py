@@ -32,7 +32,7 @@ def ingest(stack):
 
 
 def test_upload_ack_retry_and_bad_input(ingest):
-    stack, s = ingest
+    _stack, s = ingest
     seen: list[LogEntry] = []
     sub = s.declare_subscriber(
         keys.obs("*"), lambda smp: seen.append(LogEntry.from_bytes(smp.payload.to_bytes()))
