@@ -1,0 +1,130 @@
+"""Routes on the road graph and the vehicle's path along them.
+
+A route is a walk on the world's directed edges (no U-turns). Its path is the
+node polyline shifted to the right lane and with rounded corners, parametrised
+by arc length. Headings are radians clockwise from North of the world frame
+(the GNSS heading's convention, in radians).
+
+>>> from fleetsim.world import straight_road
+>>> w = straight_road()
+>>> p = Path.along(w, [0, 1])
+>>> xy, psi = p.at(np.array([0.0, 10.0]))
+>>> xy.round(3).tolist(), psi.round(6).tolist()
+([[1.75, -150.0], [1.75, -140.0]], [0.0, 0.0])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fleetsim.world import World
+
+Array = NDArray[np.float64]
+
+
+def offset_right(points: Array, offset: float) -> Array:
+    """A polyline shifted ``offset`` metres to the right of travel (mitred corners)."""
+    p = np.asarray(points, float)
+    t = np.diff(p, axis=0)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    r = np.column_stack([t[:, 1], -t[:, 0]])
+    r_in = np.vstack([r[:1], r])  # normal of the segment arriving at each vertex
+    r_out = np.vstack([r, r[-1:]])  # ... and of the one leaving it
+    miter = (r_in + r_out) / (1.0 + np.sum(r_in * r_out, axis=1, keepdims=True))
+    return p + offset * miter
+
+
+def round_corners(points: Array, radius: float, step_deg: float = 10.0) -> Array:
+    """Replace each interior vertex by a circular arc of ``radius`` (clipped to fit)."""
+    p = np.asarray(points, float)
+    out = [p[0]]
+    for k in range(1, len(p) - 1):
+        a, b, c = p[k - 1], p[k], p[k + 1]
+        u, v = b - a, c - b
+        lu, lv = np.linalg.norm(u), np.linalg.norm(v)
+        u, v = u / lu, v / lv
+        turn = np.arctan2(u[0] * v[1] - u[1] * v[0], float(u @ v))
+        if abs(turn) < 1e-6:
+            out.append(b)
+            continue
+        d = min(radius * np.tan(abs(turn) / 2.0), 0.45 * lu, 0.45 * lv)
+        r = d / np.tan(abs(turn) / 2.0)
+        start = b - u * d
+        n = np.array([-u[1], u[0]]) * np.sign(turn)  # toward the arc centre
+        centre = start + n * r
+        m = max(int(np.ceil(np.degrees(abs(turn)) / step_deg)), 1)
+        ang = np.linspace(0.0, turn, m + 1)
+        s0 = start - centre
+        cs, sn = np.cos(ang), np.sin(ang)
+        arc = centre + np.column_stack([cs * s0[0] - sn * s0[1], sn * s0[0] + cs * s0[1]])
+        out.extend(arc)
+    out.append(p[-1])
+    return np.asarray(out)
+
+
+@dataclass(frozen=True)
+class Path:
+    """A vehicle path: polyline ``points`` (K, 2) ENU m with cumulative arc length."""
+
+    points: Array
+    s: Array
+
+    @staticmethod
+    def from_points(points: Array) -> Path:
+        p = np.asarray(points, float)
+        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        keep = np.concatenate([[True], seg > 1e-9])
+        p = p[keep]
+        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        if len(p) < 2:
+            raise ValueError("a path needs two distinct points")
+        return Path(p, np.concatenate([[0.0], np.cumsum(seg)]))
+
+    @staticmethod
+    def along(world: World, route: Sequence[int], corner_radius_m: float = 7.0) -> Path:
+        """The right-lane path along a walk of node indices."""
+        pts = world.nodes[np.asarray(route, np.int64)]
+        lane = offset_right(pts, world.lane_offset_m)
+        return Path.from_points(round_corners(lane, corner_radius_m))
+
+    @property
+    def length(self) -> float:
+        return float(self.s[-1])
+
+    def at(self, s: Array) -> tuple[Array, Array]:
+        """Positions (N, 2) and headings (N,) rad clockwise from North at arc lengths ``s``."""
+        s = np.clip(np.asarray(s, float), 0.0, self.length)
+        xy = np.column_stack(
+            [np.interp(s, self.s, self.points[:, 0]), np.interp(s, self.s, self.points[:, 1])]
+        )
+        d = np.diff(self.points, axis=0)
+        ang = np.unwrap(np.arctan2(d[:, 0], d[:, 1]))
+        mid = (self.s[:-1] + self.s[1:]) / 2.0
+        psi = np.interp(s, mid, ang) if mid.size > 1 else np.full(s.shape, ang[0])
+        return xy, psi
+
+
+def random_route(
+    world: World, rng: np.random.Generator, min_length_m: float, max_edges: int = 64
+) -> list[int]:
+    """A random walk on the directed edges, without U-turns, of at least ``min_length_m``.
+
+    Stops early at a dead end (e.g. the end of a straight road).
+    """
+    e = world.edges
+    first = e[rng.integers(len(e))]
+    route = [int(first[0]), int(first[1])]
+    length = float(np.linalg.norm(world.nodes[first[1]] - world.nodes[first[0]]))
+    while length < min_length_m and len(route) <= max_edges:
+        here, prev = route[-1], route[-2]
+        nxt = e[(e[:, 0] == here) & (e[:, 1] != prev), 1]
+        if nxt.size == 0:
+            break
+        n = int(nxt[rng.integers(nxt.size)])
+        length += float(np.linalg.norm(world.nodes[n] - world.nodes[here]))
+        route.append(n)
+    return route
