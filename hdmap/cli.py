@@ -13,6 +13,7 @@ import sys
 # name -> (module, help). Modules are imported lazily so `hdmap --help` stays fast.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("hdmap.commands.demo", "run the main job on embedded defaults"),
+    "vehicle-demo": ("hdmap.commands.vehicle_demo", "the vehicle side alone: rays of one drive"),
     "router": ("hdmap.commands.router", "run a Zenoh router"),
     "service": ("hdmap.commands.service", "run one service (ingest, matcher, solver, publisher)"),
     "up": ("hdmap.commands.up", "router + one of each service, until Ctrl-C"),

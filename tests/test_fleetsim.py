@@ -317,7 +317,7 @@ def test_match_landmarks_pairs_by_class_and_distance() -> None:
 
 
 def test_demo_command_writes_png_and_json(tmp_path: Path, capsys) -> None:
-    from hdmap.commands import demo
+    from hdmap.commands import vehicle_demo as demo
 
     args = argparse.Namespace(
         out=tmp_path / "out", seed=0, town_seed=0, vehicle_config=None, max_rows=5
@@ -337,7 +337,7 @@ def test_demo_command_writes_png_and_json(tmp_path: Path, capsys) -> None:
 
 
 def test_demo_command_rejects_a_bad_vehicle_config(tmp_path: Path, capsys) -> None:
-    from hdmap.commands import demo
+    from hdmap.commands import vehicle_demo as demo
 
     bad = tmp_path / "bad.toml"
     bad.write_text("[camera]\nfx = -1\n")

@@ -1,180 +1,149 @@
-"""``hdmap demo``: the vehicle side alone, on embedded defaults.
+"""``hdmap demo``: the whole stack on embedded defaults with a simulated fleet.
 
-One simulated vehicle (FLEET noise) drives past a few signs of the demo town;
-its detections become projection lines (:func:`hdmap.geoloc.geolocate`). Prints
-a table of the rays and writes ``DIR/vehicle_rays.png`` (roads, true signs,
-camera centres, rays in local metres) and ``DIR/vehicle_rays.json`` (the same
-data). The town is fixed (``--town-seed``); ``--seed`` picks the route and noise.
+Starts a router and the four services as processes, drives a fleet through a small
+town (dozens of signs of several classes, same-class pairs a few metres apart,
+signs near tile borders; GNSS noise as in the paper by default), prints a table per
+round of passes (mean horizontal error, share of true positions inside the
+reported 95% region, landmarks found / missed / duplicated), and writes the final
+map as GeoJSON and PNGs with uncertainty ellipses, plus every number as JSON.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
+import math
 from pathlib import Path
 
-import numpy as np
-
-from fleetsim.fleet import Fleet, FleetConfig, Pass, distinct_signs_seen
-from fleetsim.noise import FLEET
-from fleetsim.plot import plot_vehicle_rays
-from fleetsim.truth import lines_in_world, ray_errors
-from fleetsim.world import World, demo_town
-from hdmap.geoloc import ProjectionLines, VehicleModel, azimuth_elevation, geolocate
-from vehicle.config import VehicleConfigError, load_vehicle_model
-
-MIN_SIGNS = 3
+from fleetsim.mapplot import plot_convergence, plot_map
+from fleetsim.town_run import NOISES, TownRunConfig, TownRunResult, run_town
+from fleetsim.truth import match_landmarks
+from hdmap.signs import CATALOG
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
-    p.add_argument("--seed", type=int, default=0, help="route and noise seed (default 0)")
-    p.add_argument("--town-seed", type=int, default=0, help="demo town layout seed (default 0)")
+    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
+    p.add_argument("--rounds", type=int, default=8, help="rounds of passes (default 8)")
+    p.add_argument("--vehicles", type=int, default=6, help="passes per round (default 6)")
     p.add_argument(
-        "--vehicle-config",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="vehicle/camera TOML (default: the packaged vehicle/default_vehicle.toml)",
+        "--noise",
+        choices=sorted(NOISES),
+        default="paper",
+        help="GNSS/detector noise model (default: the paper's)",
     )
-    p.add_argument(
-        "--max-rows", type=int, default=40, help="rays printed in the table (all go to the JSON)"
+    p.add_argument("--signs", type=int, default=40, help="signs in the town (default 40)")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def table(result: TownRunResult) -> str:
+    head = (
+        f"{'round':>5} {'passes':>6} {'per sign':>8} {'obs':>7} {'landmarks':>9} "
+        f"{'found':>5} {'missed':>6} {'dup':>4} {'false':>5} {'mean err m':>10} "
+        f"{'p95 m':>6} {'in 95%':>6}"
     )
+    lines = [head, "-" * len(head)]
+    for r in result.rows:
+        s = r.score
+        lines.append(
+            f"{r.round:>5} {r.passes:>6} {r.passes_per_sign:>8.0f} {r.observations:>7} "
+            f"{s.n_landmarks:>9} {s.found:>5} {s.missed:>6} {s.duplicated:>4} {s.false:>5} "
+            f"{s.mean_err_m:>10.2f} {s.p95_err_m:>6.2f} {s.coverage95:>6.2f}"
+        )
+    return "\n".join(lines)
 
 
-def _drive(world: World, model: VehicleModel, seed: int) -> Pass:
-    """A short pass of one vehicle that detects at least MIN_SIGNS different signs."""
-    cfg = FleetConfig(n_vehicles=1, route_length_m=(150.0, 250.0))
-    fleet = Fleet(world, model, FLEET, cfg, seed=seed)
-    return fleet.find_pass(lambda p: distinct_signs_seen(p) >= MIN_SIGNS)
-
-
-def _ray_records(world: World, p: Pass, lines: ProjectionLines, model: VehicleModel) -> list[dict]:
-    az, el = azimuth_elevation(lines.direction)
-    origin, _ = lines_in_world(lines, world)
-    err = ray_errors(lines, p.truth.sign_id, world)
-    miss = np.full(len(lines), np.nan)
-    miss[err.rows] = err.miss_m
-    cat = model.catalog
-    recs = []
-    for i in range(len(lines)):
-        recs.append(
+def geojson(result: TownRunResult) -> dict:
+    w, lm = result.world, result.landmarks
+    assert lm is not None
+    m = match_landmarks(w, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=5.0)
+    truth_of = dict(zip(m.landmark.tolist(), m.sign_row.tolist(), strict=True))
+    err_of = dict(zip(m.landmark.tolist(), m.horizontal_error_m.tolist(), strict=True))
+    feats = []
+    for i in range(len(lm)):
+        c = lm.cov[i]
+        props = {
+            "kind": "landmark",
+            "id": int(lm.id[i]),
+            "class": CATALOG.by_code(int(lm.sign_class[i])).name,
+            "status": ["candidate", "confirmed", "retired"][int(lm.status[i])],
+            "n_obs": int(lm.n_obs[i]),
+            "n_passes": int(lm.n_passes[i]),
+            "h_m": float(lm.h[i]),
+            "sigma_east_m": math.sqrt(max(c[0], 0.0)),
+            "sigma_north_m": math.sqrt(max(c[3], 0.0)),
+            "cov_enu_m2": [float(v) for v in c],
+            "true_sign": int(w.signs.id[truth_of[i]]) if i in truth_of else None,
+            "error_m": err_of.get(i),
+        }
+        feats.append(
             {
-                "t": float(lines.t[i]),
-                "t_rel_s": float(lines.t[i] - p.start_time),
-                "image": int(lines.image[i]),
-                "class": cat.by_code(int(lines.sign_class[i])).name,
-                "class_code": int(lines.sign_class[i]),
-                "lat": float(lines.lat[i]),
-                "lon": float(lines.lon[i]),
-                "h": float(lines.h[i]),
-                "east_m": float(origin[i, 0]),
-                "north_m": float(origin[i, 1]),
-                "up_m": float(origin[i, 2]),
-                "direction_enu": [float(v) for v in lines.direction[i]],
-                "azimuth_deg": float(np.degrees(az[i]) % 360.0),
-                "elevation_deg": float(np.degrees(el[i])),
-                "sigma_az_deg": float(np.degrees(lines.sigma_az[i])),
-                "sigma_el_deg": float(np.degrees(lines.sigma_el[i])),
-                "range_m": float(lines.range_m[i]),
-                "sigma_range_m": float(lines.sigma_range_m[i]),
-                "score": float(lines.score[i]),
-                "true_sign_id": int(p.truth.sign_id[i]),
-                "true_miss_m": None if np.isnan(miss[i]) else float(miss[i]),
+                "type": "Feature",
+                "properties": props,
+                "geometry": {"type": "Point", "coordinates": [float(lm.lon[i]), float(lm.lat[i])]},
             }
         )
-    return recs
-
-
-def _print_table(recs: list[dict], max_rows: int) -> None:
-    head = (
-        f"{'t[s]':>6} {'class':<20} {'lat':>11} {'lon':>11} {'az[deg]':>8} {'el[deg]':>8}"
-        f" {'s_az':>5} {'s_el':>5} {'range[m]':>8} {'true':>5}"
-    )
-    print(head)
-    print("-" * len(head))
-    for r in recs[:max_rows]:
-        rng = f"{r['range_m']:8.1f}" if r["range_m"] > 0 else f"{'-':>8}"
-        true = "FP" if r["true_sign_id"] < 0 else str(r["true_sign_id"])
-        print(
-            f"{r['t_rel_s']:6.1f} {r['class']:<20} {r['lat']:11.6f} {r['lon']:11.6f}"
-            f" {r['azimuth_deg']:8.2f} {r['elevation_deg']:8.2f} {r['sigma_az_deg']:5.2f}"
-            f" {r['sigma_el_deg']:5.2f} {rng} {true:>5}"
+    lat, lon, h = w.signs_geodetic()
+    for k in range(len(w.signs)):
+        feats.append(
+            {
+                "type": "Feature",
+                "properties": {
+                    "kind": "true_sign",
+                    "id": int(w.signs.id[k]),
+                    "class": CATALOG.by_code(int(w.signs.sign_class[k])).name,
+                    "h_m": float(h[k]),
+                },
+                "geometry": {"type": "Point", "coordinates": [float(lon[k]), float(lat[k])]},
+            }
         )
-    if len(recs) > max_rows:
-        print(f"... {len(recs) - max_rows} more rays in vehicle_rays.json")
+    return {"type": "FeatureCollection", "features": feats}
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        model = load_vehicle_model(args.vehicle_config)
-    except VehicleConfigError as e:
-        print(f"hdmap demo: bad vehicle config: {e}", file=sys.stderr)
-        return 2
-    out = Path(args.out)
+    out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-
-    world = demo_town(args.town_seed)
-    p = _drive(world, model, args.seed)
-    lines = geolocate(p.fixes, p.detections, model)
-    recs = _ray_records(world, p, lines, model)
-
-    n_signs = distinct_signs_seen(p)
-    n_fp = int(np.sum(p.truth.sign_id < 0))
-    duration = float(p.fixes.t[-1] - p.fixes.t[0]) if len(p.fixes) else 0.0
+    cfg = TownRunConfig(
+        out / "run",
+        rounds=args.rounds,
+        vehicles=args.vehicles,
+        noise=args.noise,
+        seed=args.seed,
+        n_signs=args.signs,
+    )
+    result = run_town(cfg)
+    text = table(result)
     print(
-        f"hdmap demo: {p.vehicle_id} pass {p.pass_id}, {p.path.length:.0f} m at "
-        f"{p.speed_mps:.1f} m/s ({duration:.0f} s, {len(p.fixes)} images), FLEET noise: "
-        f"{len(lines)} rays of {n_signs} signs, {n_fp} false positives"
+        f"\nhdmap demo: {args.noise} noise, {len(result.world.signs)} signs, "
+        f"{args.rounds} rounds x {args.vehicles} passes\n"
     )
-    _print_table(recs, args.max_rows)
-
-    s = world.signs
-    lat, lon, h = world.signs_geodetic()
-    doc = {
-        "anchor": {"lat0": world.lat0, "lon0": world.lon0, "h0": world.h0, "frame": "ENU"},
-        "vehicle_id": p.vehicle_id,
-        "pass_id": p.pass_id,
-        "seed": args.seed,
-        "town_seed": args.town_seed,
-        "noise": FLEET.name,
-        "start_time": p.start_time,
-        "speed_mps": p.speed_mps,
-        "route_nodes": list(p.route),
-        "camera_track_enu": np.round(p.truth.camera_enu, 3).tolist(),
-        "signs": [
+    print(text)
+    (out / "map.geojson").write_text(json.dumps(geojson(result), indent=1))
+    final = result.rows[-1]
+    plot_map(
+        result.world,
+        result.landmarks,
+        out / "map.png",
+        title=f"Map after {final.passes} passes ({args.noise} noise): "
+        f"mean error {final.score.mean_err_m:.2f} m",
+    )
+    plot_convergence(
+        [r.as_dict() for r in result.rows],
+        out / "convergence.png",
+        title=f"demo town, {args.noise} noise",
+    )
+    (out / "demo.json").write_text(
+        json.dumps(
             {
-                "id": int(s.id[i]),
-                "class": model.catalog.by_code(int(s.sign_class[i])).name,
-                "east_m": float(s.position[i, 0]),
-                "north_m": float(s.position[i, 1]),
-                "up_m": float(s.position[i, 2]),
-                "lat": float(lat[i]),
-                "lon": float(lon[i]),
-                "h": float(h[i]),
-                "facing_deg": float(s.facing_azimuth_deg[i]),
-            }
-            for i in range(len(s))
-        ],
-        "rays": recs,
-    }
-    (out / "vehicle_rays.json").write_text(json.dumps(doc, indent=1))
-
-    origin, direction = lines_in_world(lines, world)
-    plot_vehicle_rays(
-        world,
-        p.truth,
-        origin,
-        direction,
-        lines.range_m,
-        lines.sign_class,
-        out / "vehicle_rays.png",
-        title=(
-            f"{p.vehicle_id} pass {p.pass_id}: {len(lines)} projection lines toward "
-            f"{n_signs} signs (FLEET noise, seed {args.seed})"
-        ),
-        catalog=model.catalog,
+                "config": {k: str(v) for k, v in vars(cfg).items()},
+                "rounds": [r.as_dict() for r in result.rows],
+                "services": result.services,
+            },
+            indent=1,
+            default=float,
+        )
     )
-    print(f"wrote {out / 'vehicle_rays.png'} and {out / 'vehicle_rays.json'}")
+    print(
+        f"\nwrote {out / 'map.geojson'}, {out / 'map.png'}, {out / 'convergence.png'}, "
+        f"{out / 'demo.json'}"
+    )
     return 0
