@@ -23,8 +23,8 @@ from fleetsim.pipeline import FleetDriver, fleet_config_ending_now, model_for, t
 from fleetsim.score import MapScore, score
 from fleetsim.world import World, demo_town
 from hdmap.bus import open_session
-from hdmap.quiesce import totals, wait_quiet
 from hdmap.commands.status import collect
+from hdmap.quiesce import totals, wait_quiet
 from hdmap.stack import Stack
 from hdmap.tiles import neighbours
 from schemas import Landmarks
@@ -74,8 +74,8 @@ class TownRunResult:
 
 def follow_town(client: MapClient, world: World) -> None:
     tiles = set(town_tiles(world))
-    for t in sorted(tiles | {n for t in tiles for n in neighbours(t)}):
-        client.follow(t)
+    for tile in sorted(tiles | {n for t in tiles for n in neighbours(t)}):
+        client.follow(tile)
 
 
 def run_town(cfg: TownRunConfig, progress: Callable[[str], None] | None = None) -> TownRunResult:
