@@ -80,6 +80,7 @@ def make_landmarks(n: int, seed: int = 1) -> Landmarks:
         n_passes=rng.integers(1, 500, n).astype(np.uint32),
         revision=rng.integers(1, 2**40, n).astype(np.uint64),
         updated_at=T0 + rng.uniform(0, 1e5, n),
+        source_time=T0 + rng.uniform(0, 1e5, n),
     )
 
 

@@ -81,6 +81,9 @@ class Links(Table):
     landmark_id: np.ndarray = col("u8")
     vehicle: np.ndarray = col("u4", doc="index into AssocGroup.vehicles")
     pass_id: np.ndarray = col("u8")
+    received_at: np.ndarray = col(
+        "f8", lo=0.0, hi=_FLOAT_EPOCH_MAX, unit_label="s", doc="ingest receipt time, Unix"
+    )
 
 
 @table
@@ -109,6 +112,13 @@ class Landmarks(Table):
     n_passes: np.ndarray = col("u4")
     revision: np.ndarray = col("u8", doc="grows with every change of this landmark")
     updated_at: np.ndarray = col("f8", lo=0.0, hi=_FLOAT_EPOCH_MAX, unit_label="s")
+    source_time: np.ndarray = col(
+        "f8",
+        lo=0.0,
+        hi=_FLOAT_EPOCH_MAX,
+        unit_label="s",
+        doc="ingest receipt time of the newest observation in this revision (latency tracing)",
+    )
 
 
 @table

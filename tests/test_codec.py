@@ -85,6 +85,7 @@ def make_landmarks(n: int, seed: int = 1) -> Landmarks:
         n_passes=rng.integers(1, 500, n).astype(np.uint32),
         revision=rng.integers(1, 2**40, n).astype(np.uint64),
         updated_at=T0 + rng.uniform(0, 1e5, n),
+        source_time=T0 + rng.uniform(0, 1e5, n),
     )
 
 
@@ -102,6 +103,7 @@ def make_links(n: int, n_vehicles: int, seed: int = 3) -> Links:
         landmark_id=rng.integers(0, 2**64 - 1, n, dtype=np.uint64),
         vehicle=rng.integers(0, n_vehicles, n).astype(np.uint32),
         pass_id=rng.integers(0, 2**64 - 1, n, dtype=np.uint64),
+        received_at=T0 + rng.uniform(0, 1e5, n),
     )
 
 

@@ -103,6 +103,7 @@ def _landmarks(n: int) -> Landmarks:
         n_passes=np.full(n, 3, np.uint32),
         revision=np.arange(n, dtype=np.uint64) + 1,
         updated_at=np.full(n, 1.7e9),
+        source_time=np.full(n, 1.7e9),
     )
 
 
@@ -111,7 +112,12 @@ def _valid_messages() -> list[bytes]:
     rem = Removals(id=ids[:2], revision=ids[:2])
     lm = _landmarks(3)
     new = NewLandmarks(id=lm.id, sign_class=lm.sign_class, lat=lm.lat, lon=lm.lon, h=lm.h)
-    links = Links(landmark_id=ids, vehicle=np.array([0, 1, 0], np.uint32), pass_id=ids)
+    links = Links(
+        landmark_id=ids,
+        vehicle=np.array([0, 1, 0], np.uint32),
+        pass_id=ids,
+        received_at=np.full(3, 1.7e9),
+    )
     msgs = [
         ObservationBatch("veh-1", 1, 2, 1.7e9, _obs(3, 0)),
         UploadAck(

@@ -28,6 +28,7 @@ def lms(ids, revs, lat=60.17, status=1) -> Landmarks:
         n_passes=np.full(n, 3, np.uint32),
         revision=np.array(revs, np.uint64),
         updated_at=np.full(n, 1.7e9),
+        source_time=np.full(n, 1.7e9),
     )
 
 

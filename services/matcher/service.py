@@ -70,6 +70,7 @@ class _Out:
 
     vehicles: list[str] = field(default_factory=list)
     links: list[tuple[int, int, int]] = field(default_factory=list)
+    received_at: list[float] = field(default_factory=list)
     obs: list[Observations] = field(default_factory=list)
     created: list[tuple[int, int, float, float, float]] = field(default_factory=list)
 
@@ -148,15 +149,26 @@ class MatcherService(StageService):
         touched: set[int] = set()
         for i in np.flatnonzero(hit):
             touched.add(cands[matched[i]].id)
-        self._link(g.obs.take(hit), [cands[k] for k in matched[hit]], g.vehicle_id, g.pass_id)
-        self.state.add_pending(tile, g.obs.take(~hit), g.vehicle_id, g.pass_id, time.time())
+        self._link(
+            g.obs.take(hit),
+            [cands[k] for k in matched[hit]],
+            g.vehicle_id,
+            g.pass_id,
+            g.received_at,
+        )
+        self.state.add_pending(
+            tile, g.obs.take(~hit), g.vehicle_id, g.pass_id, time.time(), g.received_at
+        )
         touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id)
         self._refresh(sorted(touched))
 
-    def _link(self, obs: Observations, lms: list[Landmark], vehicle: str, pass_id: int) -> None:
+    def _link(
+        self, obs: Observations, lms: list[Landmark], vehicle: str, pass_id: int, received: float
+    ) -> None:
         """Record associations: gating sums now, assoc output per home tile."""
         if not len(obs):
             return
+        self.count("linked", len(obs))
         key = pass_key(vehicle, pass_id)
         by_home: dict[str, list[int]] = defaultdict(list)
         for k, lm in enumerate(lms):
@@ -170,6 +182,7 @@ class MatcherService(StageService):
             out = self._out[home]
             vi = out.vehicle_index(vehicle)
             out.links += [(lms[k].id, vi, pass_id) for k in idx]
+            out.received_at += [received] * len(idx)
             out.obs.append(sub)
 
     def _initiate(self, tile: str, area: list[str], vehicle: str, pass_id: int) -> set[int]:
@@ -185,6 +198,7 @@ class MatcherService(StageService):
         if not parts:
             return set()
         obs = Observations.concat(parts)
+        received = max(self.state.pending[t].received_at[i] for t, i in where)
         rays = to_local(frame, obs)
         created: set[int] = set()
         used = np.zeros(len(rays), bool)
@@ -199,7 +213,7 @@ class MatcherService(StageService):
                 lm = self._create(home_tile, int(cls), frame.to_ecef(cand.x[None])[0], cand.cov)
                 out = self._out[lm.home]
                 out.created.append((lm.id, int(cls), float(lat[0]), float(lon[0]), float(h[0])))
-                self._link(obs.take(members), [lm] * len(members), vehicle, pass_id)
+                self._link(obs.take(members), [lm] * len(members), vehicle, pass_id, received)
                 used[members] = True
                 created.add(lm.id)
         self._drop_used(where, used)
@@ -232,16 +246,17 @@ class MatcherService(StageService):
             for i, (v, pid) in enumerate(zip(p.vehicle, p.pass_id.tolist(), strict=True)):
                 groups[(v, pid)].append(i)
             take = np.zeros(len(p), bool)
-            links: list[tuple[np.ndarray, np.ndarray, str, int]] = []
+            links: list[tuple[np.ndarray, np.ndarray, str, int, float]] = []
             for (v, pid), idx in sorted(groups.items()):
                 sel = np.array(idx)
                 res = associate(to_local(frame, p.obs.take(sel)), x, cov, cls, self.config.gate)
                 hit = res.landmark >= 0
                 if hit.any():
                     take[sel[hit]] = True
-                    links.append((sel[hit], res.landmark[hit], v, pid))
-            for sel, lmi, v, pid in links:
-                self._link(p.obs.take(sel), [new[k] for k in lmi], v, pid)
+                    rec = float(p.received_at[sel[hit]].max())
+                    links.append((sel[hit], res.landmark[hit], v, pid, rec))
+            for sel, lmi, v, pid, rec in links:
+                self._link(p.obs.take(sel), [new[k] for k in lmi], v, pid, rec)
                 self.count("adopted", len(sel))
             self.state.drop_pending(t, take)
 
@@ -280,7 +295,12 @@ class MatcherService(StageService):
         created = out.created
         return AssocGroup(
             vehicles=out.vehicles,
-            links=Links(links[:, 0], links[:, 1].astype(np.uint32), links[:, 2]),
+            links=Links(
+                links[:, 0],
+                links[:, 1].astype(np.uint32),
+                links[:, 2],
+                np.array(out.received_at, float),
+            ),
             obs=Observations.concat(out.obs),
             created=NewLandmarks(
                 id=np.array([c[0] for c in created], np.uint64),

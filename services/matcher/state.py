@@ -27,7 +27,7 @@ CREATE TABLE IF NOT EXISTS landmarks (
     x BLOB NOT NULL, cov BLOB NOT NULL, sums BLOB NOT NULL, created_at REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS pending (
     vehicle TEXT NOT NULL, obs_id INTEGER NOT NULL, pass_id INTEGER NOT NULL,
-    tile TEXT NOT NULL, added_at REAL NOT NULL, rec BLOB NOT NULL,
+    tile TEXT NOT NULL, added_at REAL NOT NULL, received_at REAL NOT NULL, rec BLOB NOT NULL,
     PRIMARY KEY (vehicle, obs_id)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS id_counters (tile TEXT PRIMARY KEY, n INTEGER NOT NULL) WITHOUT ROWID;
 """
@@ -80,21 +80,27 @@ class PendingTile:
     vehicle: list[str] = field(default_factory=list)
     pass_id: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     added_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    received_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    """Ingest receipt time (latency tracing)."""
 
     def __len__(self) -> int:
         return len(self.obs)
 
-    def add(self, obs: Observations, vehicle: str, pass_id: int, now: float) -> None:
+    def add(
+        self, obs: Observations, vehicle: str, pass_id: int, now: float, received: float
+    ) -> None:
         self.obs = Observations.concat([self.obs, obs])
         self.vehicle += [vehicle] * len(obs)
         self.pass_id = np.r_[self.pass_id, np.full(len(obs), pass_id, np.int64)]
         self.added_at = np.r_[self.added_at, np.full(len(obs), now)]
+        self.received_at = np.r_[self.received_at, np.full(len(obs), received)]
 
     def keep(self, mask: NDArray[np.bool_]) -> None:
         self.obs = self.obs.take(mask)
         self.vehicle = [v for v, k in zip(self.vehicle, mask, strict=True) if k]
         self.pass_id = self.pass_id[mask]
         self.added_at = self.added_at[mask]
+        self.received_at = self.received_at[mask]
 
 
 class MatcherState:
@@ -234,18 +240,19 @@ class MatcherState:
             self.landmarks[lid] = lm
             self.by_tile[lm.tile].add(lid)
         prow = c.execute(
-            "SELECT tile, vehicle, pass_id, added_at, rec FROM pending "
+            "SELECT tile, vehicle, pass_id, added_at, received_at, rec FROM pending "
             "ORDER BY tile, added_at, vehicle, obs_id"
         ).fetchall()
         by: dict[str, list] = defaultdict(list)
-        for t, v, pid, at, rec in prow:
-            by[t].append((v, pid, at, rec))
+        for t, v, pid, at, rec_at, rec in prow:
+            by[t].append((v, pid, at, rec_at, rec))
         for t, items in by.items():
-            recs = np.frombuffer(b"".join(i[3] for i in items), dtype=_REC)
+            recs = np.frombuffer(b"".join(i[4] for i in items), dtype=_REC)
             self.pending[t] = PendingTile(
                 Observations.CODEC.from_records(recs),
                 [i[0] for i in items],
                 np.array([i[1] for i in items], np.int64),
                 np.array([i[2] for i in items], float),
+                np.array([i[3] for i in items], float),
             )
         self.clear_marks()

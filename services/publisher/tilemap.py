@@ -34,25 +34,26 @@ _FIELDS = (
     "n_passes",
     "revision",
     "updated_at",
+    "source_time",
 )
 _COLS = "id, " + ", ".join(_FIELDS)
+_MARKS = ",".join("?" * (len(_FIELDS) + 2))  # tile, id, fields
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS current (
     id INTEGER PRIMARY KEY, tile TEXT NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
     cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
-    updated_at REAL);
+    updated_at REAL, source_time REAL);
 CREATE TABLE IF NOT EXISTS published (
     tile TEXT NOT NULL, id INTEGER NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
     cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
-    updated_at REAL, PRIMARY KEY (tile, id)) WITHOUT ROWID;
+    updated_at REAL, source_time REAL, PRIMARY KEY (tile, id)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS versions (tile TEXT PRIMARY KEY, version INTEGER NOT NULL)
     WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS dirty (
     tile TEXT NOT NULL, id INTEGER NOT NULL, revision INTEGER NOT NULL,
     PRIMARY KEY (tile, id)) WITHOUT ROWID;
 """
-_ = _COLS
 
 
 def _rows(lm: Landmarks) -> list[tuple]:
@@ -71,13 +72,14 @@ def _rows(lm: Landmarks) -> list[tuple]:
             int(lm.n_passes[i]),
             int(lm.revision[i]),
             float(lm.updated_at[i]),
+            float(lm.source_time[i]),
         )
         for i in range(len(lm))
     ]
 
 
 def landmarks_from_rows(rows: list[tuple]) -> Landmarks:
-    """Rows (id, sign_class, lat, lon, h, cov, status, n_obs, n_passes, revision, updated_at)."""
+    """Rows (id, sign_class, ..., revision, updated_at, source_time) as in ``_COLS``."""
     if not rows:
         return Landmarks.empty()
     cols = list(zip(*rows, strict=True))
@@ -93,6 +95,7 @@ def landmarks_from_rows(rows: list[tuple]) -> Landmarks:
         n_passes=np.array(cols[8], np.uint32),
         revision=np.array(cols[9], np.uint64),
         updated_at=np.array(cols[10], float),
+        source_time=np.array(cols[11], float),
     )
 
 
@@ -115,9 +118,8 @@ class TileMaps:
             if old is not None and old[0] != tile:
                 self._mark(old[0], lid, rev)  # moved: the old tile loses it
             c.execute(
-                "INSERT OR REPLACE INTO current(id, tile, sign_class, lat, lon, h, cov, status,"
-                " n_obs, n_passes, revision, updated_at) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
-                (lid, tile, *row[1:]),
+                f"INSERT OR REPLACE INTO current(tile, {_COLS}) VALUES ({_MARKS})",
+                (tile, *row),
             )
             self._mark(tile, lid, rev)
             changed += 1
@@ -166,7 +168,7 @@ class TileMaps:
             if not upserts and not removed:
                 continue
             c.executemany(
-                f"INSERT OR REPLACE INTO published(tile, {_COLS}) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                f"INSERT OR REPLACE INTO published(tile, {_COLS}) VALUES ({_MARKS})",
                 [(tile, *r) for r in upserts],
             )
             c.executemany(

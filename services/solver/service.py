@@ -82,6 +82,7 @@ class SolverService(StageService):
 
     def apply(self, entries: list[LogEntry]) -> None:
         touched: set[int] = set()
+        self._source: dict[int, float] = {}
         for e in entries:
             try:
                 g = AssocGroup.from_bytes(e.body)
@@ -133,7 +134,10 @@ class SolverService(StageService):
             )
             rows = np.array([self.state.landmarks[int(ids[k])].row for k in idx], np.int64)
             self.sums.accumulate(rows, keys_[sel], rays)
-            touched.update(int(ids[k]) for k in idx)
+            for k in idx:
+                lid = int(ids[k])
+                touched.add(lid)
+                self._source[lid] = max(self._source.get(lid, 0.0), float(g.links.received_at[k]))
         self.count("observations", int(known.sum()))
         return touched
 
@@ -190,6 +194,7 @@ class SolverService(StageService):
                     n_passes=n_clusters[ks].astype(np.uint32),
                     revision=np.array([lms[k].revision for k in ks], np.uint64),
                     updated_at=np.full(sel.size, now),
+                    source_time=np.array([self._source.get(lms[k].id, now) for k in ks], float),
                 ),
                 Removals(
                     id=np.array([r[0] for r in removals.get(tile, [])], np.uint64),
