@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import queue
+import resource
 import signal
 import threading
 import time
@@ -157,6 +158,7 @@ class Service:
         counters["backlog"] = self.inbox.qsize()
         counters["cpu_s"] = cpu.user + cpu.system
         counters["rss_bytes"] = self._process.memory_info().rss
+        counters["rss_peak_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         counters["uptime_s"] = time.time() - self.started_at
         return Stats(self.name, self.instance, self.region, self.started_at, counters, rejected)
 
