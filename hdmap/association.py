@@ -28,8 +28,8 @@ Detections of one image never share a landmark: each image's assignment is a
 small linear assignment problem (scipy.optimize.linear_sum_assignment) on chi2.
 
 >>> import numpy as np
->>> wrap(np.array([3.5, -3.5])).round(4).tolist()
-[-2.7832, 2.7832]
+>>> angles(np.array([[1.0, 1.0, 0.0]]))[0].round(4).tolist()
+[0.7854]
 """
 
 from __future__ import annotations
@@ -39,6 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
+
+from hdmap.estimator.gating import angle_jacobian, wrap
+from hdmap.estimator.model import ray_angles as angles
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -84,32 +87,6 @@ class LocalRays:
 
     def take(self, idx: NDArray) -> LocalRays:
         return LocalRays(**{k: getattr(self, k)[idx] for k in self.__dataclass_fields__})
-
-
-def wrap(a: Array) -> Array:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def angles(v: Array) -> tuple[Array, Array]:
-    """(azimuth clockwise from North, elevation) of vectors (..., 3) in ENU."""
-    az = np.arctan2(v[..., 0], v[..., 1])
-    el = np.arctan2(v[..., 2], np.hypot(v[..., 0], v[..., 1]))
-    return az, el
-
-
-def angle_jacobian(v: Array) -> Array:
-    """d(az, el)/dx at x = a + v, shape (..., 2, 3)."""
-    e, n, u = v[..., 0], v[..., 1], v[..., 2]
-    rho2 = np.maximum(e * e + n * n, 1e-12)
-    rho = np.sqrt(rho2)
-    r2 = rho2 + u * u
-    j = np.zeros((*v.shape[:-1], 2, 3))
-    j[..., 0, 0] = n / rho2
-    j[..., 0, 1] = -e / rho2
-    j[..., 1, 0] = -u * e / (r2 * rho)
-    j[..., 1, 1] = -u * n / (r2 * rho)
-    j[..., 1, 2] = rho / r2
-    return j
 
 
 def origin_cov(rays: LocalRays, bias_h: float, bias_v: float) -> Array:

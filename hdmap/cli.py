@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "service": ("hdmap.commands.service", "run one service (ingest, matcher, solver, publisher)"),
     "up": ("hdmap.commands.up", "router + one of each service, until Ctrl-C"),
     "status": ("hdmap.commands.status", "live services, their regions and counters"),
+    "eval": ("hdmap.commands.eval", "accuracy evaluations (paper simulation, fleet)"),
     "loadtest": ("hdmap.commands.loadtest", "a simulated fleet against a running stack"),
 }
 

@@ -2,6 +2,10 @@
 
 Every process is a child of the :class:`Stack`; leaving the ``with`` block (also on
 an exception) stops them all: SIGTERM, then SIGKILL after a grace period.
+
+With ``security`` (a :class:`hdmap.security.SecureDeployment`) the router and each
+service load their generated Zenoh config (TLS, authentication, ACL), the router
+listens on ``tls/`` and :attr:`Stack.bus` is the ``operator`` identity.
 """
 
 from __future__ import annotations
@@ -15,10 +19,14 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hdmap import keys
 from hdmap.bus import BusConfig, open_session
 from hdmap.tiles import region_label
+
+if TYPE_CHECKING:
+    from hdmap.security import SecureDeployment
 
 SERVICE_NAMES = ("ingest", "matcher", "solver", "publisher")
 
@@ -57,16 +65,30 @@ class Stack:
     extra_service_args: dict[str, list[str]] = field(default_factory=dict)
     python: str = sys.executable
     procs: dict[str, Proc] = field(default_factory=dict)
+    security: SecureDeployment | None = None
+    """Secure mode: per-process Zenoh configs (TLS, auth, ACL) from hdmap.security."""
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir)
         if not self.listen:
             self.listen = f"tcp/127.0.0.1:{free_port()}"
+        if self.security is not None and self.listen.startswith("tcp/"):
+            self.listen = "tls/" + self.listen.removeprefix("tcp/")
         (self.data_dir / "logs").mkdir(parents=True, exist_ok=True)
 
     @property
     def bus(self) -> BusConfig:
+        if self.security is not None:
+            return self.security.bus("operator").with_connect([self.listen])
         return BusConfig(mode="client", connect=(self.listen,))
+
+    def _zenoh_config(self, identity: str | None) -> list[str]:
+        """``--zenoh-config FILE`` of a process in secure mode (router: identity None)."""
+        if self.security is None:
+            return []
+        if identity is None:
+            return ["--zenoh-config", str(self.security.router_config)]
+        return ["--zenoh-config", str(self.security.client_config(identity))]
 
     def _cli(self, *args: str) -> list[str]:
         return [self.python, "-m", "hdmap.cli", *args]
@@ -85,7 +107,7 @@ class Stack:
         p = self._spawn(
             Proc(
                 "router",
-                self._cli("router", "--listen", self.listen),
+                self._cli("router", "--listen", self.listen, *self._zenoh_config(None)),
                 self.data_dir / "logs" / "router.log",
             )
         )
@@ -106,6 +128,7 @@ class Stack:
         argv = self._cli(
             "service", name, "--connect", self.listen, "--data-dir", str(self.data_dir)
         )
+        argv += self._zenoh_config(name)
         for r in region:
             argv += ["--region", r]
         argv += self.extra_service_args.get(name, []) + list(extra)

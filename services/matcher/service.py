@@ -129,7 +129,7 @@ class MatcherService(StageService):
             self._unit(e.tile, group)
         for home, out in sorted(self._out.items()):
             self.emit(home, self._assoc_body(out))
-        self.state.save(self.sums.pack_row)
+        self.state.save(self.sums.pack_rows)
 
     def _unit(self, tile: str, g: ObsGroup) -> None:
         frame = self.frames(tile)
@@ -275,7 +275,7 @@ class MatcherService(StageService):
         if not ids:
             return
         lms = [self.state.landmarks[i] for i in ids]
-        sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64))
+        sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64), update_reference=False)
         for k, lm in enumerate(lms):
             if not sol.ok[k]:
                 continue
@@ -323,7 +323,7 @@ class MatcherService(StageService):
                 n += int(old.sum())
         if n:
             with transaction(self.db, [self]):
-                self.state.save(self.sums.pack_row)
+                self.state.save(self.sums.pack_rows)
             self.count("expired", n)
         self._snapshot_counts()
 

@@ -27,8 +27,8 @@ from schemas import (
     STATUS_CONFIRMED,
     AssocGroup,
     DecodeError,
-    LandmarkUpdates,
     Landmarks,
+    LandmarkUpdates,
     LogEntry,
     Removals,
 )
@@ -91,7 +91,7 @@ class SolverService(StageService):
                 continue
             touched |= self._apply_group(g)
         self._publish(sorted(touched))
-        self.state.save(self.sums.pack_row)
+        self.state.save(self.sums.pack_rows)
 
     def _apply_group(self, g: AssocGroup) -> set[int]:
         touched: set[int] = set()
@@ -145,7 +145,7 @@ class SolverService(StageService):
         if not ids:
             return
         lms = [self.state.landmarks[i] for i in ids]
-        sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64))
+        sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64), update_reference=False)
         ok = np.flatnonzero(sol.ok)
         self.count("solved_ok", int(ok.size))
         if ok.size == 0:

@@ -53,14 +53,15 @@ class SolverState:
         self.landmarks[lm.id] = lm
         self._dirty.add(lm.id)
 
-    def save(self, pack_row) -> None:
+    def save(self, pack_rows) -> None:
+        dirty = [self.landmarks[i] for i in sorted(self._dirty)]
+        blobs = pack_rows(np.array([lm.row for lm in dirty], np.int64)) if dirty else []
         self._conn.executemany(
             "INSERT OR REPLACE INTO landmarks(id, cls, home, tile, revision, sums) "
             "VALUES (?,?,?,?,?,?)",
             [
-                (_i64(i), lm.cls, lm.home, lm.tile, lm.revision, pack_row(lm.row))
-                for i in sorted(self._dirty)
-                for lm in (self.landmarks[i],)
+                (_i64(lm.id), lm.cls, lm.home, lm.tile, lm.revision, blob)
+                for lm, blob in zip(dirty, blobs, strict=True)
             ],
         )
         self._dirty.clear()

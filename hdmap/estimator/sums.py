@@ -1,0 +1,405 @@
+"""Per-landmark incremental sums (struct of arrays) with pass-level partial sums.
+
+One row per landmark. Closed state per row (float64 unless noted):
+
+=========  ====  =============================================================
+field      n     meaning (coordinates relative to the row's anchor)
+=========  ====  =============================================================
+anchor     3     fixed origin of the row's sums (its first position), tile ENU
+x_ref      3     reference position for the weights (last published estimate)
+A          6     sum of the (compensated) ray terms ``Q~_j`` (symmetric)
+J          6     sum of the predicted terms ``Q_ref,j`` (conditioning test)
+b          3     sum of ``Q~_j a_j`` (with the weight correction)
+S_AA       21    sum over closed passes of ``alpha_p alpha_p^T`` (symmetric 6x6)
+S_Ab       18    sum over closed passes of ``alpha_p b_p^T``
+S_bb       6     sum over closed passes of ``b_p b_p^T``
+n_obs      1     rays (int64)
+n_closed   1     closed passes (int64)
+n_open     1     open passes (int64, derived from the open-pass table)
+=========  ====  =============================================================
+
+so 66 float64 + 3 int64 = 552 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
+packed: 549 bytes plus 96 per open pass).
+
+Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
+interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
+``b_p`` (9 floats + cluster id, ray count, activity stamp: 96 bytes). ``A`` and ``b`` get
+every ray at once; only the sandwich sums wait for the pass to close. :meth:`solve`
+includes the open passes, so a result never depends on when a pass is closed — unless a
+ray of an already closed pass arrives, which then starts a new cluster (the covariance
+misses that pass's cross term). Eviction rule: a row keeps at most ``max_open_passes``
+open; opening one more closes the least recently active (the activity stamp is the row's
+ray count at the pass's last ray, so the rule is deterministic and survives
+:meth:`pack_rows` / :meth:`unpack_rows`). Callers close passes they know are over with
+:meth:`close_passes`.
+
+>>> import numpy as np
+>>> from hdmap.estimator.model import Rays
+>>> s = LandmarkSums(capacity=2)
+>>> rows = s.new_rows(1, np.array([[0.0, 20.0, 2.0]]))
+>>> rows.tolist(), s.bytes_per_landmark, len(s.pack_rows(rows)[0])
+([0], 552, 549)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from hdmap.estimator.model import (
+    EstimatorConfig,
+    Rays,
+    mat_to_sym,
+    outer6_to_tri,
+    predicted_information,
+    ray_terms,
+)
+from hdmap.estimator.solve import Solution, solve_sums
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+PACK_VERSION = 1
+_ROW_DTYPE = np.dtype(
+    [
+        ("anchor", "<f8", 3),
+        ("x_ref", "<f8", 3),
+        ("a6", "<f8", 6),
+        ("j6", "<f8", 6),
+        ("b", "<f8", 3),
+        ("saa", "<f8", 21),
+        ("sab", "<f8", 18),
+        ("sbb", "<f8", 6),
+        ("n_obs", "<i8"),
+        ("n_closed", "<i8"),
+        ("n_open", "<i4"),
+    ]
+)
+_OPEN_DTYPE = np.dtype(
+    [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
+)
+_ROW_FIELDS = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
+
+
+def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
+    """``target[idx] += values`` with repeated indices summed (sort + reduceat)."""
+    if idx.size == 0:
+        return
+    order = np.argsort(idx, kind="stable")
+    s = idx[order]
+    starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
+    target[s[starts]] += np.add.reduceat(values[order], starts, axis=0)
+
+
+class LandmarkSums:
+    """Incremental estimator state for many landmarks (one row each).
+
+    Rows grow by capacity doubling; :meth:`accumulate` is vectorised over a batch of rays of
+    many landmarks and passes, mixed and unsorted, at O(1) state per ray.
+    """
+
+    def __init__(self, config: EstimatorConfig | None = None, capacity: int = 1024):
+        self.config = config or EstimatorConfig()
+        self._n = 0
+        cap = max(int(capacity), 1)
+        self._anchor = np.zeros((cap, 3))
+        self._x_ref = np.zeros((cap, 3))
+        self._a6 = np.zeros((cap, 6))
+        self._j6 = np.zeros((cap, 6))
+        self._b = np.zeros((cap, 3))
+        self._saa = np.zeros((cap, 21))
+        self._sab = np.zeros((cap, 6, 3))
+        self._sbb = np.zeros((cap, 6))
+        self._n_obs = np.zeros(cap, np.int64)
+        self._n_closed = np.zeros(cap, np.int64)
+        self._n_open = np.zeros(cap, np.int64)
+        # open (landmark, pass) partial sums; slots recycled through a free list
+        self._slot: dict[tuple[int, int], int] = {}
+        self._free: list[int] = []
+        self._o_hi = 0
+        ocap = 16
+        self._o_row = np.full(ocap, -1, np.int64)
+        self._o_cluster = np.zeros(ocap, np.int64)
+        self._o_last = np.zeros(ocap, np.int64)
+        self._o_n = np.zeros(ocap, np.int64)
+        self._o_a6 = np.zeros((ocap, 6))
+        self._o_b = np.zeros((ocap, 3))
+
+    # ------------------------------------------------------------------ sizes
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def bytes_per_landmark(self) -> int:
+        """In-memory closed state per landmark, bytes (each open pass adds
+        ``open_pass_bytes``)."""
+        names = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb", "_n_obs",
+                 "_n_closed", "_n_open")
+        return int(sum(getattr(self, n)[0].nbytes for n in names))
+
+    @property
+    def open_pass_bytes(self) -> int:
+        return _OPEN_DTYPE.itemsize
+
+    @property
+    def n_open_passes(self) -> int:
+        return len(self._slot)
+
+    def anchor(self, rows: ArrayLike) -> Array:
+        return self._anchor[np.asarray(rows, np.int64)].copy()
+
+    def reference(self, rows: ArrayLike) -> Array:
+        """Reference positions used for the weights, tile ENU."""
+        r = np.asarray(rows, np.int64)
+        return self._x_ref[r] + self._anchor[r]
+
+    def set_reference(self, rows: ArrayLike, x: ArrayLike) -> None:
+        """Override the reference positions (e.g. from a better initialiser)."""
+        r = np.asarray(rows, np.int64)
+        self._x_ref[r] = np.asarray(x, float) - self._anchor[r]
+
+    # ------------------------------------------------------------------ rows
+    def _grow(self, need: int) -> None:
+        cap = self._anchor.shape[0]
+        if need <= cap:
+            return
+        new = cap
+        while new < need:
+            new *= 2
+        for name in ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb", "_n_obs",
+                     "_n_closed", "_n_open"):
+            old = getattr(self, name)
+            arr = np.zeros((new, *old.shape[1:]), old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+    def new_rows(self, k: int, x0: ArrayLike) -> IntArray:
+        """Append ``k`` landmarks at initial positions ``x0`` (k, 3); returns their rows."""
+        x0 = np.asarray(x0, float).reshape(k, 3)
+        if not np.isfinite(x0).all():
+            raise ValueError("x0 must be finite")
+        self._grow(self._n + k)
+        rows = np.arange(self._n, self._n + k, dtype=np.int64)
+        self._anchor[rows] = x0
+        self._x_ref[rows] = 0.0
+        self._n += k
+        return rows
+
+    def _check_rows(self, rows: ArrayLike) -> IntArray:
+        r = np.asarray(rows, np.int64).reshape(-1)
+        if r.size and (r.min() < 0 or r.max() >= self._n):
+            raise IndexError("row out of range")
+        return r
+
+    # ------------------------------------------------------------------ open passes
+    def _alloc_slot(self, key: tuple[int, int]) -> int:
+        if self._free:
+            s = self._free.pop()
+        else:
+            s = self._o_hi
+            self._o_hi += 1
+            if s >= self._o_row.shape[0]:
+                for name in ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b"):
+                    old = getattr(self, name)
+                    arr = np.zeros((2 * old.shape[0], *old.shape[1:]), old.dtype)
+                    arr[: old.shape[0]] = old
+                    setattr(self, name, arr)
+        self._slot[key] = s
+        self._o_row[s], self._o_cluster[s] = key
+        self._o_last[s] = self._o_n[s] = 0
+        self._o_a6[s] = 0.0
+        self._o_b[s] = 0.0
+        self._n_open[key[0]] += 1
+        return s
+
+    def _close_slots(self, slots: IntArray) -> None:
+        if slots.size == 0:
+            return
+        rows = self._o_row[slots]
+        a6, b = self._o_a6[slots], self._o_b[slots]
+        _scatter_add(self._saa, rows, outer6_to_tri(a6))
+        _scatter_add(self._sab, rows, a6[:, :, None] * b[:, None, :])
+        _scatter_add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
+        _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
+        _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
+        for s in slots.tolist():
+            del self._slot[(int(self._o_row[s]), int(self._o_cluster[s]))]
+            self._o_row[s] = -1
+            self._free.append(s)
+
+    def _open_slots(self) -> IntArray:
+        return np.flatnonzero(self._o_row[: self._o_hi] >= 0)
+
+    def close_passes(
+        self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None
+    ) -> int:
+        """Close open passes: all (no arguments), those of ``rows``, those with a cluster id
+        in ``clusters`` (every landmark), or the pairs ``(rows[i], clusters[i])`` (both).
+        Returns how many were closed."""
+        slots = self._open_slots()
+        if rows is not None and clusters is not None:
+            keys = zip(np.asarray(rows).reshape(-1).tolist(),
+                       np.asarray(clusters).reshape(-1).tolist(), strict=True)
+            found = [self._slot.get((int(r), int(c))) for r, c in keys]
+            slots = np.array(sorted({s for s in found if s is not None}), np.int64)
+        elif rows is not None:
+            slots = slots[np.isin(self._o_row[slots], np.asarray(rows, np.int64))]
+        elif clusters is not None:
+            slots = slots[np.isin(self._o_cluster[slots], np.asarray(clusters, np.int64))]
+        self._close_slots(slots)
+        return int(slots.size)
+
+    def _evict(self, rows: IntArray) -> None:
+        over = rows[self._n_open[rows] > self.config.max_open_passes]
+        if over.size == 0:
+            return
+        slots = self._open_slots()
+        for r in over.tolist():
+            mine = slots[self._o_row[slots] == r]
+            order = np.lexsort((self._o_cluster[mine], self._o_last[mine]))
+            excess = int(self._n_open[r]) - self.config.max_open_passes
+            self._close_slots(mine[order[:excess]])
+
+    # ------------------------------------------------------------------ accumulate
+    def accumulate(self, rows: ArrayLike, clusters: ArrayLike, rays: Rays) -> None:
+        """Add rays (``rows[j]`` is ray j's landmark, ``clusters[j]`` its pass key).
+
+        Weights use each row's reference position as it is before this call.
+        """
+        r = self._check_rows(rows)
+        n = r.size
+        if len(rays) != n:
+            raise ValueError("rows and rays differ in length")
+        if n == 0:
+            return
+        c = np.asarray(clusters, np.int64).reshape(-1)
+        if c.size != n:
+            raise ValueError("clusters and rays differ in length")
+        origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
+        alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
+        _scatter_add(self._j6, r, predicted_information(rays, origin_rel, self._x_ref[r],
+                                                        self.config))
+        if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
+            raise ValueError("non-finite ray terms (check directions and sigmas)")
+        _scatter_add(self._a6, r, alpha)
+        _scatter_add(self._b, r, beta)
+        _scatter_add(self._n_obs, r, np.ones(n, np.int64))
+        if not self.config.cluster_robust:
+            _scatter_add(self._saa, r, outer6_to_tri(alpha))
+            _scatter_add(self._sab, r, alpha[:, :, None] * beta[:, None, :])
+            _scatter_add(self._sbb, r, mat_to_sym(beta[:, :, None] * beta[:, None, :]))
+            _scatter_add(self._n_closed, r, np.ones(n, np.int64))
+            return
+        order = np.lexsort((c, r))
+        rs, cs = r[order], c[order]
+        starts = np.flatnonzero(np.r_[True, (rs[1:] != rs[:-1]) | (cs[1:] != cs[:-1])])
+        g_a6 = np.add.reduceat(alpha[order], starts, axis=0)
+        g_b = np.add.reduceat(beta[order], starts, axis=0)
+        g_n = np.diff(np.r_[starts, n])
+        g_r, g_c = rs[starts], cs[starts]
+        slots = np.empty(starts.size, np.int64)
+        for i, key in enumerate(zip(g_r.tolist(), g_c.tolist(), strict=True)):
+            s = self._slot.get(key)
+            slots[i] = self._alloc_slot(key) if s is None else s
+        self._o_a6[slots] += g_a6
+        self._o_b[slots] += g_b
+        self._o_n[slots] += g_n
+        self._o_last[slots] = self._n_obs[g_r]
+        self._evict(np.unique(g_r))
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, rows: ArrayLike, update_reference: bool = True) -> Solution:
+        """Estimate and covariance of ``rows`` (open passes included).
+
+        With ``update_reference``, rows whose solution is ``ok`` take it as the reference
+        position for the weights of their future rays (part of the state: the same calls
+        give the same results after :meth:`pack_rows` / :meth:`unpack_rows`).
+        """
+        r = self._check_rows(rows)
+        uniq, inv = np.unique(r, return_inverse=True)
+        saa, sab, sbb = self._saa[uniq].copy(), self._sab[uniq].copy(), self._sbb[uniq].copy()
+        n_cl = self._n_closed[uniq] + self._n_open[uniq]
+        slots = self._open_slots()
+        if slots.size:
+            slots = slots[np.isin(self._o_row[slots], uniq)]
+            pos = np.searchsorted(uniq, self._o_row[slots])
+            a6, b = self._o_a6[slots], self._o_b[slots]
+            _scatter_add(saa, pos, outer6_to_tri(a6))
+            _scatter_add(sab, pos, a6[:, :, None] * b[:, None, :])
+            _scatter_add(sbb, pos, mat_to_sym(b[:, :, None] * b[:, None, :]))
+        sol = solve_sums(self._a6[uniq], self._b[uniq], saa, sab, sbb, self._n_obs[uniq], n_cl,
+                         self.config, self._j6[uniq])
+        if update_reference:
+            ok = sol.ok
+            self._x_ref[uniq[ok]] = sol.x[ok]
+        anchor = self._anchor[uniq]
+        out = Solution(
+            x=sol.x + anchor,
+            cov=sol.cov,
+            ok=sol.ok,
+            n_obs=sol.n_obs,
+            n_clusters=sol.n_clusters,
+            x_raw=sol.x_raw + anchor,
+            bias=sol.bias,
+            cov_sandwich=sol.cov_sandwich,
+            inflation=sol.inflation,
+            cond=sol.cond,
+            significance=sol.significance,
+            dispersion=sol.dispersion,
+        )
+        if uniq.size == r.size and np.array_equal(uniq, r):
+            return out
+        return Solution(**{k: v[inv] for k, v in out.__dict__.items()})
+
+    # ------------------------------------------------------------------ persistence
+    def pack_rows(self, rows: ArrayLike) -> list[bytes]:
+        """Serialise rows (closed sums, reference, open passes) to self-contained blobs."""
+        r = self._check_rows(rows)
+        slots = self._open_slots()
+        out = []
+        for row in r.tolist():
+            rec = np.zeros((), _ROW_DTYPE)
+            for f in _ROW_FIELDS:
+                rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
+            mine = slots[self._o_row[slots] == row]
+            mine = mine[np.lexsort((self._o_cluster[mine], self._o_last[mine]))]
+            rec["n_open"] = mine.size
+            op = np.zeros(mine.size, _OPEN_DTYPE)
+            op["cluster"], op["last"], op["n"] = (
+                self._o_cluster[mine], self._o_last[mine], self._o_n[mine])
+            op["a6"], op["b"] = self._o_a6[mine], self._o_b[mine]
+            out.append(bytes([PACK_VERSION]) + rec.tobytes() + op.tobytes())
+        return out
+
+    def unpack_rows(self, blobs: Sequence[bytes], rows: ArrayLike | None = None) -> IntArray:
+        """Restore packed rows into new rows (default) or over ``rows`` (their open passes
+        are dropped first). Returns the rows."""
+        if rows is None:
+            r = self.new_rows(len(blobs), np.zeros((len(blobs), 3)))
+        else:
+            r = self._check_rows(rows)
+            if r.size != len(blobs):
+                raise ValueError("rows and blobs differ in length")
+            slots = self._open_slots()
+            drop = slots[np.isin(self._o_row[slots], r)]
+            for s in drop.tolist():
+                del self._slot[(int(self._o_row[s]), int(self._o_cluster[s]))]
+                self._o_row[s] = -1
+                self._free.append(s)
+        for row, blob in zip(r.tolist(), blobs, strict=True):
+            if not blob or blob[0] != PACK_VERSION:
+                raise ValueError("unknown landmark state version")
+            rec = np.frombuffer(blob, _ROW_DTYPE, count=1, offset=1)[0]
+            for f in _ROW_FIELDS:
+                getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
+                    getattr(self, "_" + f)[row].shape)
+            k = int(rec["n_open"])
+            op = np.frombuffer(blob, _OPEN_DTYPE, count=k, offset=1 + _ROW_DTYPE.itemsize)
+            self._n_open[row] = 0
+            for o in op:
+                s = self._alloc_slot((row, int(o["cluster"])))
+                self._o_last[s], self._o_n[s] = int(o["last"]), int(o["n"])
+                self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
+        return r

@@ -1,0 +1,1 @@
+"""Accuracy evaluations: the paper's simulation (:mod:`hdmap.evaluation.paper_sim`)."""
