@@ -84,6 +84,16 @@ def bearing_spread(rays: LocalRays, x: Array) -> float:
 
 
 def _best_per_image(idx: NDArray[np.int64], chi2: Array, images: NDArray) -> NDArray[np.int64]:
+    """Of the rays ``idx``, the one with the smallest ``chi2`` per image.
+
+    >>> _best_per_image(np.array([], np.int64), np.array([]), np.array([0, 1])).tolist()
+    []
+    >>> idx, chi2, img = np.array([0, 1, 2]), np.array([3.0, 1.0, 2.0]), np.array([7, 7, 8])
+    >>> _best_per_image(idx, chi2, img).tolist()
+    [1, 2]
+    """
+    if idx.size == 0:
+        return idx
     order = np.lexsort((chi2, images[idx]))
     idx, img = idx[order], images[idx][order]
     first = np.r_[True, img[1:] != img[:-1]]

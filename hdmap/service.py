@@ -22,7 +22,8 @@ import threading
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -32,7 +33,7 @@ import zenoh
 
 from hdmap import keys
 from hdmap.bus import BusConfig, Publishers, open_session
-from hdmap.store import Meta, connect
+from hdmap.store import Meta, connect, transaction
 from hdmap.tiles import DEFAULT_ZOOM, region_label
 from schemas import Stats
 
@@ -91,6 +92,7 @@ class Service:
         self.counters: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._stats_lock = threading.Lock()
+        self._load_counters()
         self.inbox: queue.Queue[Item] = queue.Queue(maxsize=opts.inbox_size)
         self.started_at = time.time()
         self._process = psutil.Process(os.getpid())
@@ -118,6 +120,39 @@ class Service:
     def count(self, name: str, n: int = 1) -> None:
         with self._stats_lock:
             self.counters[name] += n
+
+    @contextmanager
+    def transaction(self, participants: Sequence[Any] = ()) -> Iterator[None]:
+        """:func:`hdmap.store.transaction` that also keeps the counters: they are written
+        with the work they count and restored if it rolls back, so the counts in stats
+        survive a restart (also SIGKILL) and never count work that was not kept."""
+        with self._stats_lock:
+            saved = (self.counters.copy(), self.rejected.copy())
+        try:
+            with transaction(self.db, participants):
+                yield
+                self._save_counters()
+        except BaseException:
+            with self._stats_lock:
+                self.counters, self.rejected = saved
+            raise
+
+    def _load_counters(self) -> None:
+        self.db.execute(
+            "CREATE TABLE IF NOT EXISTS counters (kind TEXT NOT NULL, name TEXT NOT NULL, "
+            "value REAL NOT NULL, PRIMARY KEY (kind, name)) WITHOUT ROWID"
+        )
+        for kind, name, value in self.db.execute("SELECT kind, name, value FROM counters"):
+            target = self.counters if kind == "c" else self.rejected
+            target[name] = int(value) if float(value).is_integer() else value
+
+    def _save_counters(self) -> None:
+        with self._stats_lock:
+            rows = [("c", k, float(v)) for k, v in self.counters.items()]
+            rows += [("r", k, float(v)) for k, v in self.rejected.items()]
+        self.db.executemany(
+            "INSERT OR REPLACE INTO counters(kind, name, value) VALUES (?,?,?)", rows
+        )
 
     def reject(self, reason: str, n: int = 1) -> None:
         with self._stats_lock:

@@ -15,12 +15,13 @@ publisher:
 from __future__ import annotations
 
 import logging
+import time
 
 import zenoh
 
 from hdmap import keys
 from hdmap.service import Item, Service, ServiceOptions
-from hdmap.store import StorageError, transaction
+from hdmap.store import StorageError
 from hdmap.stream import STAGE_KEYS, LogConsumer, LogServer, LogWriter
 from schemas import DecodeError, LogEntry
 
@@ -123,24 +124,60 @@ class StageService(Service):
             self.handle_other(others)
 
     def _apply_and_publish(self, entries: list[LogEntry]) -> None:
-        participants = [self.consumer] + ([self.writer] if self.writer else [])
-        participants += self.participants()
-        self._outbox = []
+        """Apply a batch in one transaction; a batch that raises is retried entry by entry,
+        and an entry that still raises is set aside (dead-lettered, counted, logged) so one
+        poisonous entry cannot stop the stage. Storage failures are not set aside: the
+        entries stay unapplied and are replayed."""
         try:
-            with transaction(self.db, participants):
-                self.apply(entries)
-                self.consumer.record(entries)
+            self._apply_in_transaction(entries)
         except StorageError as exc:
             log.error("%s: %s; entries will be replayed", self.name, exc)
             self.count("storage_errors")
             self._outbox = []
-            return
-        self.count("entries_applied", len(entries))
-        self.count("log_entries", len(self._outbox))
+        except Exception:  # any bug in apply: isolate the entry that causes it
+            if len(entries) > 1:
+                for e in entries:
+                    self._apply_and_publish([e])
+                return
+            log.exception("%s: entry %s failed; dead-lettered", self.name, _describe(entries[0]))
+            self._dead_letter(entries[0])
+
+    def _apply_in_transaction(self, entries: list[LogEntry]) -> None:
+        participants = [self.consumer] + ([self.writer] if self.writer else [])
+        participants += self.participants()
+        self._outbox = []
+        try:
+            with self.transaction(participants):
+                self.apply(entries)
+                self.consumer.record(entries)
+                self.count("entries_applied", len(entries))
+                self.count("log_entries", len(self._outbox))
+        except BaseException:
+            self._outbox = []
+            raise
         for e in self._outbox:
             self.pubs.put(STAGE_KEYS[e.stage](e.tile), e.to_bytes())
         self._outbox = []
         self.after_commit()
+
+    def _dead_letter(self, entry: LogEntry) -> None:
+        """Keep a failing entry for inspection and mark it consumed (counted, not applied)."""
+        try:
+            with self.transaction([self.consumer]):
+                self.db.execute(
+                    "CREATE TABLE IF NOT EXISTS dead_letters "
+                    "(at REAL NOT NULL, stage TEXT NOT NULL, body BLOB NOT NULL)"
+                )
+                self.db.execute(
+                    "INSERT INTO dead_letters(at, stage, body) VALUES (?, ?, ?)",
+                    (time.time(), entry.stage, entry.to_bytes()),
+                )
+                self.consumer.record([entry])
+                self.count("entries_failed")
+                self.count("entries_applied")
+        except StorageError as exc:
+            log.error("%s: cannot dead-letter: %s", self.name, exc)
+            self.count("storage_errors")
 
     def participants(self) -> list:
         """Extra in-memory state that must follow the transaction's outcome."""
@@ -154,3 +191,7 @@ class StageService(Service):
             "entries_replayed": s.replayed,
             "catchups": s.catchups,
         }
+
+
+def _describe(e: LogEntry) -> str:
+    return f"{e.stage}/{e.producer}/{e.tile}#{e.seq}"

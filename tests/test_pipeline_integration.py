@@ -34,7 +34,7 @@ from vehicle.mapclient import MapClient
 pytestmark = pytest.mark.integration
 
 VEHICLES = 4
-ROUNDS = 3
+ROUNDS = 10
 
 
 @dataclass
@@ -133,8 +133,12 @@ def test_restarting_stateful_services_mid_run_gives_the_same_map(tmp_path, how):
     plan = {n // 4: ("matcher", how), n // 2: ("solver", how), 3 * n // 4: ("publisher", how)}
     with Stack(tmp_path / "restart") as st:
         start(st)
-        got, _, stats, _ = drive(st, town, tmp_path / "restart", plan)
+        got, seen, stats, _ = drive(st, town, tmp_path / "restart", plan)
     assert len(want) > 5
+    # counters survive the restarts: every accepted observation applied exactly once
+    assert stats["ingest"]["accepted"] == seen.observations
+    assert stats["matcher"]["received"] == stats["ingest"]["accepted"]
+    assert stats["solver"]["observations"] == stats["matcher"]["linked"]
     w, g = by_id(want), by_id(got)
     assert g.keys() == w.keys()
     for i in w:

@@ -26,7 +26,7 @@ import numpy as np
 
 from hdmap import keys
 from hdmap.service import Item, Service, ServiceOptions
-from hdmap.store import StorageError, transaction, u64_to_i64
+from hdmap.store import StorageError, u64_to_i64
 from hdmap.stream import STAGE_KEYS, LogServer, LogWriter
 from hdmap.tiles import DEFAULT_TARGET_RANGE_M, route_rays
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck
@@ -80,11 +80,12 @@ class IngestService(Service):
         staged: list[_Pending] = []
         entries = []
         try:
-            with transaction(self.db, [self.writer]):
+            with self.transaction([self.writer]):
                 for it in uploads:
                     ack, new_entries = self._stage(it)
                     staged.append(_Pending(it, ack))
                     entries += new_entries
+                self.count("log_entries", len(entries))
         except StorageError as exc:
             log.error("ingest: %s", exc)
             self.count("storage_errors")
@@ -99,7 +100,6 @@ class IngestService(Service):
             self._reply(p.item, p.ack)
         for e in entries:
             self.pubs.put(STAGE_KEYS["obs"](e.tile), e.to_bytes())
-        self.count("log_entries", len(entries))
 
     def _reply(self, it: Item, ack: UploadAck) -> None:
         assert it.query is not None

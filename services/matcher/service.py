@@ -27,7 +27,6 @@ from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.geodesy import GEODESY
 from hdmap.initiation import InitConfig, propose
 from hdmap.stage import StageService
-from hdmap.store import transaction
 from hdmap.tiles import TileFrames, in_region, neighbours, quadkeys_of
 from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
 from services.matcher.state import Landmark, MatcherState, pass_key
@@ -322,9 +321,9 @@ class MatcherService(StageService):
                 self.state.drop_pending(t, old)
                 n += int(old.sum())
         if n:
-            with transaction(self.db, [self]):
+            with self.transaction([self]):
                 self.state.save(self.sums.pack_rows)
-            self.count("expired", n)
+                self.count("expired", n)
         self._snapshot_counts()
 
     def after_commit(self) -> None:

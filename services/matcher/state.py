@@ -140,10 +140,16 @@ class MatcherState:
     # -- pending ----------------------------------------------------------------------------
 
     def add_pending(
-        self, tile: str, obs: Observations, vehicle: str, pass_id: int, now: float
+        self,
+        tile: str,
+        obs: Observations,
+        vehicle: str,
+        pass_id: int,
+        now: float,
+        received: float,
     ) -> None:
         if len(obs):
-            self.pending[tile].add(obs, vehicle, pass_id, now)
+            self.pending[tile].add(obs, vehicle, pass_id, now, received)
             self._pending_dirty.add(tile)
 
     def drop_pending(self, tile: str, mask_remove: NDArray[np.bool_]) -> None:
@@ -161,12 +167,14 @@ class MatcherState:
 
     # -- persistence --------------------------------------------------------------------------
 
-    def save(self, pack_row) -> None:
+    def save(self, pack_rows) -> None:
         """Write what changed (inside the caller's transaction)."""
         c = self._conn
         rows = []
-        for lid in sorted(self._dirty):
-            lm = self.landmarks[lid]
+        dirty = [self.landmarks[lid] for lid in sorted(self._dirty)]
+        blobs = pack_rows(np.array([lm.row for lm in dirty], np.int64)) if dirty else []
+        for lm, blob in zip(dirty, blobs, strict=True):
+            lid = lm.id
             rows.append(
                 (
                     int(u64_to_i64(np.array([lid], np.uint64))[0]),
@@ -175,7 +183,7 @@ class MatcherState:
                     lm.tile,
                     np.asarray(lm.x, "<f8").tobytes(),
                     np.asarray(lm.cov, "<f8").tobytes(),
-                    pack_row(lm.row),
+                    blob,
                     lm.created_at,
                 )
             )
@@ -192,8 +200,9 @@ class MatcherState:
             rec = Observations.CODEC.to_records(p.obs)
             ids = u64_to_i64(p.obs.obs_id).tolist()
             c.executemany(
-                "INSERT OR IGNORE INTO pending(vehicle, obs_id, pass_id, tile, added_at, rec) "
-                "VALUES (?,?,?,?,?,?)",
+                "INSERT OR IGNORE INTO pending"
+                "(vehicle, obs_id, pass_id, tile, added_at, received_at, rec) "
+                "VALUES (?,?,?,?,?,?,?)",
                 [
                     (
                         p.vehicle[i],
@@ -201,6 +210,7 @@ class MatcherState:
                         int(p.pass_id[i]),
                         tile,
                         float(p.added_at[i]),
+                        float(p.received_at[i]),
                         rec[i].tobytes(),
                     )
                     for i in range(len(p))

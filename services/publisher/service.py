@@ -21,7 +21,7 @@ import zenoh
 
 from hdmap import keys
 from hdmap.stage import StageService
-from hdmap.store import StorageError, transaction
+from hdmap.store import StorageError
 from hdmap.stream import QueryServer
 from hdmap.tiles import in_region, valid_quadkey
 from schemas import DecodeError, ErrorReply, LandmarkUpdates, LogEntry
@@ -78,8 +78,10 @@ class PublisherService(StageService):
 
     def flush(self) -> None:
         try:
-            with transaction(self.db):
+            with self.transaction():
                 deltas = self.maps.flush()
+                self.count("deltas", len(deltas))
+                self.count("delta_upserts", sum(len(d.upserts) for d in deltas))
         except StorageError as exc:
             log.error("publisher flush: %s", exc)
             self.count("storage_errors")
@@ -87,8 +89,6 @@ class PublisherService(StageService):
         self._counts = self.maps.counts()  # worker thread: the stats thread reads the copy
         for d in deltas:
             self.pubs.put(keys.map_delta(d.tile), d.to_bytes())
-        self.count("deltas", len(deltas))
-        self.count("delta_upserts", sum(len(d.upserts) for d in deltas))
 
     def _answer_snapshot(self, conn: sqlite3.Connection, q: zenoh.Query) -> None:
         tile = keys.chunk(str(q.key_expr), 3)

@@ -41,8 +41,14 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class SolverConfig:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
-    confirm_passes: int = 3
-    """A published landmark is 'confirmed' from this many distinct passes on."""
+    provisional_passes: int = 2
+    """Below the estimator's ``min_clusters`` a landmark is still published, as a
+    'candidate', from this many passes on, if its information matrix is well-conditioned
+    (its covariance then carries the pass-bias prior below; 0 disables)."""
+    pass_bias_sigma_m: tuple[float, float, float] = (2.5, 2.5, 1.0)
+    """Prior standard deviation (E, N, U) of the position error one pass shares by all its
+    rays (GNSS bias): a candidate's covariance is at least this squared over its passes,
+    since the between-pass spread of so few passes cannot measure it."""
 
 
 def cov6(c: np.ndarray) -> np.ndarray:
@@ -146,10 +152,25 @@ class SolverService(StageService):
             return
         lms = [self.state.landmarks[i] for i in ids]
         sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64), update_reference=False)
-        ok = np.flatnonzero(sol.ok)
-        self.count("solved_ok", int(ok.size))
+        n_clusters = np.asarray(sol.n_clusters)
+        n_obs = np.asarray(sol.n_obs)
+        est = self.config.estimator
+        provisional = (
+            ~sol.ok
+            & (self.config.provisional_passes > 0)
+            & (n_clusters >= self.config.provisional_passes)
+            & (n_obs >= est.min_rays)
+            & np.isfinite(sol.x).all(axis=1)
+            & np.isfinite(sol.cov).all(axis=(1, 2))
+            & (sol.cond <= est.max_cond)
+            & (sol.significance >= est.min_realized_significance)
+        )
+        ok = np.flatnonzero(sol.ok | provisional)
+        self.count("solved_ok", int(sol.ok.sum()))
+        self.count("solved_provisional", int(provisional.sum()))
         if ok.size == 0:
             return
+        prior = np.diag(np.square(self.config.pass_bias_sigma_m))
         now = time.time()
         lat = np.empty(ok.size)
         lon = np.empty(ok.size)
@@ -160,15 +181,12 @@ class SolverService(StageService):
             la, lo, hh = frame.to_geodetic(sol.x[k][None])
             lat[j], lon[j], h[j] = la[0], lo[0], hh[0]
             r = enu_rotation(la[0], lo[0]) @ frame.rotation.T
-            cov[j] = r @ sol.cov[k] @ r.T
+            ck = sol.cov[k] + (prior / n_clusters[k] if provisional[k] else 0.0)
+            cov[j] = r @ ck @ r.T
         tiles = quadkeys_of(lat, lon, self.opts.zoom)
         upserts: dict[str, list[int]] = defaultdict(list)
         removals: dict[str, list[tuple[int, int]]] = defaultdict(list)
-        n_clusters = np.asarray(sol.n_clusters)
-        n_obs = np.asarray(sol.n_obs)
-        status = np.where(
-            n_clusters[ok] >= self.config.confirm_passes, STATUS_CONFIRMED, STATUS_CANDIDATE
-        )
+        status = np.where(sol.ok[ok], STATUS_CONFIRMED, STATUS_CANDIDATE)
         for j, k in enumerate(ok):
             lm = lms[k]
             lm.revision += 1
