@@ -45,8 +45,12 @@ def machine() -> dict:
         pass
     import os
 
-    return {"cpu": cpu, "cores": os.cpu_count(), "python": sys.version.split()[0],
-            "zenoh": "1.10.2"}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "zenoh": "1.10.2",
+    }
 
 
 def serve(endpoint: str) -> None:
@@ -85,8 +89,12 @@ def bench_query(s: zenoh.Session, payload: bytes, seconds: float, threads: int) 
         mine = []
         while time.monotonic() < stop:
             t = time.perf_counter()
-            for r in s.get(f"bench/upload/v{i}", payload=payload, timeout=10.0,
-                           congestion_control=zenoh.CongestionControl.BLOCK):
+            for r in s.get(
+                f"bench/upload/v{i}",
+                payload=payload,
+                timeout=10.0,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            ):
                 _ = r.ok
             mine.append(time.perf_counter() - t)
         with lock:
@@ -100,8 +108,11 @@ def bench_query(s: zenoh.Session, payload: bytes, seconds: float, threads: int) 
         t.join()
     el = time.perf_counter() - t0
     a = np.array(lat)
-    return {"requests_per_s": len(a) / el, "p50_ms": float(np.percentile(a, 50) * 1e3),
-            "p99_ms": float(np.percentile(a, 99) * 1e3)}
+    return {
+        "requests_per_s": len(a) / el,
+        "p50_ms": float(np.percentile(a, 50) * 1e3),
+        "p99_ms": float(np.percentile(a, 99) * 1e3),
+    }
 
 
 def bench_pub(s: zenoh.Session, payload: bytes, seconds: float) -> dict:
@@ -142,8 +153,11 @@ def main() -> int:
     out: dict = {"machine": machine(), "batch": args.batch, "payload_bytes": len(payload)}
     with tempfile.TemporaryDirectory() as tmp, Stack(Path(tmp)) as st:
         st.start_router()
-        child = subprocess.Popen([sys.executable, __file__, "--serve", st.listen],
-                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        child = subprocess.Popen(
+            [sys.executable, __file__, "--serve", st.listen],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+        )
         try:
             assert child.stdout is not None and child.stdout.readline().strip() == b"ready"
             time.sleep(0.5)
@@ -152,14 +166,20 @@ def main() -> int:
                     r = bench_query(s, payload, args.seconds, th)
                     r["obs_per_s"] = r["requests_per_s"] * args.batch
                     out[f"query_threads_{th}"] = r
-                    print(f"request/reply {th:>2} threads: {r['requests_per_s']:8.0f} req/s "
-                          f"= {r['obs_per_s']:10.0f} obs/s  p50 {r['p50_ms']:.2f} ms  "
-                          f"p99 {r['p99_ms']:.2f} ms", flush=True)
+                    print(
+                        f"request/reply {th:>2} threads: {r['requests_per_s']:8.0f} req/s "
+                        f"= {r['obs_per_s']:10.0f} obs/s  p50 {r['p50_ms']:.2f} ms  "
+                        f"p99 {r['p99_ms']:.2f} ms",
+                        flush=True,
+                    )
                 p = bench_pub(s, payload, args.seconds)
                 p["obs_per_s"] = p["messages_per_s"] * args.batch
                 out["pubsub"] = p
-                print(f"pub/sub BLOCK: {p['messages_per_s']:8.0f} msg/s = {p['obs_per_s']:10.0f}"
-                      f" obs/s, lost {p['lost']}", flush=True)
+                print(
+                    f"pub/sub BLOCK: {p['messages_per_s']:8.0f} msg/s = {p['obs_per_s']:10.0f}"
+                    f" obs/s, lost {p['lost']}",
+                    flush=True,
+                )
         finally:
             if child.stdin:
                 child.stdin.close()

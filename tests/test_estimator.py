@@ -35,8 +35,9 @@ def corridor_rays(
     rng, x, n, s_az, s_el, s_pos, s_pos_rep=None, extra_bias=None, lateral=0.0
 ) -> Rays:
     """Rays toward ``x`` from origins along a road (North), noisy angles and origins."""
-    a = np.stack([lateral + rng.uniform(-1, 1, n), rng.uniform(-45, -8, n),
-                  np.full(n, 1.4)], axis=1)
+    a = np.stack(
+        [lateral + rng.uniform(-1, 1, n), rng.uniform(-45, -8, n), np.full(n, 1.4)], axis=1
+    )
     az, el = true_angles(x, a)
     az = az + rng.normal(0, s_az, n)
     if extra_bias is not None:
@@ -79,8 +80,7 @@ def test_2d_case_reduces_to_design_form(s):
     c = (1 - np.exp(-2 * s * s)) / 2
     en = np.ix_([0, 1], [0, 1])
     for mi, pi in zip(sym_to_mat(m), sym_to_mat(p), strict=True):
-        np.testing.assert_allclose(mi[en], np.exp(2 * s * s) * (pi[en] - c * np.eye(2)),
-                                   atol=1e-12)
+        np.testing.assert_allclose(mi[en], np.exp(2 * s * s) * (pi[en] - c * np.eye(2)), atol=1e-12)
 
 
 @pytest.mark.parametrize(("s", "textbook_min", "comp_max"), [(0.2, 8.0, 1.0), (0.05, 1.0, 0.3)])
@@ -125,8 +125,15 @@ def random_batch(rng, n_rows=7, n=300, x=None):
     xs = x + 10.0 * rows[:, None] * np.array([1.0, 0.5, 0.0])
     a = xs + np.stack([rng.uniform(-3, 3, n), rng.uniform(-40, -8, n), np.full(n, -1.0)], 1)
     az, el = true_angles(xs, a)
-    r = Rays.from_angles(a + rng.normal(0, 1.0, (n, 3)), az + rng.normal(0, 0.05, n),
-                         el + rng.normal(0, 0.01, n), 0.05, 0.01, 1.0, 1.5)
+    r = Rays.from_angles(
+        a + rng.normal(0, 1.0, (n, 3)),
+        az + rng.normal(0, 0.05, n),
+        el + rng.normal(0, 0.01, n),
+        0.05,
+        0.01,
+        1.0,
+        1.5,
+    )
     return rows, clusters, r, xs
 
 
@@ -139,8 +146,7 @@ def test_accumulate_mixed_unsorted_equals_per_row_sums_and_grows():
     for k in range(7):
         m = rows == k
         anchor = s.anchor([k])[0]
-        alpha, beta = ray_terms(r.take(m), r.origin[m] - anchor, np.zeros((m.sum(), 3)),
-                                s.config)
+        alpha, beta = ray_terms(r.take(m), r.origin[m] - anchor, np.zeros((m.sum(), 3)), s.config)
         np.testing.assert_allclose(s._a6[k], alpha.sum(0), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(s._b[k], beta.sum(0), rtol=1e-12, atol=1e-12)
     sol = s.solve(np.arange(7))
@@ -151,8 +157,11 @@ def test_accumulate_mixed_unsorted_equals_per_row_sums_and_grows():
 def test_sandwich_equals_brute_force_per_pass_computation():
     rng = np.random.default_rng(6)
     rows, clusters, r, _ = random_batch(rng, n_rows=3, n=600)
-    s = LandmarkSums(EstimatorConfig(second_order_variance=False, small_sample=False,
-                                     model_floor=False, max_open_passes=16))
+    s = LandmarkSums(
+        EstimatorConfig(
+            second_order_variance=False, small_sample=False, model_floor=False, max_open_passes=16
+        )
+    )
     s.new_rows(3, np.array([5.0, 0.0, 2.5]) + 10.0 * np.arange(3)[:, None] * [1.0, 0.5, 0.0])
     for part in np.array_split(np.arange(rows.size), 4):  # passes split over calls
         s.accumulate(rows[part], clusters[part], r.take(part))
@@ -160,8 +169,7 @@ def test_sandwich_equals_brute_force_per_pass_computation():
     for k in range(3):
         anchor = s.anchor([k])[0]
         m = rows == k
-        alpha, beta = ray_terms(r.take(m), r.origin[m] - anchor, np.zeros((m.sum(), 3)),
-                                s.config)
+        alpha, beta = ray_terms(r.take(m), r.origin[m] - anchor, np.zeros((m.sum(), 3)), s.config)
         a_mat = sym_to_mat(alpha)
         x_rel = sol.x_raw[k] - anchor
         meat = np.zeros((3, 3))
@@ -244,14 +252,26 @@ def landmark_fleet(rng, model: str, landmarks=150, passes=60, rays_per_pass=12):
     rows = np.repeat(np.arange(landmarks), rays_per_pass)
     n = rows.size
     for p in range(passes):
-        a = np.stack([rng.uniform(-1, 1, n), np.tile(np.linspace(-40, -8, rays_per_pass),
-                                                     landmarks), np.full(n, 1.4)], 1)
+        a = np.stack(
+            [
+                rng.uniform(-1, 1, n),
+                np.tile(np.linspace(-40, -8, rays_per_pass), landmarks),
+                np.full(n, 1.4),
+            ],
+            1,
+        )
         az, el = true_angles(x, a)
         bias_a = rng.normal(0, 2.0, (landmarks, 3))[rows] if model == "correlated" else 0.0
         bias_h = rng.normal(0, 0.02, landmarks)[rows] if model == "correlated" else 0.0
-        r = Rays.from_angles(a + rng.normal(0, 1.0, (n, 3)) + bias_a,
-                             az + rng.normal(0, 0.03, n) + bias_h,
-                             el + rng.normal(0, 0.005, n), 0.03, 0.005, 1.0, 1.0)
+        r = Rays.from_angles(
+            a + rng.normal(0, 1.0, (n, 3)) + bias_a,
+            az + rng.normal(0, 0.03, n) + bias_h,
+            el + rng.normal(0, 0.005, n),
+            0.03,
+            0.005,
+            1.0,
+            1.0,
+        )
         for s in sums.values():
             s.accumulate(rows, np.full(n, p), r)
             s.close_passes()
@@ -262,8 +282,11 @@ def landmark_fleet(rng, model: str, landmarks=150, passes=60, rays_per_pass=12):
         e = sol.x[:, :2] - x[:2]
         c = sol.cov[:, :2, :2]
         m2 = np.einsum("ti,tij,tj->t", e, np.linalg.inv(c), e)
-        out[k] = (sol.ok.mean(), (m2[sol.ok] <= chi2_dist.ppf(0.95, 2)).mean(),
-                  np.hypot(*e.T).mean())
+        out[k] = (
+            sol.ok.mean(),
+            (m2[sol.ok] <= chi2_dist.ppf(0.95, 2)).mean(),
+            np.hypot(*e.T).mean(),
+        )
     return out
 
 
@@ -289,9 +312,17 @@ def test_conditioning_single_viewpoint_is_not_ok_spread_is():
         rays = []
         for a in (a_far, a_good):
             az, el = true_angles(x, a)
-            rays.append(Rays.from_angles(a + rng.normal(0, 0.5, (8, 3)),
-                                         az + rng.normal(0, 0.02, 8),
-                                         el + rng.normal(0, 0.005, 8), 0.02, 0.005, 0.5, 0.5))
+            rays.append(
+                Rays.from_angles(
+                    a + rng.normal(0, 0.5, (8, 3)),
+                    az + rng.normal(0, 0.02, 8),
+                    el + rng.normal(0, 0.005, 8),
+                    0.02,
+                    0.005,
+                    0.5,
+                    0.5,
+                )
+            )
         s.accumulate(np.repeat([0, 1], 8), np.full(16, p), Rays.concat(rays))
     sol = s.solve([0, 1])
     assert not sol.ok[0]
@@ -315,16 +346,19 @@ def test_unreported_heading_bias_needs_the_floor():
     under-compensates (biased toward the origins); the configured floor removes it."""
     rng = np.random.default_rng(13)
     x = np.array([5.0, 0.0, 2.5])
-    parts = [corridor_rays(rng, x, 30, 0.1, 0.005, 1.0, extra_bias=rng.normal(0, 0.1))
-             for _ in range(600)]
+    parts = [
+        corridor_rays(rng, x, 30, 0.1, 0.005, 1.0, extra_bias=rng.normal(0, 0.1))
+        for _ in range(600)
+    ]
     rays = Rays.concat(parts)
     no_floor = solve_once(rays, EstimatorConfig(), x) - x
     floor = solve_once(rays, EstimatorConfig(extra_sigma_az=0.1), x) - x
     assert no_floor[1] < -1.0
     assert np.linalg.norm(floor[:2]) < 0.5 * np.linalg.norm(no_floor[:2])
     # the calibration recovers the unreported level (no pass position offset here)
-    s_x, npass = excess_angular_variance(rays, np.broadcast_to(x, rays.origin.shape),
-                                         np.repeat(np.arange(600), 30))
+    s_x, npass = excess_angular_variance(
+        rays, np.broadcast_to(x, rays.origin.shape), np.repeat(np.arange(600), 30)
+    )
     assert npass == 600
     assert 0.08 < s_x < 0.12
 
@@ -376,5 +410,6 @@ def test_input_validation():
         s.unpack_rows([b"\x09" + bytes(10)])
     sol = s.solve([0])
     assert not sol.ok[0]
-    assert meat_matrix(np.zeros((1, 3)), np.zeros((1, 21)), np.zeros((1, 6, 3)),
-                       np.zeros((1, 6))).shape == (1, 3, 3)
+    assert meat_matrix(
+        np.zeros((1, 3)), np.zeros((1, 21)), np.zeros((1, 6, 3)), np.zeros((1, 6))
+    ).shape == (1, 3, 3)

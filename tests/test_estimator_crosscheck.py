@@ -22,12 +22,19 @@ X_TRUE = np.array([5.0, 0.0, 2.5])
 def corridor(rng, n_pass, per_pass, s_az, s_el, s_pos, x=X_TRUE):
     """Rays from passes along a road toward ``x``; returns rays and their pass ids."""
     n = n_pass * per_pass
-    a = np.stack([rng.uniform(-1.5, 1.5, n), np.tile(np.linspace(-45, -8, per_pass), n_pass),
-                  np.full(n, 1.4)], 1)
+    a = np.stack(
+        [
+            rng.uniform(-1.5, 1.5, n),
+            np.tile(np.linspace(-45, -8, per_pass), n_pass),
+            np.full(n, 1.4),
+        ],
+        1,
+    )
     az, el = ray_angles(x - a)
     a_meas = a + rng.normal(0, s_pos, (n, 3)) if s_pos > 0 else a
-    rays = Rays.from_angles(a_meas, az + rng.normal(0, s_az, n), el + rng.normal(0, s_el, n),
-                            s_az, s_el, s_pos, s_pos)
+    rays = Rays.from_angles(
+        a_meas, az + rng.normal(0, s_az, n), el + rng.normal(0, s_el, n), s_az, s_el, s_pos, s_pos
+    )
     return rays, np.repeat(np.arange(n_pass), per_pass)
 
 
@@ -57,8 +64,9 @@ def test_a_batch_least_squares_on_textbook_residuals_equals_incremental_sums():
         return np.concatenate([np.sqrt(w_h) * (d * h).sum(1), np.sqrt(w_v) * (d * v).sum(1)])
 
     jac = np.concatenate([np.sqrt(w_h)[:, None] * h, np.sqrt(w_v)[:, None] * v])
-    fit = least_squares(resid, x0, jac=lambda x: jac, xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                        method="lm")
+    fit = least_squares(
+        resid, x0, jac=lambda x: jac, xtol=1e-15, ftol=1e-15, gtol=1e-15, method="lm"
+    )
     np.testing.assert_allclose(sol.x_raw[0], fit.x, rtol=1e-9, atol=1e-9)
     # and the textbook solution is measurably pulled toward the origins at this noise
     assert sol.x_raw[0, 1] < X_TRUE[1]

@@ -24,36 +24,65 @@ from hdmap.evaluation.paper_sim import (
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper_sim")
-    args = argparse.Namespace(evaluation="paper-sim", out=str(out), trials=None,
-                              max_passes=None, seed=1, quick=True, workers=2,
-                              models="white,correlated")
+    args = argparse.Namespace(
+        evaluation="paper-sim",
+        out=str(out),
+        trials=None,
+        max_passes=None,
+        seed=1,
+        quick=True,
+        workers=2,
+        models="white,correlated",
+    )
     assert eval_cmd.run(args) == 0
     return out, json.loads((out / "paper_sim.json").read_text())
 
 
 def test_quick_run_writes_json_and_figures(quick):
     out, res = quick
-    for name in ("paper_figure_white.png", "paper_figure_correlated.png", "convergence.png",
-                 "coverage.png"):
+    for name in (
+        "paper_figure_white.png",
+        "paper_figure_correlated.png",
+        "convergence.png",
+        "coverage.png",
+    ):
         assert (out / name).stat().st_size > 10_000
-    for key in ("slope_ours_white", "slope_ours_white_pass", "slope_paper_white",
-                "paper_plateau_white_pass", "coverage_ours_white_min",
-                "coverage_ours_white_max", "coverage_ours_white_pass",
-                "slope_ours_correlated", "coverage_ours_correlated_min",
-                "coverage_independent_correlated_max",
-                "independent_overconfident_correlated_pass", "claims_pass", "meta",
-                "checkpoints", "models"):
+    for key in (
+        "slope_ours_white",
+        "slope_ours_white_pass",
+        "slope_paper_white",
+        "paper_plateau_white_pass",
+        "coverage_ours_white_min",
+        "coverage_ours_white_max",
+        "coverage_ours_white_pass",
+        "slope_ours_correlated",
+        "coverage_ours_correlated_min",
+        "coverage_independent_correlated_max",
+        "independent_overconfident_correlated_pass",
+        "claims_pass",
+        "meta",
+        "checkpoints",
+        "models",
+    ):
         assert key in res, key
     assert res["checkpoints"] == checkpoints(100)
     assert res["meta"]["trials"] == 40 and res["meta"]["max_passes"] == 100
     for model in ("white", "correlated"):
         block = res["models"][model]
-        names = {"ours", "independent", "paper"} | ({"ours_no_floor"} if model == "correlated"
-                                                   else set())
+        names = {"ours", "independent", "paper"} | (
+            {"ours_no_floor"} if model == "correlated" else set()
+        )
         assert set(block["estimators"]) == names
         for est in block["estimators"].values():
-            for series in ("published", "mean_error_m", "median_error_m", "coverage_east",
-                           "coverage_north", "coverage_ellipse", "bias_north_m"):
+            for series in (
+                "published",
+                "mean_error_m",
+                "median_error_m",
+                "coverage_east",
+                "coverage_north",
+                "coverage_ellipse",
+                "bias_north_m",
+            ):
                 assert len(est[series]) == len(res["checkpoints"])
         ex = block["example"]
         assert len(ex["single_east"]) == len(ex["ours_north"]) == 100
@@ -97,8 +126,7 @@ def test_simulated_rays_match_the_stated_geometry_and_noise():
     assert len(rays) == 2000 * f
     # directions point at the sign within the noise; origins along the lane
     v = g.sign - rays.origin
-    cosang = np.einsum("ij,ij->i", v / np.linalg.norm(v, axis=1, keepdims=True),
-                       rays.direction)
+    cosang = np.einsum("ij,ij->i", v / np.linalg.norm(v, axis=1, keepdims=True), rays.direction)
     assert np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))) < 30.0
     north = rays.origin[:, 1].reshape(2000, f)
     np.testing.assert_allclose(north.mean(0), g.frames(), atol=0.5)

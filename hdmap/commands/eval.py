@@ -20,17 +20,33 @@ from pathlib import Path
 
 def add_paper_sim_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--trials", type=int, default=None,
-                   help="Monte-Carlo trials per error model (default 500; --quick 40)")
-    p.add_argument("--max-passes", type=int, default=None,
-                   help="passings per trial (default 1000; --quick 100)")
+    p.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help="Monte-Carlo trials per error model (default 500; --quick 40)",
+    )
+    p.add_argument(
+        "--max-passes",
+        type=int,
+        default=None,
+        help="passings per trial (default 1000; --quick 100)",
+    )
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    p.add_argument("--quick", action="store_true",
-                   help="small run for the test suite (< 30 s, one process)")
-    p.add_argument("--workers", type=int, default=2,
-                   help="processes, one error model each (default 2; --quick forces 1)")
-    p.add_argument("--models", default="white,correlated",
-                   help="comma-separated error models (default white,correlated)")
+    p.add_argument(
+        "--quick", action="store_true", help="small run for the test suite (< 30 s, one process)"
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="processes, one error model each (default 2; --quick forces 1)",
+    )
+    p.add_argument(
+        "--models",
+        default="white,correlated",
+        help="comma-separated error models (default white,correlated)",
+    )
 
 
 def _json_default(o: object) -> object:
@@ -64,34 +80,52 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    print(f"paper-sim: {trials} trials x {passes} passings, models {', '.join(models)}, "
-          f"seed {args.seed}, {workers} process(es)", file=sys.stderr, flush=True)
+    print(
+        f"paper-sim: {trials} trials x {passes} passings, models {', '.join(models)}, "
+        f"seed {args.seed}, {workers} process(es)",
+        file=sys.stderr,
+        flush=True,
+    )
     result = run_paper_sim(
-        trials=trials, max_passes=passes, seed=int(args.seed), models=models, workers=workers,
+        trials=trials,
+        max_passes=passes,
+        seed=int(args.seed),
+        models=models,
+        workers=workers,
         pilot=(20, 30) if quick else (100, 100),
     )
     result["meta"]["command"] = "hdmap eval paper-sim " + " ".join(
-        [f"--out {args.out}", f"--trials {trials}", f"--max-passes {passes}",
-         f"--seed {args.seed}"] + (["--quick"] if quick else []))
+        [f"--out {args.out}", f"--trials {trials}", f"--max-passes {passes}", f"--seed {args.seed}"]
+        + (["--quick"] if quick else [])
+    )
     figures = write_figures(result, out)
     result["meta"]["figures"] = [f.name for f in figures]
     result["meta"]["wall_seconds"] = time.perf_counter() - t0
     path = out / "paper_sim.json"
     path.write_text(json.dumps(_clean(result), indent=1, default=_json_default))
-    keys = [k for k in result if k.startswith(("slope_", "coverage_", "paper_plateau",
-                                               "independent_", "claims_"))]
+    keys = [
+        k
+        for k in result
+        if k.startswith(("slope_", "coverage_", "paper_plateau", "independent_", "claims_"))
+    ]
     for k in keys:
         v = result[k]
-        print(f"  {k:45s} {v:.3f}" if isinstance(v, float) else f"  {k:45s} {v}",
-              file=sys.stderr)
-    print(f"paper-sim: wrote {path} and {len(figures)} figures in "
-          f"{result['meta']['wall_seconds']:.1f} s", file=sys.stderr, flush=True)
+        print(f"  {k:45s} {v:.3f}" if isinstance(v, float) else f"  {k:45s} {v}", file=sys.stderr)
+    print(
+        f"paper-sim: wrote {path} and {len(figures)} figures in "
+        f"{result['meta']['wall_seconds']:.1f} s",
+        file=sys.stderr,
+        flush=True,
+    )
     return 0
 
 
 EVALUATIONS: dict[str, tuple[Callable, Callable, str]] = {
-    "paper-sim": (add_paper_sim_arguments, run_paper_sim_command,
-                  "the paper's simulation: ours vs the paper's estimator, convergence, coverage"),
+    "paper-sim": (
+        add_paper_sim_arguments,
+        run_paper_sim_command,
+        "the paper's simulation: ours vs the paper's estimator, convergence, coverage",
+    ),
 }
 
 

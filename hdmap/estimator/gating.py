@@ -54,9 +54,7 @@ def angle_jacobian(v: Array) -> Array:
     return j
 
 
-def ray_chi2(
-    x: ArrayLike, cov: ArrayLike, rays: Rays, cfg: EstimatorConfig | None = None
-) -> Array:
+def ray_chi2(x: ArrayLike, cov: ArrayLike, rays: Rays, cfg: EstimatorConfig | None = None) -> Array:
     """Mahalanobis residual (n,) of ray j against landmark estimate ``x[j]``, ``cov[j]``.
 
     Angular residuals against the (effective) ``sigma_az``/``sigma_el``, plus the landmark
@@ -80,7 +78,8 @@ def ray_chi2(
     det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
     det = np.where(det > 0, det, 1e-300)
     return (
-        res[:, 0] ** 2 * s[:, 1, 1] - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
+        res[:, 0] ** 2 * s[:, 1, 1]
+        - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
         + res[:, 1] ** 2 * s[:, 0, 0]
     ) / det
 
@@ -106,8 +105,11 @@ def triangulate(
     """
     base = cfg or EstimatorConfig()
     tb = EstimatorConfig(
-        compensate=False, weighting=base.weighting, extra_sigma_az=base.extra_sigma_az,
-        extra_sigma_el=base.extra_sigma_el, min_range_m=base.min_range_m,
+        compensate=False,
+        weighting=base.weighting,
+        extra_sigma_az=base.extra_sigma_az,
+        extra_sigma_el=base.extra_sigma_el,
+        min_range_m=base.min_range_m,
         min_sigma_pos_m=base.min_sigma_pos_m,
     )
     n = len(rays)

@@ -270,8 +270,9 @@ class Rays:
         def full(v: ArrayLike) -> Array:
             return np.broadcast_to(np.asarray(v, float), (n,)).copy()
 
-        return Rays(o, d.reshape(n, 3), full(sigma_az), full(sigma_el), full(sigma_pos_h),
-                    full(sigma_pos_v))
+        return Rays(
+            o, d.reshape(n, 3), full(sigma_az), full(sigma_el), full(sigma_pos_h), full(sigma_pos_v)
+        )
 
 
 def ray_angles(direction: ArrayLike) -> tuple[Array, Array]:
@@ -396,9 +397,15 @@ def ray_terms(
     beta = np.einsum("nij,nj->ni", sym_to_mat(alpha), origin_rel)
     if cfg.weight_correction and cfg.weighting == "inverse_variance":
         sig = np.stack(
-            [np.asarray(rays.sigma_pos_h, float) ** 2, np.asarray(rays.sigma_pos_h, float) ** 2,
-             np.asarray(rays.sigma_pos_v, float) ** 2], axis=1)
+            [
+                np.asarray(rays.sigma_pos_h, float) ** 2,
+                np.asarray(rays.sigma_pos_h, float) ** 2,
+                np.asarray(rays.sigma_pos_v, float) ** 2,
+            ],
+            axis=1,
+        )
         corr = np.einsum("nij,nj->ni", sym_to_mat(m - h), sig * g_v) + np.einsum(
-            "nij,nj->ni", sym_to_mat(h), sig * g_h)
+            "nij,nj->ni", sym_to_mat(h), sig * g_h
+        )
         beta = beta - corr
     return alpha, beta

@@ -135,8 +135,19 @@ class LandmarkSums:
     def bytes_per_landmark(self) -> int:
         """In-memory closed state per landmark, bytes (each open pass adds
         ``open_pass_bytes``)."""
-        names = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb", "_n_obs",
-                 "_n_closed", "_n_open")
+        names = (
+            "_anchor",
+            "_x_ref",
+            "_a6",
+            "_j6",
+            "_b",
+            "_saa",
+            "_sab",
+            "_sbb",
+            "_n_obs",
+            "_n_closed",
+            "_n_open",
+        )
         return int(sum(getattr(self, n)[0].nbytes for n in names))
 
     @property
@@ -168,8 +179,19 @@ class LandmarkSums:
         new = cap
         while new < need:
             new *= 2
-        for name in ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb", "_n_obs",
-                     "_n_closed", "_n_open"):
+        for name in (
+            "_anchor",
+            "_x_ref",
+            "_a6",
+            "_j6",
+            "_b",
+            "_saa",
+            "_sab",
+            "_sbb",
+            "_n_obs",
+            "_n_closed",
+            "_n_open",
+        ):
             old = getattr(self, name)
             arr = np.zeros((new, *old.shape[1:]), old.dtype)
             arr[:cap] = old
@@ -232,16 +254,17 @@ class LandmarkSums:
     def _open_slots(self) -> IntArray:
         return np.flatnonzero(self._o_row[: self._o_hi] >= 0)
 
-    def close_passes(
-        self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None
-    ) -> int:
+    def close_passes(self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None) -> int:
         """Close open passes: all (no arguments), those of ``rows``, those with a cluster id
         in ``clusters`` (every landmark), or the pairs ``(rows[i], clusters[i])`` (both).
         Returns how many were closed."""
         slots = self._open_slots()
         if rows is not None and clusters is not None:
-            keys = zip(np.asarray(rows).reshape(-1).tolist(),
-                       np.asarray(clusters).reshape(-1).tolist(), strict=True)
+            keys = zip(
+                np.asarray(rows).reshape(-1).tolist(),
+                np.asarray(clusters).reshape(-1).tolist(),
+                strict=True,
+            )
             found = [self._slot.get((int(r), int(c))) for r, c in keys]
             slots = np.array(sorted({s for s in found if s is not None}), np.int64)
         elif rows is not None:
@@ -279,8 +302,9 @@ class LandmarkSums:
             raise ValueError("clusters and rays differ in length")
         origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
         alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
-        _scatter_add(self._j6, r, predicted_information(rays, origin_rel, self._x_ref[r],
-                                                        self.config))
+        _scatter_add(
+            self._j6, r, predicted_information(rays, origin_rel, self._x_ref[r], self.config)
+        )
         if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
             raise ValueError("non-finite ray terms (check directions and sigmas)")
         _scatter_add(self._a6, r, alpha)
@@ -329,8 +353,17 @@ class LandmarkSums:
             _scatter_add(saa, pos, outer6_to_tri(a6))
             _scatter_add(sab, pos, a6[:, :, None] * b[:, None, :])
             _scatter_add(sbb, pos, mat_to_sym(b[:, :, None] * b[:, None, :]))
-        sol = solve_sums(self._a6[uniq], self._b[uniq], saa, sab, sbb, self._n_obs[uniq], n_cl,
-                         self.config, self._j6[uniq])
+        sol = solve_sums(
+            self._a6[uniq],
+            self._b[uniq],
+            saa,
+            sab,
+            sbb,
+            self._n_obs[uniq],
+            n_cl,
+            self.config,
+            self._j6[uniq],
+        )
         if update_reference:
             ok = sol.ok
             self._x_ref[uniq[ok]] = sol.x[ok]
@@ -368,7 +401,10 @@ class LandmarkSums:
             rec["n_open"] = mine.size
             op = np.zeros(mine.size, _OPEN_DTYPE)
             op["cluster"], op["last"], op["n"] = (
-                self._o_cluster[mine], self._o_last[mine], self._o_n[mine])
+                self._o_cluster[mine],
+                self._o_last[mine],
+                self._o_n[mine],
+            )
             op["a6"], op["b"] = self._o_a6[mine], self._o_b[mine]
             out.append(bytes([PACK_VERSION]) + rec.tobytes() + op.tobytes())
         return out
@@ -394,7 +430,8 @@ class LandmarkSums:
             rec = np.frombuffer(blob, _ROW_DTYPE, count=1, offset=1)[0]
             for f in _ROW_FIELDS:
                 getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
-                    getattr(self, "_" + f)[row].shape)
+                    getattr(self, "_" + f)[row].shape
+                )
             k = int(rec["n_open"])
             op = np.frombuffer(blob, _OPEN_DTYPE, count=k, offset=1 + _ROW_DTYPE.itemsize)
             self._n_open[row] = 0

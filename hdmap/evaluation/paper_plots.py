@@ -21,8 +21,7 @@ import numpy as np
 STYLE = {
     "ours": dict(color="tab:red", lw=2.0, label="ours (compensated, pass-level cov.)"),
     "independent": dict(color="tab:purple", lw=1.2, ls="--", label="ours, rays independent"),
-    "ours_no_floor": dict(color="tab:orange", lw=1.2, ls="-.",
-                          label="ours, reported sigmas only"),
+    "ours_no_floor": dict(color="tab:orange", lw=1.2, ls="-.", label="ours, reported sigmas only"),
     "paper": dict(color="black", lw=1.5, label="paper (textbook sums)"),
 }
 
@@ -39,11 +38,11 @@ def paper_figure(result: dict, model: str, path: Path) -> Path:
         single = _arr(ex[f"single_{axis}"])
         ax.plot(n, single, ".", color="tab:blue", ms=3, label="single passing")
         if "paper_" + axis in ex:
-            ax.plot(n, _arr(ex[f"paper_{axis}"]), color="0.45", lw=1.2,
-                    label="paper's estimator")
+            ax.plot(n, _arr(ex[f"paper_{axis}"]), color="0.45", lw=1.2, label="paper's estimator")
         e, s = _arr(ex[f"ours_{axis}"]), _arr(ex[f"ours_sigma_{axis}"])
-        ax.fill_between(n, e - 2 * s, e + 2 * s, color="tab:red", alpha=0.2,
-                        label="ours +/- 2 sigma")
+        ax.fill_between(
+            n, e - 2 * s, e + 2 * s, color="tab:red", alpha=0.2, label="ours +/- 2 sigma"
+        )
         ax.plot(n, e, color="tab:red", lw=1.8, label="ours (collaborative)")
         ax.axhline(0.0, color="gold", lw=2, label="ground truth")
         finite = single[np.isfinite(single)]
@@ -78,8 +77,7 @@ def convergence_figure(result: dict, path: Path) -> Path:
             if name == "ours" and slope is not None and np.isfinite(slope):
                 lo, hi = fit["n_range"]
                 nn = np.array([lo, hi], float)
-                ax.plot(nn, np.exp(fit["intercept"]) * nn**slope, color="tab:red", lw=6,
-                        alpha=0.2)
+                ax.plot(nn, np.exp(fit["intercept"]) * nn**slope, color="tab:red", lw=6, alpha=0.2)
         sp = block["single_pass"]["mean_error_m"]
         ax.axhline(sp, color="tab:blue", ls=":", label=f"single passing ({sp:.1f} m)")
         ref = cps[cps >= 1]
@@ -87,8 +85,14 @@ def convergence_figure(result: dict, path: Path) -> Path:
         k = np.flatnonzero(np.isfinite(ours))
         if k.size:
             i = k[-1]
-            ax.plot(ref, ours[i] * np.sqrt(cps[i] / ref), color="0.6", lw=0.8, ls="--",
-                    label="1/sqrt(n)")
+            ax.plot(
+                ref,
+                ours[i] * np.sqrt(cps[i] / ref),
+                color="0.6",
+                lw=0.8,
+                ls="--",
+                label="1/sqrt(n)",
+            )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("passings n")
@@ -111,11 +115,22 @@ def coverage_figure(result: dict, path: Path) -> Path:
         ax.axhspan(0.92, 0.98, color="tab:green", alpha=0.12, label="target 0.92-0.98")
         ax.axhline(0.95, color="tab:green", lw=0.8)
         for name, est in block["estimators"].items():
-            ax.plot(cps, _arr(est["coverage_ellipse"]), marker="o", ms=3,
-                    **STYLE.get(name, {"label": name}))
+            ax.plot(
+                cps,
+                _arr(est["coverage_ellipse"]),
+                marker="o",
+                ms=3,
+                **STYLE.get(name, {"label": name}),
+            )
         ours = block["estimators"]["ours"]
-        ax.plot(cps, _arr(ours["published"]), color="tab:red", lw=0.8, ls=":",
-                label="ours: share published")
+        ax.plot(
+            cps,
+            _arr(ours["published"]),
+            color="tab:red",
+            lw=0.8,
+            ls=":",
+            label="ours: share published",
+        )
         ax.set_xscale("log")
         ax.set_ylim(-0.02, 1.02)
         ax.set_xlabel("passings n")

@@ -142,7 +142,10 @@ def _angles_from_pixels(uv: Array) -> tuple[Array, Array]:
 
 
 def simulate_pass(
-    rng: np.random.Generator, trials: int, geom: Geometry, noise: NoiseModel,
+    rng: np.random.Generator,
+    trials: int,
+    geom: Geometry,
+    noise: NoiseModel,
     signs: Array | None = None,
 ) -> Rays:
     """Rays of one passing for every trial: rows ordered (trial, image, sign).
@@ -183,8 +186,13 @@ def simulate_pass(
     s_el = noise.pixel_px * np.sqrt(de)
     n = trials * f * k
     return Rays.from_angles(
-        origin.reshape(n, 3), az.reshape(n), el.reshape(n), s_az.reshape(n), s_el.reshape(n),
-        noise.pos_white_m, noise.pos_white_m,
+        origin.reshape(n, 3),
+        az.reshape(n),
+        el.reshape(n),
+        s_az.reshape(n),
+        s_el.reshape(n),
+        noise.pos_white_m,
+        noise.pos_white_m,
     )
 
 
@@ -208,8 +216,11 @@ def estimator_configs(
 ) -> dict[str, EstimatorConfig]:
     """The estimators run side by side for one error model."""
     ours = replace(ours or EstimatorConfig(), extra_sigma_az=extra_sigma_az)
-    out = {"ours": ours, "independent": replace(ours, cluster_robust=False),
-           "paper": EstimatorConfig.paper()}
+    out = {
+        "ours": ours,
+        "independent": replace(ours, cluster_robust=False),
+        "paper": EstimatorConfig.paper(),
+    }
     if model == "correlated":
         out["ours_no_floor"] = replace(ours, extra_sigma_az=0.0)
     return out
@@ -220,14 +231,25 @@ def _stats(sol_x: Array, sol_cov: Array, ok: NDArray, truth: Array) -> dict[str,
     err = np.hypot(e[:, 0], e[:, 1])
     if not ok.any():
         nan = float("nan")
-        return dict(published=0.0, mean_error_m=nan, median_error_m=nan, rms_error_m=nan,
-                    bias_east_m=nan, bias_north_m=nan, coverage_east=nan, coverage_north=nan,
-                    coverage_ellipse=nan, median_sigma_east_m=nan, median_sigma_north_m=nan)
+        return dict(
+            published=0.0,
+            mean_error_m=nan,
+            median_error_m=nan,
+            rms_error_m=nan,
+            bias_east_m=nan,
+            bias_north_m=nan,
+            coverage_east=nan,
+            coverage_north=nan,
+            coverage_ellipse=nan,
+            median_sigma_east_m=nan,
+            median_sigma_north_m=nan,
+        )
     e, err, c = e[ok], err[ok], sol_cov[ok][:, :2, :2]
     s_e, s_n = np.sqrt(c[:, 0, 0]), np.sqrt(c[:, 1, 1])
     det = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] ** 2
-    m2 = (e[:, 0] ** 2 * c[:, 1, 1] - 2 * e[:, 0] * e[:, 1] * c[:, 0, 1]
-          + e[:, 1] ** 2 * c[:, 0, 0]) / np.where(det > 0, det, np.nan)
+    m2 = (
+        e[:, 0] ** 2 * c[:, 1, 1] - 2 * e[:, 0] * e[:, 1] * c[:, 0, 1] + e[:, 1] ** 2 * c[:, 0, 0]
+    ) / np.where(det > 0, det, np.nan)
     return dict(
         published=float(ok.mean()),
         mean_error_m=float(err.mean()),
@@ -275,11 +297,17 @@ def run_model(
     extra = noise.heading_bias_rad  # the receiver's (unreported) heading-bias budget
     if model == "correlated":
         est = calibrate_extra_sigma_az(rng_pilot, geom, noise, *pilot)
-        calibration = {"extra_sigma_az_used": extra, "extra_sigma_az_pilot_estimate": est,
-                       "pilot_trials": pilot[0], "pilot_passes": pilot[1]}
+        calibration = {
+            "extra_sigma_az_used": extra,
+            "extra_sigma_az_pilot_estimate": est,
+            "pilot_trials": pilot[0],
+            "pilot_passes": pilot[1],
+        }
         if progress:
-            progress(f"[{model}] extra_sigma_az = {extra:.3f} rad (heading-bias budget); a "
-                     f"residual calibration on a pilot would set {est:.3f}")
+            progress(
+                f"[{model}] extra_sigma_az = {extra:.3f} rad (heading-bias budget); a "
+                f"residual calibration on a pilot would set {est:.3f}"
+            )
     cfgs = estimator_configs(model, extra, ours)
     f = geom.frames().size
     rows = np.repeat(np.arange(trials), f)
@@ -321,10 +349,12 @@ def run_model(
         if progress and p in cps:
             el = time.perf_counter() - t0
             o = series["ours"]
-            progress(f"[{model}] n={p:5d}/{max_passes}  {el:6.1f}s  ours: mean "
-                     f"{o['mean_error_m'][-1]:6.2f} m, cover {o['coverage_ellipse'][-1]:.3f}, "
-                     f"published {o['published'][-1]:.2f}  paper: mean "
-                     f"{series['paper']['mean_error_m'][-1]:6.2f} m")
+            progress(
+                f"[{model}] n={p:5d}/{max_passes}  {el:6.1f}s  ours: mean "
+                f"{o['mean_error_m'][-1]:6.2f} m, cover {o['coverage_ellipse'][-1]:.3f}, "
+                f"published {o['published'][-1]:.2f}  paper: mean "
+                f"{series['paper']['mean_error_m'][-1]:6.2f} m"
+            )
     se = np.concatenate(single_err)
     se = se[np.isfinite(se)]
     out = {
@@ -377,11 +407,14 @@ def summarise(result: dict, fit_from: int, fit_to: int, cover_from: int = 30) ->
                 flat[f"coverage_{k}_{model}_min"] = lo
                 flat[f"coverage_{k}_{model}_max"] = hi
         flat[f"coverage_ours_{model}_pass"] = bool(
-            sel and 0.92 <= flat[f"coverage_ours_{model}_min"]
-            and flat[f"coverage_ours_{model}_max"] <= 0.98)
+            sel
+            and 0.92 <= flat[f"coverage_ours_{model}_min"]
+            and flat[f"coverage_ours_{model}_max"] <= 0.98
+        )
         if model == "correlated":
             flat["independent_overconfident_correlated_pass"] = bool(
-                flat["coverage_independent_correlated_max"] < 0.92)
+                flat["coverage_independent_correlated_max"] < 0.92
+            )
     flat["claims_pass"] = all(v for k, v in flat.items() if k.endswith("_pass"))
     return flat
 
@@ -409,17 +442,29 @@ def run_paper_sim(
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(max_workers=min(workers, len(models))) as ex:
-            futs = {m: ex.submit(run_model, m, progress=_log if progress else None, **kw)
-                    for m in models}
+            futs = {
+                m: ex.submit(run_model, m, progress=_log if progress else None, **kw)
+                for m in models
+            }
             blocks = {m: fut.result() for m, fut in futs.items()}
     else:
         blocks = {m: run_model(m, progress=progress, **kw) for m in models}
     result = {
         "meta": {
-            "trials": trials, "max_passes": max_passes, "seed": seed, "models": list(models),
-            "geometry": asdict(Geometry()), "frames_per_passing": int(Geometry().frames().size),
-            "camera": {"fx": CAMERA.fx, "fy": CAMERA.fy, "cx": CAMERA.cx, "cy": CAMERA.cy,
-                       "width": CAMERA.width, "height": CAMERA.height},
+            "trials": trials,
+            "max_passes": max_passes,
+            "seed": seed,
+            "models": list(models),
+            "geometry": asdict(Geometry()),
+            "frames_per_passing": int(Geometry().frames().size),
+            "camera": {
+                "fx": CAMERA.fx,
+                "fy": CAMERA.fy,
+                "cx": CAMERA.cx,
+                "cy": CAMERA.cy,
+                "width": CAMERA.width,
+                "height": CAMERA.height,
+            },
             "fit_range": list(fit_range),
         },
         "checkpoints": checkpoints(max_passes),
