@@ -62,6 +62,10 @@ class GateConfig:
     max_range_m: float = 120.0
     range_k: float = 3.0
     """A range estimate must agree with the landmark distance within range_k sigma."""
+    range_in_cost: bool = True
+    """Add the range residual (from the box size) to the statistic of ranged rays: same-class
+    signs a few metres apart along a road are seen along nearly the same bearing, their
+    ranges differ."""
     offset_iterations: int = 2
     min_offset_rays: int = 3
     """Rays needed before a unit's offset is estimated (fewer: the wide gate stays)."""
@@ -137,8 +141,11 @@ def pair_chi2(
     along = np.sqrt(
         np.einsum("ki,kij,kj->k", rays.direction[ri], cov + a_cov[ri], rays.direction[ri])
     )
-    r_tol = cfg.range_k * np.hypot(rays.sigma_range_m[ri], along)
-    ok &= ~has_r | (np.abs(rng - r_est) <= r_tol)
+    s_r = np.hypot(rays.sigma_range_m[ri], along)
+    ok &= ~has_r | (np.abs(rng - r_est) <= cfg.range_k * s_r)
+    if cfg.range_in_cost:
+        # the range residual joins the statistic: it separates signs along one ray
+        chi2 = chi2 + np.where(has_r, ((rng - r_est) / np.where(has_r, s_r, 1.0)) ** 2, 0.0)
     return chi2, ok
 
 

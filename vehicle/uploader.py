@@ -5,13 +5,16 @@ vehicle process); ``flush`` sends the oldest ones as :class:`schemas.Observation
 requests (one pass per batch) and deletes exactly what the ack says was recorded
 (accepted, including duplicates of an earlier upload) or refused for good
 (rejected rows). Timeouts, transport errors and "retry later" answers keep them
-queued; ``flush`` is retried with backoff by the caller's loop.
+queued; ``flush`` is retried with backoff by the caller's loop. An ack with
+``retry_after_s > 0`` (rate limit, storage trouble) also holds back the next upload:
+``flush`` sends nothing until that delay has passed.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +39,8 @@ class UploadResult:
     rejected: int = 0
     failed_batches: int = 0
     """Batches with no usable answer (timeout, transport, retry-later); still queued."""
+    retry_after_s: float = 0.0
+    """> 0: ingest asked to wait; nothing more is sent for this long."""
 
 
 class Uploader:
@@ -49,9 +54,17 @@ class Uploader:
     CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
     """
 
-    def __init__(self, vehicle_id: str, queue_path: str | Path, batch_size: int = 500):
+    def __init__(
+        self,
+        vehicle_id: str,
+        queue_path: str | Path,
+        batch_size: int = 500,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.vehicle_id = vehicle_id
         self.batch_size = batch_size
+        self._clock = clock
+        self._retry_at = -float("inf")  # nothing is sent before this (last retry_after_s)
         self._db = connect(queue_path)
         self._db.executescript(self.SCHEMA)
         self._next_batch = self._counter("batch_id")
@@ -62,6 +75,11 @@ class Uploader:
     def _counter(self, name: str) -> int:
         row = self._db.execute("SELECT value FROM counters WHERE name=?", (name,)).fetchone()
         return 0 if row is None else int(row[0])
+
+    @property
+    def last_obs_id(self) -> int:
+        """The last observation id handed out (0 before the first)."""
+        return int(self._counter("obs_id"))
 
     def next_obs_ids(self, n: int) -> np.ndarray:
         """Fresh observation ids, unique for this vehicle across restarts."""
@@ -81,6 +99,11 @@ class Uploader:
                 "INSERT OR IGNORE INTO outbox(obs_id, pass_id, rec) VALUES (?, ?, ?)",
                 [(ids[i], int(pass_id), rec[i].tobytes()) for i in range(len(ids))],
             )
+
+    @property
+    def retry_in(self) -> float:
+        """Seconds until ``flush`` sends again (0: now)."""
+        return max(0.0, self._retry_at - self._clock())
 
     @property
     def pending(self) -> int:
@@ -104,6 +127,10 @@ class Uploader:
         """Send queued observations until the queue is empty or a batch fails (bounded)."""
         res = UploadResult()
         for _ in range(max_batches):
+            wait = self._retry_at - self._clock()
+            if wait > 0:
+                res.retry_after_s = wait
+                break
             nxt = self._oldest_batch()
             if nxt is None:
                 break
@@ -116,6 +143,9 @@ class Uploader:
                 res.failed_batches += 1
                 if ack is not None:
                     log.warning("%s: batch refused: %s", self.vehicle_id, ack.error)
+                    if ack.retry_after_s > 0:
+                        self._retry_at = self._clock() + ack.retry_after_s
+                        res.retry_after_s = ack.retry_after_s
                 break
             self._settle(ack)
             res.accepted += len(ack.accepted)

@@ -5,6 +5,8 @@ in :data:`EVALUATIONS`):
 
 - ``paper-sim``: the paper's simulation (section IV-A), ours vs the paper's estimator,
   written to ``DIR/paper_sim.json`` and PNG figures (:mod:`hdmap.evaluation.paper_sim`).
+- ``fleet``: central Helsinki through the real pipeline with the realistic fleet noise,
+  written to ``DIR/fleet.json`` and PNG figures (:mod:`hdmap.evaluation.fleet_eval`).
 """
 
 from __future__ import annotations
@@ -120,7 +122,75 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--passes", type=int, default=None, help="passes in all (default 160)")
+    p.add_argument("--rounds", type=int, default=None, help="scoring rounds (default 8)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="small run for the test suite")
+
+
+def run_fleet_command(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from hdmap.evaluation.fleet_eval import FleetEvalConfig, run_fleet_eval
+    from hdmap.evaluation.fleet_plots import write_fleet_figures
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = FleetEvalConfig.quick(out) if args.quick else FleetEvalConfig(out)
+    if args.passes:
+        cfg = replace(cfg, passes=args.passes)
+    if args.rounds:
+        cfg = replace(cfg, rounds=args.rounds)
+    cfg = replace(cfg, seed=args.seed)
+    result, state, final = run_fleet_eval(cfg)
+    result["meta"]["command"] = "hdmap eval fleet " + " ".join(
+        [f"--out {args.out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
+        + [f"--seed {cfg.seed}"]
+        + (["--quick"] if args.quick else [])
+    )
+    figures = write_fleet_figures(result, state.world, final, out)
+    result["meta"]["figures"] = [f.name for f in figures]
+    path = out / "fleet.json"
+    path.write_text(json.dumps(_clean(result), indent=1, default=_json_default))
+    print(format_fleet_table(result), file=sys.stderr)
+    print(f"fleet: wrote {path} and {len(figures)} figures", file=sys.stderr, flush=True)
+    return 0
+
+
+def format_fleet_table(result: dict) -> str:
+    head = (
+        f"{'passes':>9} {'signs':>5} {'recall':>6} {'lms':>5} {'prec':>5} {'dup':>3} "
+        f"{'mean m':>6} {'p95 m':>6} {'in95':>5} {'assoc':>6}"
+    )
+    lines = [head, "-" * len(head)]
+
+    def f(v: object, fmt: str) -> str:
+        return format(v, fmt) if isinstance(v, int | float) else "-"
+
+    for r in result["by_passes"]:
+        hi = r["passes_hi"]
+        rng = f"{r['passes_lo']}-{hi - 1}" if hi else f"{r['passes_lo']}+"
+        lines.append(
+            f"{rng:>9} {r['signs']:>5} {f(r['recall'], '.3f'):>6} {r['landmarks']:>5} "
+            f"{f(r['precision'], '.3f'):>5} {r['duplicated']:>3} {f(r['mean_err_m'], '.2f'):>6} "
+            f"{f(r['p95_err_m'], '.2f'):>6} {f(r['coverage95'], '.2f'):>5} "
+            f"{f(r['assoc_right'], '.3f'):>6}"
+        )
+    t = result.get("targets_at_50_passes", {})
+    if t.get("evaluated"):
+        verdicts = ", ".join(f"{k} {v}" for k, v in t["pass"].items())
+        lines.append(f"targets at 50+ passes: {verdicts}")
+    return "\n".join(lines)
+
+
 EVALUATIONS: dict[str, tuple[Callable, Callable, str]] = {
+    "fleet": (
+        add_fleet_arguments,
+        run_fleet_command,
+        "central Helsinki through the real pipeline: error, coverage, recall per passes",
+    ),
     "paper-sim": (
         add_paper_sim_arguments,
         run_paper_sim_command,

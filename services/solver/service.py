@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.estimator.provisional import usable
 from hdmap.geodesy import enu_rotation
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, quadkeys_of
@@ -154,23 +155,17 @@ class SolverService(StageService):
         sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64), update_reference=False)
         n_clusters = np.asarray(sol.n_clusters)
         n_obs = np.asarray(sol.n_obs)
-        est = self.config.estimator
-        provisional = (
-            ~sol.ok
-            & (self.config.provisional_passes > 0)
-            & (n_clusters >= self.config.provisional_passes)
-            & (n_obs >= est.min_rays)
-            & np.isfinite(sol.x).all(axis=1)
-            & np.isfinite(sol.cov).all(axis=(1, 2))
-            & (sol.cond <= est.max_cond)
-            & (sol.significance >= est.min_realized_significance)
+        good, provisional, sol_cov = usable(
+            sol,
+            self.config.estimator,
+            self.config.provisional_passes,
+            self.config.pass_bias_sigma_m,
         )
-        ok = np.flatnonzero(sol.ok | provisional)
+        ok = np.flatnonzero(good)
         self.count("solved_ok", int(sol.ok.sum()))
         self.count("solved_provisional", int(provisional.sum()))
         if ok.size == 0:
             return
-        prior = np.diag(np.square(self.config.pass_bias_sigma_m))
         now = time.time()
         lat = np.empty(ok.size)
         lon = np.empty(ok.size)
@@ -181,8 +176,7 @@ class SolverService(StageService):
             la, lo, hh = frame.to_geodetic(sol.x[k][None])
             lat[j], lon[j], h[j] = la[0], lo[0], hh[0]
             r = enu_rotation(la[0], lo[0]) @ frame.rotation.T
-            ck = sol.cov[k] + (prior / n_clusters[k] if provisional[k] else 0.0)
-            cov[j] = r @ ck @ r.T
+            cov[j] = r @ sol_cov[k] @ r.T
         tiles = quadkeys_of(lat, lon, self.opts.zoom)
         upserts: dict[str, list[int]] = defaultdict(list)
         removals: dict[str, list[tuple[int, int]]] = defaultdict(list)
