@@ -84,6 +84,9 @@ class Links(Table):
     received_at: np.ndarray = col(
         "f8", lo=0.0, hi=_FLOAT_EPOCH_MAX, unit_label="s", doc="ingest receipt time, Unix"
     )
+    weight: np.ndarray = col(
+        "f4", lo=0.0, hi=1.0, doc="relative weight of the observation (trust in its vehicle)"
+    )
 
 
 @table

@@ -104,6 +104,7 @@ def make_links(n: int, n_vehicles: int, seed: int = 3) -> Links:
         vehicle=rng.integers(0, n_vehicles, n).astype(np.uint32),
         pass_id=rng.integers(0, 2**64 - 1, n, dtype=np.uint64),
         received_at=T0 + rng.uniform(0, 1e5, n),
+        weight=rng.uniform(0, 1, n).astype(np.float32),
     )
 
 

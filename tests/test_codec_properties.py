@@ -117,6 +117,7 @@ def _valid_messages() -> list[bytes]:
         vehicle=np.array([0, 1, 0], np.uint32),
         pass_id=ids,
         received_at=np.full(3, 1.7e9),
+        weight=np.ones(3, np.float32),
     )
     msgs = [
         ObservationBatch("veh-1", 1, 2, 1.7e9, _obs(3, 0)),

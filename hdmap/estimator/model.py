@@ -231,20 +231,40 @@ class Rays:
     sigma_el: Array
     sigma_pos_h: Array
     sigma_pos_v: Array
+    weight: Array | None = None
+    """Relative weight of each ray in (0, 1] (the matcher's trust in its vehicle); it
+    multiplies ``w_h`` and ``w_v`` and leaves the noise model (and so the bias
+    compensation) alone. None = 1 for all."""
 
     def __len__(self) -> int:
         return int(np.asarray(self.origin).shape[0])
 
+    def weights_or_ones(self) -> Array:
+        n = len(self)
+        return np.ones(n) if self.weight is None else np.asarray(self.weight, float)
+
     def take(self, idx: ArrayLike) -> Rays:
         """Rows ``idx`` (index array or boolean mask)."""
         i = np.asarray(idx)
-        return Rays(**{f.name: np.asarray(getattr(self, f.name))[i] for f in fields(self)})
+        return Rays(
+            **{
+                f.name: None
+                if getattr(self, f.name) is None
+                else np.asarray(getattr(self, f.name))[i]
+                for f in fields(self)
+            }
+        )
 
     @staticmethod
     def concat(parts: list[Rays]) -> Rays:
-        return Rays(
-            **{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Rays)}
-        )
+        cols = {
+            f.name: np.concatenate([getattr(p, f.name) for p in parts])
+            for f in fields(Rays)
+            if f.name != "weight"
+        }
+        if any(p.weight is not None for p in parts):
+            cols["weight"] = np.concatenate([p.weights_or_ones() for p in parts])
+        return Rays(**cols)
 
     @staticmethod
     def from_angles(
@@ -326,6 +346,9 @@ def weights(
     )
     g_v = (w_v**2)[:, None] * (2.0 * s_el[:, None] ** 2 * v + dd)
     g_v[(rho2_raw < cfg.min_range_m**2) | (r2_raw < cfg.min_range_m**2)] = 0.0
+    if rays.weight is not None:
+        wt = np.asarray(rays.weight, float)
+        w_h, w_v, g_h, g_v = w_h * wt, w_v * wt, g_h * wt[:, None], g_v * wt[:, None]
     return w_h, w_v, g_h, g_v
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -31,6 +31,7 @@ from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, in_region, neighbours, quadkeys_of
 from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
 from services.matcher.state import Landmark, MatcherState, pass_key
+from services.matcher.trust import TrustConfig
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +43,8 @@ class MatcherConfig:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     pending_ttl_s: float = 3600.0
     """Unmatched rays older than this are dropped (counted as expired)."""
+    trust: TrustConfig = field(default_factory=TrustConfig)
+    """Per-vehicle weights from the history of its pass offsets and gate failures."""
     gate_bias_floor: bool = True
     """Gate with the solution's covariance plus the pass-bias prior over its passes
     (``diag(bias^2) / G``): the between-pass covariance of a few passes is itself noisy,
@@ -53,6 +56,14 @@ class MatcherConfig:
     uses the initiating pass's triangulation with the full pass bias, which the fleet
     evaluation found far safer (with 2: association right 0.51 vs 0.81 at 20-29 passes,
     many more duplicates; a 2-4 pass sandwich covariance is too small to gate with)."""
+
+
+def shift_origins(frame, obs: Observations, d_en: np.ndarray) -> Observations:
+    """The same observations with origins moved by ``d_en`` (East, North metres)."""
+    x = frame.from_geodetic(obs.lat, obs.lon, obs.h)
+    x[:, :2] += np.asarray(d_en, float)[:2]
+    lat, lon, h = frame.to_geodetic(x)
+    return replace(obs, lat=lat, lon=lon, h=h)
 
 
 def to_local(frame, obs: Observations) -> LocalRays:
@@ -71,8 +82,8 @@ def to_local(frame, obs: Observations) -> LocalRays:
     )
 
 
-def to_rays(r: LocalRays) -> Rays:
-    return Rays(r.origin, r.direction, r.sigma_az, r.sigma_el, r.sigma_pos_h, r.sigma_pos_v)
+def to_rays(r: LocalRays, weight: np.ndarray | None = None) -> Rays:
+    return Rays(r.origin, r.direction, r.sigma_az, r.sigma_el, r.sigma_pos_h, r.sigma_pos_v, weight)
 
 
 @dataclass
@@ -82,6 +93,7 @@ class _Out:
     vehicles: list[str] = field(default_factory=list)
     links: list[tuple[int, int, int]] = field(default_factory=list)
     received_at: list[float] = field(default_factory=list)
+    weight: list[float] = field(default_factory=list)
     obs: list[Observations] = field(default_factory=list)
     created: list[tuple[int, int, float, float, float]] = field(default_factory=list)
 
@@ -144,7 +156,14 @@ class MatcherService(StageService):
 
     def _unit(self, tile: str, g: ObsGroup) -> None:
         frame = self.frames(tile)
-        rays = to_local(frame, g.obs)
+        trust = self.state.trust_of(g.vehicle_id)
+        obs = g.obs
+        applied = np.zeros(2)
+        if trust.suspect(self.config.trust):
+            applied = trust.mean_offset()
+            obs = shift_origins(frame, obs, applied)
+            self.count("shift_corrected", len(obs))
+        rays = to_local(frame, obs)
         area = [tile, *neighbours(tile)]
         cands = self.state.near(area)
         matched = np.full(len(rays), -1, np.int64)
@@ -154,6 +173,11 @@ class MatcherService(StageService):
             cls = np.array([c.cls for c in cands], np.int64)
             res: Association = associate(rays, x, cov, cls, self.config.gate)
             matched = res.landmark
+            n_hit = int((matched >= 0).sum())
+            trust.add_gate(int(np.isin(rays.sign_class, cls).sum()), n_hit)
+            if n_hit >= self.config.gate.min_offset_rays:
+                raw = res.offset[:2] + applied  # the vehicle's own offset, before correction
+                trust.add_offset(raw, res.offset_cov, self.config.trust.bias_sigma_m)
         hit = matched >= 0
         self.count("received", len(rays))
         self.count("associated", int(hit.sum()))
@@ -161,14 +185,14 @@ class MatcherService(StageService):
         for i in np.flatnonzero(hit):
             touched.add(cands[matched[i]].id)
         self._link(
-            g.obs.take(hit),
+            obs.take(hit),
             [cands[k] for k in matched[hit]],
             g.vehicle_id,
             g.pass_id,
             g.received_at,
         )
         self.state.add_pending(
-            tile, g.obs.take(~hit), g.vehicle_id, g.pass_id, time.time(), g.received_at
+            tile, obs.take(~hit), g.vehicle_id, g.pass_id, time.time(), g.received_at
         )
         touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id)
         self._refresh(sorted(touched))
@@ -180,6 +204,10 @@ class MatcherService(StageService):
         if not len(obs):
             return
         self.count("linked", len(obs))
+        t = self.state.trust.get(vehicle)
+        weight = 1.0 if t is None else t.weight(self.config.trust)
+        if weight < 1.0:
+            self.count("downweighted", len(obs))
         key = pass_key(vehicle, pass_id)
         by_home: dict[str, list[int]] = defaultdict(list)
         for k, lm in enumerate(lms):
@@ -189,11 +217,13 @@ class MatcherService(StageService):
             sub = obs.take(sel)
             local = to_local(self.frames(home), sub)
             rows = np.array([lms[k].row for k in idx], np.int64)
-            self.sums.accumulate(rows, np.full(len(idx), key, np.int64), to_rays(local))
+            rays = to_rays(local, np.full(len(idx), weight) if weight < 1.0 else None)
+            self.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays)
             out = self._out[home]
             vi = out.vehicle_index(vehicle)
             out.links += [(lms[k].id, vi, pass_id) for k in idx]
             out.received_at += [received] * len(idx)
+            out.weight += [weight] * len(idx)
             out.obs.append(sub)
 
     def _initiate(self, tile: str, area: list[str], vehicle: str, pass_id: int) -> set[int]:
@@ -316,6 +346,7 @@ class MatcherService(StageService):
                 links[:, 1].astype(np.uint32),
                 links[:, 2],
                 np.array(out.received_at, float),
+                np.array(out.weight, np.float32),
             ),
             obs=Observations.concat(out.obs),
             created=NewLandmarks(
@@ -352,6 +383,12 @@ class MatcherService(StageService):
             "landmarks": len(self.state.landmarks),
             "pending": self.state.pending_count(),
         }
+        low = sorted(
+            (w, v) for v, t in self.state.trust.items() if (w := t.weight(self.config.trust)) < 1.0
+        )
+        self._counts["vehicles_downweighted"] = len(low)
+        for w, v in low[:20]:  # the 20 least trusted, by name
+            self._counts[f"weight.{v}"] = round(w, 6)
 
     def extra_counters(self) -> dict[str, float]:
         out = super().extra_counters()

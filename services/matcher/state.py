@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from hdmap.store import i64_to_u64, u64_to_i64
 from hdmap.tiles import tile_id
 from schemas import Observations
+from services.matcher.trust import VehicleTrust
 
 _REC = Observations.CODEC.record_dtype
 
@@ -30,6 +31,10 @@ CREATE TABLE IF NOT EXISTS pending (
     tile TEXT NOT NULL, added_at REAL NOT NULL, received_at REAL NOT NULL, rec BLOB NOT NULL,
     PRIMARY KEY (vehicle, obs_id)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS id_counters (tile TEXT PRIMARY KEY, n INTEGER NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS trust (
+    vehicle TEXT PRIMARY KEY, n INTEGER NOT NULL, i_ee REAL NOT NULL, i_en REAL NOT NULL,
+    i_nn REAL NOT NULL, sx REAL NOT NULL, sy REAL NOT NULL,
+    offered INTEGER NOT NULL, passed INTEGER NOT NULL) WITHOUT ROWID;
 """
 
 COUNTER_BITS = 24
@@ -113,6 +118,8 @@ class MatcherState:
         self.by_tile: dict[str, set[int]] = defaultdict(set)
         self.pending: dict[str, PendingTile] = defaultdict(PendingTile)
         self.counters: dict[str, int] = {}
+        self.trust: dict[str, VehicleTrust] = {}
+        self._trust_dirty: set[str] = set()
         self._dirty: set[int] = set()
         self._pending_dirty: set[str] = set()
         self._removed_pending: list[tuple[str, int]] = []
@@ -136,6 +143,16 @@ class MatcherState:
     def near(self, tiles: list[str]) -> list[Landmark]:
         ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))
         return [self.landmarks[i] for i in ids]
+
+    # -- vehicles -----------------------------------------------------------------------------
+
+    def trust_of(self, vehicle: str) -> VehicleTrust:
+        """The vehicle's record, marked to be saved (the caller is about to update it)."""
+        t = self.trust.get(vehicle)
+        if t is None:
+            t = self.trust[vehicle] = VehicleTrust()
+        self._trust_dirty.add(vehicle)
+        return t
 
     # -- pending ----------------------------------------------------------------------------
 
@@ -193,6 +210,11 @@ class MatcherState:
             rows,
         )
         c.executemany("DELETE FROM pending WHERE vehicle=? AND obs_id=?", self._removed_pending)
+        c.executemany(
+            "INSERT OR REPLACE INTO trust(vehicle, n, i_ee, i_en, i_nn, sx, sy, offered, passed) "
+            "VALUES (?,?,?,?,?,?,?,?,?)",
+            [(v, *self.trust[v].as_row()) for v in sorted(self._trust_dirty)],
+        )
         for tile in sorted(self._pending_dirty):
             p = self.pending.get(tile)
             if p is None or not len(p):
@@ -219,6 +241,7 @@ class MatcherState:
         self.clear_marks()
 
     def clear_marks(self) -> None:
+        self._trust_dirty.clear()
         self._dirty.clear()
         self._pending_dirty.clear()
         self._removed_pending = []
@@ -231,6 +254,12 @@ class MatcherState:
         self.pending.clear()
         self.clear_marks()
         self.counters = dict(c.execute("SELECT tile, n FROM id_counters").fetchall())
+        self.trust = {
+            r[0]: VehicleTrust(int(r[1]), *map(float, r[2:7]), int(r[7]), int(r[8]))
+            for r in c.execute(
+                "SELECT vehicle, n, i_ee, i_en, i_nn, sx, sy, offered, passed FROM trust"
+            )
+        }
         rows = c.execute(
             "SELECT id, cls, home, tile, x, cov, sums, created_at FROM landmarks ORDER BY id"
         ).fetchall()

@@ -138,6 +138,7 @@ class SolverService(StageService):
                 obs.sigma_el,
                 obs.sigma_pos_h,
                 obs.sigma_pos_v,
+                g.links.weight[sel].astype(float),
             )
             rows = np.array([self.state.landmarks[int(ids[k])].row for k in idx], np.int64)
             self.sums.accumulate(rows, keys_[sel], rays)
