@@ -65,6 +65,10 @@ def passes(fleet: Fleet, with_rogue: bool) -> list[Pass]:
 
 
 def drive(stack: Stack, fleet: Fleet, ps: list[Pass], tmp: Path) -> tuple[Landmarks, dict]:
+    tmp.mkdir(parents=True, exist_ok=True)
+    cfg = tmp / "services.toml"
+    cfg.write_text("[matcher.trust]\nenabled = true\n")  # off by default (see trust.py)
+    stack.extra_service_args["matcher"] = ["--config", str(cfg)]
     stack.start_all()
     with open_session(stack.bus) as s:
         client = MapClient(s, radius_m=0.0)

@@ -389,6 +389,10 @@ class MatcherService(StageService):
         self._counts["vehicles_downweighted"] = len(low)
         for w, v in low[:20]:  # the 20 least trusted, by name
             self._counts[f"weight.{v}"] = round(w, 6)
+        gate = self.config.trust.chi2_gate
+        odd = sorted(((c, v) for v, t in self.state.trust.items() if (c := t.chi2()) > gate))
+        for c, v in odd[-5:]:  # the 5 most consistent offsets (whether or not trust is on)
+            self._counts[f"offset_chi2.{v}"] = round(c, 2)
 
     def extra_counters(self) -> dict[str, float]:
         out = super().extra_counters()

@@ -24,27 +24,33 @@ that passed it; a vehicle whose rays keep failing the gate (share of failures ab
 >>> t = VehicleTrust()
 >>> for _ in range(10):
 ...     t.add_offset(np.array([5.0, 0.0]), np.zeros((2, 2)), 3.0)
->>> round(t.chi2(), 1), round(t.weight(TrustConfig(bias_sigma_m=3.0)), 4)
+>>> on = TrustConfig(enabled=True)
+>>> round(t.chi2(), 1), round(t.weight(replace(on, bias_sigma_m=3.0)), 4)
 (27.8, 0.0612)
 >>> VehicleTrust().weight(TrustConfig(probation_units=8))  # new: on probation
 0.05
 >>> honest = VehicleTrust()
 >>> for k in range(8):
 ...     honest.add_offset(np.array([(-1.0) ** k, 0.5]), np.zeros((2, 2)), 3.0)
->>> honest.weight(TrustConfig(probation_units=8))
+>>> honest.weight(replace(on, probation_units=8))
 1.0
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace  # noqa: F401 (doctests)
 
 import numpy as np
 
 
 @dataclass(frozen=True)
 class TrustConfig:
-    enabled: bool = True
+    enabled: bool = False
+    """Off by default: in the Helsinki fleet evaluation the offset test flagged an honest
+    vehicle (weight 0.015) and the map got worse (duplicates 8 -> 20 at 50+ passes); the
+    offsets measured against a map with association errors are not independent enough for
+    a chi-square test. The statistics are kept and shown either way
+    (``offset_chi2.<vehicle>`` in the matcher's stats for the most suspect vehicles)."""
     bias_sigma_m: float = 4.0
     """Per-axis standard deviation of an honest pass's offset: its GNSS bias (2.5 m in the
     fleet model) plus drift, heading bias and the error of the offset estimate itself
