@@ -26,7 +26,7 @@ that passed it; a vehicle whose rays keep failing the gate (share of failures ab
 ...     t.add_offset(np.array([5.0, 0.0]), np.zeros((2, 2)), 3.0)
 >>> on = TrustConfig(enabled=True)
 >>> round(t.chi2(), 1), round(t.weight(replace(on, bias_sigma_m=3.0)), 4)
-(27.8, 0.0612)
+(27.8, 0.0613)
 >>> VehicleTrust().weight(TrustConfig(probation_units=8))  # new: on probation
 0.05
 >>> honest = VehicleTrust()
