@@ -27,8 +27,12 @@ that passed it; a vehicle whose rays keep failing the gate (share of failures ab
 >>> on = TrustConfig(enabled=True)
 >>> round(t.chi2(), 1), round(t.weight(replace(on, bias_sigma_m=3.0)), 4)
 (27.8, 0.0613)
->>> VehicleTrust().weight(TrustConfig(probation_units=8))  # new: on probation
+>>> VehicleTrust().weight(on)
+1.0
+>>> VehicleTrust().weight(replace(on, probation_units=8))  # new: on probation
 0.05
+>>> VehicleTrust().weight(TrustConfig())  # off by default
+1.0
 >>> honest = VehicleTrust()
 >>> for k in range(8):
 ...     honest.add_offset(np.array([(-1.0) ** k, 0.5]), np.zeros((2, 2)), 3.0)
