@@ -111,6 +111,15 @@ class Stack:
                 self.data_dir / "logs" / "router.log",
             )
         )
+        return self._wait_listening(p, timeout)
+
+    def restart_router(self, timeout: float = 20.0) -> Proc:
+        """Restart the router (SIGTERM if still alive) on the same endpoint; wait until it
+        listens. Services and clients reconnect by themselves."""
+        self.restart("router")
+        return self._wait_listening(self.procs["router"], timeout)
+
+    def _wait_listening(self, p: Proc, timeout: float) -> Proc:
         host, port = endpoint_port(self.listen)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -181,11 +190,18 @@ class Stack:
             return None
         if p.alive:
             p.popen.send_signal(sig)
-            try:
-                p.popen.wait(timeout)
-            except subprocess.TimeoutExpired:
-                p.popen.kill()
-                p.popen.wait(5)
+        return self._reap(p, timeout)
+
+    @staticmethod
+    def _reap(p: Proc, timeout: float) -> int | None:
+        """Wait for a signalled process to exit; SIGKILL it after ``timeout``."""
+        if p.popen is None:
+            return None
+        try:
+            p.popen.wait(max(timeout, 0.0))
+        except subprocess.TimeoutExpired:
+            p.popen.kill()
+            p.popen.wait(5)
         return p.popen.returncode
 
     def kill(self, name: str) -> None:
@@ -199,11 +215,14 @@ class Stack:
         return self._spawn(p)
 
     def stop_all(self, timeout: float = 15.0) -> None:
-        services = [n for n in self.procs if n != "router"]
-        for n in services:
-            self.send_signal(n, signal.SIGTERM)
-        for n in services:
-            self.stop(n, timeout)
+        """SIGTERM every service at once (each once), wait, then the router."""
+        services = [self.procs[n] for n in self.procs if n != "router"]
+        for p in services:
+            if p.alive and p.popen is not None:
+                p.popen.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        for p in services:
+            self._reap(p, deadline - time.monotonic())
         self.stop("router", timeout)
 
     def __enter__(self) -> Stack:

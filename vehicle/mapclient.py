@@ -4,7 +4,11 @@
 drops the others. A tile starts with its snapshot; each delta applies only on top
 of the version it names (``from_version``): an older one is ignored, a newer one
 means a gap and the tile is re-fetched. Deltas that arrive while a snapshot is in
-flight are buffered and applied after it. Zenoh callbacks only queue; the
+flight are buffered and applied after it; one still ahead of that (fresher)
+snapshot is dropped rather than fetched for again (the publisher commits a version
+before publishing it, so it is none of its history; a real gap shows again on the
+next delta). At most one fetch per tile is queued; a failed one (no publisher
+answered) is retried on the next delta. Zenoh callbacks only queue; the
 client's own thread applies, so ``near()`` reads a consistent map.
 """
 
@@ -33,6 +37,8 @@ class TileCopy:
     """-1 until the snapshot arrived."""
     rows: dict[int, Landmarks] = field(default_factory=dict)
     buffered: list[MapDelta] = field(default_factory=list)
+    fetching: bool = False
+    """A snapshot fetch is queued or in flight."""
 
 
 @dataclass
@@ -40,6 +46,8 @@ class ClientStats:
     deltas_applied: int = 0
     deltas_stale: int = 0
     gaps: int = 0
+    ahead_of_snapshot: int = 0
+    """Buffered deltas dropped because a fresher snapshot was behind their from_version."""
     snapshots: int = 0
     subscribed: int = 0
     dropped: int = 0
@@ -82,7 +90,7 @@ class MapClient:
         if tile in self._subs:
             return
         with self._lock:
-            self._tiles[tile] = TileCopy()
+            self._tiles[tile] = TileCopy(fetching=True)
 
         def cb(sample: zenoh.Sample, tile: str = tile) -> None:
             self._inbox.put(("delta", tile, sample.payload.to_bytes()))
@@ -130,6 +138,7 @@ class MapClient:
             copy = self._tiles.get(tile)
             if copy is None:
                 return
+            copy.fetching = False
             if snap is None:
                 copy.version = -1  # no publisher answered: try again on the next delta
                 return
@@ -140,12 +149,12 @@ class MapClient:
             }
             pending, copy.buffered = copy.buffered, []
         for d in sorted(pending, key=lambda d: d.from_version):
-            self._apply(tile, d)
+            self._apply(tile, d, after_snapshot=True)
 
     def _on_delta(self, tile: str, payload: bytes) -> None:
         self._apply(tile, MapDelta.from_bytes(payload))
 
-    def _apply(self, tile: str, d: MapDelta) -> None:
+    def _apply(self, tile: str, d: MapDelta, after_snapshot: bool = False) -> None:
         refetch = False
         with self._lock:
             copy = self._tiles.get(tile)
@@ -153,15 +162,23 @@ class MapClient:
                 return
             if copy.version < 0:
                 copy.buffered.append(d)
-                if len(copy.buffered) == 1:
-                    refetch = True
+                refetch = not copy.fetching
             elif d.to_version <= copy.version:
                 self.stats.deltas_stale += 1
+            elif d.from_version != copy.version and after_snapshot:
+                self.stats.ahead_of_snapshot += 1
+                log.warning(
+                    "map client: tile %s: delta %d->%d ahead of snapshot %d, dropped",
+                    tile,
+                    d.from_version,
+                    d.to_version,
+                    copy.version,
+                )
             elif d.from_version != copy.version:
                 self.stats.gaps += 1
                 copy.version = -1
                 copy.buffered = [d]
-                refetch = True
+                refetch = not copy.fetching
             else:
                 for k, i in enumerate(d.upserts.id):
                     copy.rows[int(i)] = d.upserts.take(np.array([k]))
@@ -169,6 +186,8 @@ class MapClient:
                     copy.rows.pop(int(i), None)
                 copy.version = d.to_version
                 self.stats.deltas_applied += 1
+            if refetch:
+                copy.fetching = True
         if refetch:
             self._inbox.put(("fetch", tile, b""))
 

@@ -15,15 +15,18 @@ def add_bus_arguments(p: argparse.ArgumentParser, mode: str = "client") -> None:
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help=f"Zenoh endpoint to connect to (repeatable; default {DEFAULT_ENDPOINT})",
+        help=f"Zenoh endpoint to connect to (repeatable; default: the --zenoh-config "
+        f"file's, else {DEFAULT_ENDPOINT})",
     )
     p.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config loaded first")
     p.set_defaults(_bus_mode=mode)
 
 
 def bus_from_args(args: argparse.Namespace) -> BusConfig:
-    base = BusConfig(mode=args._bus_mode, config_file=getattr(args, "zenoh_config", None))
-    return base.with_connect(args.connect)
+    """``--connect`` overrides the config file's endpoints; with neither, the default one."""
+    config_file = getattr(args, "zenoh_config", None)
+    connect = tuple(args.connect) or (() if config_file else (DEFAULT_ENDPOINT,))
+    return BusConfig(mode=args._bus_mode, connect=connect, config_file=config_file)
 
 
 def setup_logging(level: str = "INFO") -> None:

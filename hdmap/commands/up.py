@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import signal
 import threading
-import time
 from pathlib import Path
 
 from hdmap.bus import DEFAULT_ENDPOINT
@@ -77,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
                         f"; restarting. Last log lines:\n{tail(proc.log_path, 10)}",
                         flush=True,
                     )
-                    time.sleep(min(5.0, 0.5 * (proc.restarts + 1)))
+                    if stop.wait(min(5.0, 0.5 * (proc.restarts + 1))):
+                        break  # stopping: do not start what is about to be stopped
                     stack.restart(name)
         print("hdmap up: stopping", flush=True)
     return 0
