@@ -10,12 +10,20 @@ publisher:
 3. ``apply(entries)`` runs inside one SQLite transaction together with the
    offsets of those entries and the output entries it appends;
 4. after the commit, the output entries are published live.
+
+Entries are applied in each producer's ``gseq`` order (live entries released from
+behind a gap are merged with the replay), never twice (an entry at or below the
+committed offset is dropped even if it is delivered again), and an entry whose apply
+raises, or breaks an SQLite constraint, is set aside (dead-lettered) alone; a failing
+storage (full, read-only) leaves the entries unapplied, to be replayed.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections import defaultdict
+from itertools import pairwise
 
 import zenoh
 
@@ -118,10 +126,18 @@ class StageService(Service):
                 deliver += self.consumer.catch_up(self.session)
             except zenoh.ZError as exc:
                 log.warning("catch-up failed: %s", exc)
+        deliver = self._unapplied(in_producer_order(deliver))
         if deliver:
             self._apply_and_publish(deliver)
         if others:
             self.handle_other(others)
+
+    def _unapplied(self, entries: list[LogEntry]) -> list[LogEntry]:
+        """Entries above the committed offsets. A batch that failed and was applied entry
+        by entry leaves the consumer's delivery marks behind its offsets, so the next
+        replay delivers those entries again: they must not be applied twice."""
+        done = self.consumer.offsets
+        return [e for e in entries if e.seq > done.get((e.producer, e.tile), 0)]
 
     def _apply_and_publish(self, entries: list[LogEntry]) -> None:
         """Apply a batch in one transaction; a batch that raises is retried entry by entry,
@@ -131,16 +147,22 @@ class StageService(Service):
         try:
             self._apply_in_transaction(entries)
         except StorageError as exc:
+            if not exc.transient:  # SQLite refused the statement: a poison, not the disk
+                self._isolate(entries)
+                return
             log.error("%s: %s; entries will be replayed", self.name, exc)
             self.count("storage_errors")
             self._outbox = []
-        except Exception:  # any bug in apply: isolate the entry that causes it
-            if len(entries) > 1:
-                for e in entries:
-                    self._apply_and_publish([e])
-                return
-            log.exception("%s: entry %s failed; dead-lettered", self.name, _describe(entries[0]))
-            self._dead_letter(entries[0])
+        except Exception:  # noqa: BLE001 - any bug in apply: isolate the entry that causes it
+            self._isolate(entries)
+
+    def _isolate(self, entries: list[LogEntry]) -> None:
+        if len(entries) > 1:
+            for e in entries:
+                self._apply_and_publish([e])
+            return
+        log.exception("%s: entry %s failed; dead-lettered", self.name, _describe(entries[0]))
+        self._dead_letter(entries[0])
 
     def _apply_in_transaction(self, entries: list[LogEntry]) -> None:
         participants = [self.consumer] + ([self.writer] if self.writer else [])
@@ -191,6 +213,24 @@ class StageService(Service):
             "entries_replayed": s.replayed,
             "catchups": s.catchups,
         }
+
+
+def in_producer_order(entries: list[LogEntry]) -> list[LogEntry]:
+    """Each producer's entries in its ``gseq`` order, at the places its entries take.
+
+    The consumer releases a live entry that waited behind a gap as soon as the gap is
+    filled, ahead of replayed entries of other tiles the producer wrote before it; this
+    puts them back in the order the producer wrote them (the order of a run without the
+    gap, which the matcher's results depend on). Per (producer, tile) the order is
+    unchanged: ``seq`` grows with ``gseq``.
+    """
+    mine: dict[str, list[LogEntry]] = defaultdict(list)
+    for e in entries:
+        mine[e.producer].append(e)
+    if all(all(a.gseq < b.gseq for a, b in pairwise(v)) for v in mine.values()):
+        return entries
+    queues = {p: iter(sorted(v, key=lambda e: e.gseq)) for p, v in mine.items()}
+    return [next(queues[e.producer]) for e in entries]
 
 
 def _describe(e: LogEntry) -> str:

@@ -17,22 +17,67 @@ import numpy as np
 
 
 class StorageError(RuntimeError):
-    """The data dir cannot keep what we would acknowledge (disk full, read-only, corrupt)."""
+    """The data dir cannot keep what we would acknowledge (disk full, read-only, corrupt).
+
+    ``transient`` is False when SQLite refused the statement itself (a constraint, a bad
+    query: a bug of the caller) rather than the storage: retrying the same work later
+    fails the same way, so a stage sets such work aside instead of replaying it forever.
+    """
+
+    def __init__(self, message: str, transient: bool = True):
+        super().__init__(message)
+        self.transient = transient
+
+
+_STORAGE_CODES = frozenset(
+    {
+        sqlite3.SQLITE_PERM,
+        sqlite3.SQLITE_BUSY,
+        sqlite3.SQLITE_LOCKED,
+        sqlite3.SQLITE_NOMEM,
+        sqlite3.SQLITE_READONLY,
+        sqlite3.SQLITE_IOERR,
+        sqlite3.SQLITE_CORRUPT,
+        sqlite3.SQLITE_FULL,
+        sqlite3.SQLITE_CANTOPEN,
+        sqlite3.SQLITE_PROTOCOL,
+        sqlite3.SQLITE_NOTADB,
+    }
+)
+
+
+def is_storage_failure(exc: sqlite3.Error) -> bool:
+    """Whether SQLite failed because of the storage (full, read-only, I/O, corrupt,
+    locked) rather than because of the statement."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    return code is not None and (code & 0xFF) in _STORAGE_CODES
 
 
 def connect(path: str | Path, sync: str = "normal", readonly: bool = False) -> sqlite3.Connection:
-    """A connection in autocommit mode (transactions are explicit, see :func:`transaction`)."""
+    """A connection in autocommit mode (transactions are explicit, see :func:`transaction`).
+
+    A database that cannot be opened (read-only or full data dir, a directory in its
+    place...) raises :class:`StorageError` naming the file.
+    """
     p = Path(path)
-    if readonly:
-        conn = sqlite3.connect(
-            f"file:{p}?mode=ro", uri=True, isolation_level=None, check_same_thread=False
-        )
-    else:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        conn = sqlite3.connect(p, isolation_level=None, check_same_thread=False)
-        conn.execute("PRAGMA journal_mode=WAL")
-        conn.execute(f"PRAGMA synchronous={'FULL' if sync == 'full' else 'NORMAL'}")
-    conn.execute("PRAGMA busy_timeout=10000")
+    conn = None
+    try:
+        if readonly:
+            conn = sqlite3.connect(
+                f"file:{p}?mode=ro", uri=True, isolation_level=None, check_same_thread=False
+            )
+        else:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            conn = sqlite3.connect(p, isolation_level=None, check_same_thread=False)
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute(f"PRAGMA synchronous={'FULL' if sync == 'full' else 'NORMAL'}")
+        conn.execute("PRAGMA busy_timeout=10000")
+    except sqlite3.Error as exc:
+        if conn is not None:
+            conn.close()
+        raise StorageError(
+            f"{p}: cannot open the database: {exc}", is_storage_failure(exc)
+        ) from exc
     return conn
 
 
@@ -50,12 +95,16 @@ def transaction(
     """BEGIN IMMEDIATE ... COMMIT; participants learn the outcome.
 
     A storage failure (disk full, read-only file) is raised as :class:`StorageError`
-    after rolling back, so callers refuse the work instead of acknowledging it.
+    after rolling back, so callers refuse the work instead of acknowledging it; any
+    other SQLite error too, with ``transient`` False. Participants learn of a rollback
+    also when the transaction could not even start.
     """
     try:
         conn.execute("BEGIN IMMEDIATE")
     except sqlite3.Error as exc:
-        raise StorageError(f"cannot start a transaction: {exc}") from exc
+        for p in participants:  # what they staged before the call will not be kept
+            p.on_rollback()
+        raise StorageError(f"cannot start a transaction: {exc}") from exc  # never the work's fault
     try:
         yield
         conn.execute("COMMIT")
@@ -67,7 +116,7 @@ def transaction(
         for p in participants:
             p.on_rollback()
         if isinstance(exc, sqlite3.Error):
-            raise StorageError(f"storage failed: {exc}") from exc
+            raise StorageError(f"storage failed: {exc}", is_storage_failure(exc)) from exc
         raise
     for p in participants:
         p.on_commit()

@@ -98,6 +98,8 @@ class SolverService(StageService):
                 continue
             touched |= self._apply_group(g)
         self._publish(sorted(touched))
+        for lid in touched:  # their sums changed, published or not: save them
+            self.state.put(self.state.landmarks[lid])
         self.state.save(self.sums.pack_rows)
 
     def _apply_group(self, g: AssocGroup) -> set[int]:
