@@ -253,7 +253,7 @@ def test_replacing_one_field_only_raises_decode_error(data: bytes, draw) -> None
     m = msgpack.unpackb(data)
     key = draw.draw(st.sampled_from(sorted(m)))
     m[key] = draw.draw(values)
-    if isinstance(m.get("obs"), dict) and draw.draw(st.booleans()):
+    if isinstance(m.get("obs"), dict) and m["obs"] and draw.draw(st.booleans()):
         col = draw.draw(st.sampled_from(sorted(m["obs"])))
         m["obs"][col] = draw.draw(values)
     _only_decode_errors(msgpack.packb(m, use_bin_type=True))

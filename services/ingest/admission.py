@@ -5,13 +5,29 @@
 >>> obs = Observations.empty()
 >>> admit(obs, AdmissionPolicy(), now=1.7e9)[1]
 []
+>>> check_header(ObservationBatch("veh-1", 2**63, 1, 1.7e9, obs))
+Traceback (most recent call last):
+...
+schemas.codec.DecodeError: pass_id: 9223372036854775808 is above 9223372036854775807 ...
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from schemas import Observations, Rejection
+from schemas import DecodeError, ObservationBatch, Observations, Rejection
+
+MAX_PASS_ID = 2**63 - 1
+"""Largest pass id ingest accepts: downstream (the matcher's pending rays) keeps pass ids
+as signed 64-bit integers, so a larger one would be acknowledged, then lost."""
+
+
+def check_header(batch: ObservationBatch) -> None:
+    """Refuse a whole batch whose header the pipeline cannot carry (``DecodeError``)."""
+    if batch.pass_id > MAX_PASS_ID:
+        raise DecodeError(
+            "pass_id", f"{batch.pass_id} is above {MAX_PASS_ID} (pass ids are signed 64-bit)"
+        )
 
 
 @dataclass(frozen=True)

@@ -2,18 +2,23 @@
 
 Per upload (``hdmap/v1/upload/<vehicle_id>`` queryable):
 
-1. decode and validate (:class:`schemas.ObservationBatch`); a broken batch is
+1. rate limits per vehicle (:mod:`services.ingest.ratelimit`): an upload over the
+   vehicle's uploads/s is refused before it is decoded, a batch over its
+   observations/s after; both with ``error.field == "rate"`` and ``retry_after_s``;
+2. decode and validate (:class:`schemas.ObservationBatch`); a broken batch is
    answered with an :class:`schemas.UploadAck` carrying the error, bad rows are
    rejected one by one with field and reason; admission policy (timestamps,
-   vehicle id matching the key) rejects more rows;
-2. drop duplicates by (vehicle, observation id): a retried batch is acknowledged
+   vehicle id matching the key, pass ids the pipeline can carry) rejects more;
+3. drop duplicates by (vehicle, observation id): a retried batch is acknowledged
    again but recorded once;
-3. route each new observation to the tile of its expected target point and
+4. route each new observation to the tile of its expected target point and
    append one :class:`schemas.ObsGroup` entry per tile to the obs log, in the same
    SQLite transaction as the dedup rows;
-4. commit, then reply the ack, then publish the entries on ``hdmap/v1/obs/<tile>``.
+5. commit, then reply the ack, then publish the entries on ``hdmap/v1/obs/<tile>``.
 
 Uploads that arrive together are committed in one transaction (one fsync for many).
+Every refused upload or row is counted in ``Stats.rejected`` by reason (``batch.<field>``,
+``obs.<column>``, ``rate_limited``).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import zenoh
 
 from hdmap import keys
 from hdmap.service import Item, Service, ServiceOptions
@@ -30,8 +36,10 @@ from hdmap.store import StorageError, u64_to_i64
 from hdmap.stream import STAGE_KEYS, LogServer, LogWriter
 from hdmap.tiles import DEFAULT_TARGET_RANGE_M, route_rays
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck
+from schemas.codec import valid_id
 from schemas.messages import MAX_BATCH
-from services.ingest.admission import AdmissionPolicy, admit
+from services.ingest.admission import AdmissionPolicy, admit, check_header
+from services.ingest.ratelimit import MAX_RETRY_AFTER_S, RateLimit, VehicleLimiter
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +49,13 @@ class IngestConfig:
     max_batch: int = MAX_BATCH
     default_range_m: float = DEFAULT_TARGET_RANGE_M
     policy: AdmissionPolicy = field(default_factory=AdmissionPolicy)
+    rate_limit: RateLimit = field(default_factory=RateLimit)
+
+
+_NO_IDS = np.zeros(0, np.uint64)
+
+UNKNOWN_VEHICLE = "unknown"
+"""``UploadAck.vehicle_id`` when the sender is not known (bad key, storage failure)."""
 
 
 @dataclass
@@ -66,6 +81,7 @@ class IngestService(Service):
         self.db.executescript(self.SCHEMA)
         self.writer = LogWriter(self.db, "obs", self.instance)
         self._log_server: LogServer | None = None
+        self.limiter = VehicleLimiter(self.config.rate_limit)
 
     def setup(self) -> None:
         self.serve(keys.upload(keys.ANY), "upload")
@@ -91,10 +107,9 @@ class IngestService(Service):
             self.count("storage_errors")
             err = DecodeError("storage", f"not recorded, retry later ({exc})")
             for it in uploads:
-                self._reply(
-                    it,
-                    UploadAck("unknown", 0, np.zeros(0, np.uint64), error=err, retry_after_s=5.0),
-                )
+                vehicle = keys.last_chunk(it.key)
+                vehicle = vehicle if valid_id(vehicle) else UNKNOWN_VEHICLE
+                self._reply(it, UploadAck(vehicle, 0, _NO_IDS, error=err, retry_after_s=5.0))
             return
         for p in staged:
             self._reply(p.item, p.ack)
@@ -105,6 +120,9 @@ class IngestService(Service):
         assert it.query is not None
         try:
             it.query.reply(it.query.key_expr, ack.to_bytes())
+        except zenoh.ZError as exc:  # the querier is gone: it resends, retries are safe
+            log.warning("ingest: cannot reply on %s: %s", it.key, exc)
+            self.count("reply_errors")
         finally:
             it.query.drop()
 
@@ -112,6 +130,20 @@ class IngestService(Service):
         """Decode, validate, dedupe and append one upload (inside the transaction)."""
         self.count("uploads")
         key_vehicle = keys.last_chunk(it.key)
+        if not valid_id(key_vehicle):
+            self.reject("batch.key")
+            err = DecodeError(
+                "key",
+                f"{key_vehicle[:80]!r} (last chunk of {keys.upload('<vehicle_id>')}) is not a "
+                "vehicle id: 1-64 characters of [A-Za-z0-9_.-]",
+            )
+            return UploadAck(UNKNOWN_VEHICLE, 0, _NO_IDS, error=err), []
+        wait = self.limiter.upload(key_vehicle)
+        if wait > 0:
+            lim = self.config.rate_limit
+            return self._rate_limited(
+                key_vehicle, 0, wait, f"more than {lim.uploads_per_s:g} uploads/s"
+            ), []
         try:
             batch, rejected = ObservationBatch.from_bytes_partial(it.payload, self.config.max_batch)
             if batch.vehicle_id != key_vehicle:
@@ -119,10 +151,18 @@ class IngestService(Service):
                     "vehicle_id",
                     f"{batch.vehicle_id!r} does not match the upload key {key_vehicle!r}",
                 )
+            check_header(batch)
         except DecodeError as exc:
             self.reject(f"batch.{exc.field}")
-            return UploadAck(key_vehicle, 0, np.zeros(0, np.uint64), error=exc), []
-        self.count("received", len(batch.obs) + len(rejected))
+            return UploadAck(key_vehicle, 0, _NO_IDS, error=exc), []
+        n_rows = len(batch.obs) + len(rejected)
+        wait = self.limiter.observations(key_vehicle, n_rows)
+        if wait > 0:
+            self.count("rate_limited_obs", n_rows)
+            lim = self.config.rate_limit
+            why = f"more than {lim.observations_per_s:g} observations/s"
+            return self._rate_limited(key_vehicle, batch.batch_id, wait, why), []
+        self.count("received", n_rows)
         obs, more = admit(batch.obs, self.config.policy, time.time())
         rejected += more
         for r in rejected:
@@ -161,6 +201,13 @@ class IngestService(Service):
             batch.vehicle_id, batch.batch_id, ids, duplicates=ids[dup], rejected=rejected
         )
         return ack, entries
+
+    def _rate_limited(self, vehicle: str, batch_id: int, wait: float, why: str) -> UploadAck:
+        """The ack of an upload refused by a rate limit (nothing recorded; resend later)."""
+        self.reject("rate_limited")
+        wait = min(max(wait, 0.001), MAX_RETRY_AFTER_S)
+        err = DecodeError("rate", f"vehicle {vehicle!r} sends {why}; retry after {wait:.3g} s")
+        return UploadAck(vehicle, batch_id, _NO_IDS, error=err, retry_after_s=wait)
 
     def _seen(self, vehicle: str, ids: np.ndarray) -> np.ndarray:
         if ids.size == 0:
