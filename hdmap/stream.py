@@ -261,6 +261,9 @@ class LogConsumer:
             s - self._committed.get(k, 0) for k, s in self._pending_commit.items()
         )
         self._committed.update(self._pending_commit)
+        for k, seq in self._pending_commit.items():  # entries re-applied after a rollback
+            if seq > self._delivered.get(k, 0):
+                self._delivered[k] = seq
         self._pending_commit = {}
 
     def on_rollback(self) -> None:
