@@ -1,10 +1,18 @@
 """Load generation against a running stack: many vehicles, paced uploads, subscribed readers.
 
 Observations are simulated once (a pool of real passes through a town, geolocated
-like on a vehicle); during the run each vehicle replays pool passes with fresh
-observation ids, pass ids and capture times, so the matcher and solver do real
-work at a rate the generator itself can sustain. Each vehicle has its own upload
-stream (its own key, ids and batches); batches are paced to the target rate.
+like on a vehicle, cut into uploads of at most ``batch`` observations); during the
+run each vehicle replays pool passes with fresh observation ids, pass ids and
+capture times, so the matcher and solver do real work at a rate the generator
+itself can sustain. Each vehicle has its own upload stream (its own key, ids and
+batches); batches are paced to the target rate (a vehicle that falls behind sends
+its late batches back to back until it is on schedule again).
+
+Vehicle ids carry a per-run tag (``load-<run>-<index>``): the stack remembers every
+(vehicle, observation id) it has recorded, so a second run with the same ids would
+only produce duplicates. Within a run, ids are unique, so an upload's ``accepted``
+(which includes ``duplicates``) is exactly what ingest recorded for it, also when
+an upload is retried after a lost reply.
 
 Latency is traced by the stages: ``Landmarks.source_time`` is when ingest
 received the newest observation folded into an update; a subscribed reader
@@ -15,6 +23,7 @@ from __future__ import annotations
 
 import threading
 import time
+import uuid
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -34,6 +43,11 @@ from vehicle.agent import to_observations
 from vehicle.config import load_vehicle_model
 
 
+def new_run_id() -> str:
+    """A short tag that makes this run's vehicle ids (and so its observation ids) new."""
+    return uuid.uuid4().hex[:8]
+
+
 @dataclass(frozen=True)
 class LoadConfig:
     vehicles: int = 20
@@ -41,12 +55,22 @@ class LoadConfig:
     """Target observations per second over the whole fleet."""
     duration_s: float = 30.0
     batch: int = 500
-    """Observations per upload batch (a vehicle uploading every few seconds)."""
+    """At most this many observations per upload (a pass is cut into uploads)."""
     subscribers: int = 2
+    """Subscribed vehicles (map readers), each on every tile of the town and its halo."""
     pool_passes: int = 60
+    route_length_m: tuple[float, float] = FleetConfig().route_length_m
+    """Pool pass length (the fleet's default, 400-900 m: ~95 observations a pass in the
+    demo town, so a pass is usually one upload). Longer passes make bigger uploads but
+    also cost the matcher more per observation (more pending rays per pass)."""
     n_signs: int = 120
     n_blocks: int = 6
     seed: int = 0
+    run_id: str = ""
+    """Vehicle id tag; empty: a fresh one per run (:func:`new_run_id`)."""
+    upload_timeout_s: float = 10.0
+    max_attempts: int = 3
+    """Attempts per upload (a timed-out or refused upload is resent, like a vehicle does)."""
 
 
 @dataclass
@@ -55,14 +79,21 @@ class Counters:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     sent: int = 0
+    """Observations uploaded (each counted once, however many attempts)."""
     accepted: int = 0
+    """Observations acknowledged as durably recorded (``UploadAck.accepted``)."""
     duplicates: int = 0
     rejected: int = 0
     failed: int = 0
+    """Observations of uploads never acknowledged after ``max_attempts``."""
     batches: int = 0
+    retries: int = 0
     deltas: int = 0
     delta_landmarks: int = 0
+    latency_count: int = 0
+    """Latencies measured so far (``latencies`` keeps the newest only)."""
     latencies: deque = field(default_factory=lambda: deque(maxlen=2_000_000))
+    ack_latencies: deque = field(default_factory=lambda: deque(maxlen=200_000))
 
     def add(self, **kw: int) -> None:
         with self.lock:
@@ -70,19 +101,31 @@ class Counters:
                 setattr(self, k, getattr(self, k) + v)
 
 
-def build_pool(cfg: LoadConfig) -> tuple[World, list[Observations]]:
-    """Simulated, geolocated passes to replay (FLEET noise)."""
+def build_pool(cfg: LoadConfig) -> tuple[World, list[list[Observations]]]:
+    """Simulated, geolocated passes (FLEET noise), each cut into uploads of <= ``batch``."""
     world = demo_town(cfg.seed, n_signs=cfg.n_signs, n_blocks=cfg.n_blocks)
     model = model_for(FLEET, load_vehicle_model())
     fleet = Fleet(
-        world, model, FLEET, FleetConfig(n_vehicles=1, start_time=time.time()), seed=cfg.seed
+        world,
+        model,
+        FLEET,
+        FleetConfig(n_vehicles=1, start_time=time.time(), route_length_m=cfg.route_length_m),
+        seed=cfg.seed,
     )
     pool = []
     for k in range(cfg.pool_passes):
         p = fleet.drive(0, k)
         lines = geolocate(p.fixes, p.detections, model)
         if len(lines):
-            pool.append(to_observations(lines, np.zeros(len(lines), np.uint64)))
+            obs = to_observations(lines, np.zeros(len(lines), np.uint64))
+            pool.append(
+                [
+                    obs.take(np.arange(s, min(s + cfg.batch, len(obs))))
+                    for s in range(0, len(obs), cfg.batch)
+                ]
+            )
+    if not pool:
+        raise RuntimeError("the simulated pool has no observations")
     return world, pool
 
 
@@ -92,6 +135,27 @@ def town_tiles_with_halo(world: World) -> list[str]:
     return sorted(tiles | {n for t in tiles for n in neighbours(t)})
 
 
+def upload_payloads(
+    pool: list[list[Observations]], vehicle_id: str = "load-0", first_pass: int = 0
+):
+    """The upload payloads a vehicle sends, in order, with fresh ids (endless generator).
+
+    Yields (payload bytes, observation count)."""
+    next_id, pass_id, batch_id, k = 1, 0, 0, first_pass
+    while True:
+        parts = pool[k % len(pool)]
+        k += 1
+        pass_id += 1
+        for part in parts:
+            n = len(part)
+            batch_id += 1
+            now = time.time()
+            ids = np.arange(next_id, next_id + n, dtype=np.uint64)
+            next_id += n
+            obs = Observations(**{**part.__dict__, "obs_id": ids, "t": np.full(n, now - 1.0)})
+            yield ObservationBatch(vehicle_id, pass_id, batch_id, now, obs).to_bytes(), n
+
+
 class Vehicle(threading.Thread):
     """One vehicle's paced upload stream (pool passes replayed with fresh ids)."""
 
@@ -99,62 +163,68 @@ class Vehicle(threading.Thread):
         self,
         index: int,
         session: zenoh.Session,
-        pool: list[Observations],
+        pool: list[list[Observations]],
         cfg: LoadConfig,
         counters: Counters,
         stop: threading.Event,
+        run_id: str,
     ):
         super().__init__(name=f"veh-{index}", daemon=True)
-        self.vehicle_id = f"load-{index:05d}"
+        self.vehicle_id = f"load-{run_id}-{index:05d}"
         self.index, self.session, self.pool, self.cfg = index, session, pool, cfg
         self.counters, self.stop = counters, stop
-        self.period = cfg.batch / (cfg.rate / cfg.vehicles)
-
-    def batches(self):
-        next_id, pass_id, k = 1, 0, self.index
-        while True:
-            obs = self.pool[k % len(self.pool)]
-            k += 1
-            pass_id += 1
-            for s in range(0, len(obs), self.cfg.batch):
-                part = obs.take(np.arange(s, min(s + self.cfg.batch, len(obs))))
-                yield part, pass_id, next_id
-                next_id += len(part)
+        self.obs_period = cfg.vehicles / cfg.rate
+        """Seconds of this vehicle's schedule one observation takes."""
 
     def run(self) -> None:
-        due = time.monotonic() + (self.index / self.cfg.vehicles) * self.period
-        for batch_id, (part, pass_id, first) in enumerate(self.batches(), start=1):
+        mean_batch = np.mean([len(p) for parts in self.pool for p in parts])
+        due = time.monotonic() + (self.index / self.cfg.vehicles) * mean_batch * self.obs_period
+        for payload, n in upload_payloads(self.pool, self.vehicle_id, self.index):
             if self.stop.wait(max(0.0, due - time.monotonic())):
                 return
-            due += self.period * len(part) / self.cfg.batch
-            n = len(part)
-            ids = np.arange(first, first + n, dtype=np.uint64)
-            now = time.time()
-            obs = Observations(**{**part.__dict__, "obs_id": ids, "t": np.full(n, now - 1.0)})
-            payload = ObservationBatch(self.vehicle_id, pass_id, batch_id, now, obs).to_bytes()
-            ack = None
-            for _k, ok, _e in query(
+            due += n * self.obs_period
+            self._upload(payload, n)
+
+    def _upload(self, payload: bytes, n: int) -> None:
+        """Send one upload until acknowledged (at most ``max_attempts``), then count it."""
+        ack: UploadAck | None = None
+        for attempt in range(self.cfg.max_attempts):
+            if attempt:
+                self.counters.add(retries=1)
+                time.sleep(min(max(ack.retry_after_s, 0.1), 2.0) if ack is not None else 0.1)
+            t = time.monotonic()
+            ack = self._send(payload)
+            if ack is not None and ack.error is None:
+                with self.counters.lock:
+                    c = self.counters
+                    c.sent += n
+                    c.batches += 1
+                    c.accepted += len(ack.accepted)
+                    c.duplicates += len(ack.duplicates)
+                    c.rejected += len(ack.rejected)
+                    c.ack_latencies.append(time.monotonic() - t)
+                return
+        self.counters.add(sent=n, failed=n, batches=1)
+
+    def _send(self, payload: bytes) -> UploadAck | None:
+        ack = None
+        try:
+            replies = query(
                 self.session,
                 keys.upload(self.vehicle_id),
                 payload,
-                timeout=10.0,
+                timeout=self.cfg.upload_timeout_s,
                 target=zenoh.QueryTarget.BEST_MATCHING,
-            ):
-                if ok is not None:
-                    try:
-                        ack = UploadAck.from_bytes(ok)
-                    except DecodeError:
-                        ack = None
-            if ack is None or ack.error is not None:
-                self.counters.add(sent=n, failed=n, batches=1)
-            else:
-                self.counters.add(
-                    sent=n,
-                    accepted=len(ack.accepted),
-                    duplicates=len(ack.duplicates),
-                    rejected=len(ack.rejected),
-                    batches=1,
-                )
+            )
+        except zenoh.ZError:
+            return None
+        for _k, ok, _e in replies:
+            if ok is not None:
+                try:
+                    ack = UploadAck.from_bytes(ok)
+                except DecodeError:
+                    ack = None
+        return ack
 
 
 class Reader:
@@ -170,19 +240,21 @@ class Reader:
             d = MapDelta.from_bytes(sample.payload.to_bytes())
         except DecodeError:
             return
-        lat = now - d.upserts.source_time
+        lat = (now - d.upserts.source_time).tolist()
         with self.counters.lock:
             self.counters.deltas += 1
             self.counters.delta_landmarks += len(d.upserts)
-            self.counters.latencies.extend(lat.tolist())
+            self.counters.latency_count += len(lat)
+            self.counters.latencies.extend(lat)
 
     def close(self) -> None:
         for s in self.subs:
             s.undeclare()
 
 
-def percentiles(values, qs=(50, 95, 99)) -> dict[str, float]:
+def percentiles(values, qs=(50, 95, 99)) -> dict[str, float | None]:
+    """Percentiles of ``values``; None for each if there are none (valid JSON)."""
     a = np.asarray(values, float)
     if a.size == 0:
-        return {f"p{q}": float("nan") for q in qs}
+        return {f"p{q}": None for q in qs}
     return {f"p{q}": float(np.percentile(a, q)) for q in qs}

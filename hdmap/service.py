@@ -84,7 +84,9 @@ class Service:
         self.db = connect(self.db_path, sync=opts.sync)
         meta = Meta(self.db)
         self.instance = opts.instance or meta.setdefault(
-            "instance", f"{self.name}-{self.region_label}-{uuid.uuid4().hex[:8]}"
+            "instance",
+            # '+' (several prefixes) is not allowed in ids: producer names and stats use them
+            f"{self.name}-{self.region_label.replace('+', '_')[:40]}-{uuid.uuid4().hex[:8]}",
         )
         stored_zoom = int(meta.setdefault("zoom", str(opts.zoom)))
         if stored_zoom != opts.zoom:

@@ -20,7 +20,9 @@ storage (full, read-only) leaves the entries unapplied, to be replayed.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import queue
 import time
 from collections import defaultdict
 from itertools import pairwise
@@ -96,8 +98,10 @@ class StageService(Service):
             self._log_server.close()
 
     def _mark_catchup(self) -> None:
+        # on the worker thread: a blocking put into its own full inbox would never return
         self.consumer.need_catchup = True
-        self.inbox.put(Item("kick", "", b""))
+        with contextlib.suppress(queue.Full):
+            self.inbox.put_nowait(Item("kick", "", b""))
 
     def emit(self, tile: str, body: bytes) -> LogEntry:
         """Append an output entry (inside apply's transaction); published after commit."""
