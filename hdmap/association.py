@@ -164,6 +164,19 @@ def assign_per_image(
     img = images[ri]
     order = np.lexsort((cost, ri, img))
     ri, li, cost, img = ri[order], li[order], cost[order], img[order]
+    # Fast path: in an image where the rays' best landmarks are all different, each ray
+    # takes its best (that is the assignment's optimum); only the others need the solver.
+    first = np.r_[True, ri[1:] != ri[:-1]]
+    b_r, b_l, b_img = ri[first], li[first], img[first]
+    o2 = np.lexsort((b_l, b_img))
+    clash = (b_img[o2][1:] == b_img[o2][:-1]) & (b_l[o2][1:] == b_l[o2][:-1])
+    slow_imgs = np.unique(b_img[o2][1:][clash])
+    fast = ~np.isin(b_img, slow_imgs)
+    out[b_r[fast]] = b_l[fast]
+    slow = np.isin(img, slow_imgs)
+    ri, li, cost, img = ri[slow], li[slow], cost[slow], img[slow]
+    if ri.size == 0:
+        return out
     bounds = np.flatnonzero(np.diff(img)) + 1
     for s, e in zip(np.r_[0, bounds], np.r_[bounds, ri.size], strict=True):
         r, lm, c = ri[s:e], li[s:e], cost[s:e]

@@ -194,7 +194,8 @@ class MatcherService(StageService):
         self.state.add_pending(
             tile, obs.take(~hit), g.vehicle_id, g.pass_id, time.time(), g.received_at
         )
-        touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id)
+        new_classes = np.unique(obs.sign_class[~hit])
+        touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id, new_classes)
         self._refresh(sorted(touched))
 
     def _link(
@@ -226,13 +227,20 @@ class MatcherService(StageService):
             out.weight += [weight] * len(idx)
             out.obs.append(sub)
 
-    def _initiate(self, tile: str, area: list[str], vehicle: str, pass_id: int) -> set[int]:
-        """Candidate landmarks from this pass's pending rays around ``tile``."""
+    def _initiate(
+        self, tile: str, area: list[str], vehicle: str, pass_id: int, classes: np.ndarray
+    ) -> set[int]:
+        """Candidate landmarks from this pass's pending rays around ``tile``, for the classes
+        that just got new pending rays (for the others, this pass's pending rays only
+        shrank since they last failed to make a landmark)."""
+        if classes.size == 0:
+            return set()
         frame = self.frames(tile)
         pools = [(t, self.state.pending[t]) for t in area if t in self.state.pending]
         parts, where = [], []
+        key = pass_key(vehicle, pass_id)
         for t, p in pools:
-            mine = np.array([v == vehicle for v in p.vehicle], bool) & (p.pass_id == pass_id)
+            mine = p.key == key
             if mine.any():
                 parts.append(p.obs.take(mine))
                 where += [(t, int(i)) for i in np.flatnonzero(mine)]
@@ -243,7 +251,7 @@ class MatcherService(StageService):
         rays = to_local(frame, obs)
         created: set[int] = set()
         used = np.zeros(len(rays), bool)
-        for cls in np.unique(rays.sign_class):
+        for cls in np.intersect1d(np.unique(rays.sign_class), classes):
             idx = np.flatnonzero(rays.sign_class == cls)
             for cand in propose(rays.take(idx), self.config.gate, self.config.init):
                 members = idx[cand.members]
@@ -283,14 +291,22 @@ class MatcherService(StageService):
             x = frame.from_ecef(np.array([c.x for c in new]))
             cov = np.array([c.cov for c in new])
             cls = np.array([c.cls for c in new], np.int64)
+            # only rays of the new landmarks' classes can match (associate pairs same-class
+            # only): select them first, convert them once
+            cand = np.flatnonzero(np.isin(p.obs.sign_class, cls))
+            if cand.size == 0:
+                continue
+            local = to_local(frame, p.obs.take(cand))
             groups: dict[tuple[str, int], list[int]] = defaultdict(list)
-            for i, (v, pid) in enumerate(zip(p.vehicle, p.pass_id.tolist(), strict=True)):
-                groups[(v, pid)].append(i)
+            pids = p.pass_id[cand].tolist()
+            for j, i in enumerate(cand.tolist()):
+                groups[(p.vehicle[i], pids[j])].append(j)
             take = np.zeros(len(p), bool)
             links: list[tuple[np.ndarray, np.ndarray, str, int, float]] = []
             for (v, pid), idx in sorted(groups.items()):
-                sel = np.array(idx)
-                res = associate(to_local(frame, p.obs.take(sel)), x, cov, cls, self.config.gate)
+                js = np.array(idx)
+                sel = cand[js]
+                res = associate(local.take(js), x, cov, cls, self.config.gate)
                 hit = res.landmark >= 0
                 if hit.any():
                     take[sel[hit]] = True
@@ -322,13 +338,14 @@ class MatcherService(StageService):
         good, _prov, cov = usable(sol, self.config.estimator, self.config.provisional_passes, bias)
         if self.config.gate_bias_floor:
             cov = cov + prior_covariance(bias, sol.n_clusters)
-        for k, lm in enumerate(lms):
-            if not good[k]:
-                continue
-            frame = self.frames(lm.home)
-            lm.x = frame.to_ecef(sol.x[k][None])[0]
-            lm.cov = cov[k]
-            lm.tile = self._tile_of(lm.x)
+        moved = [k for k in range(len(lms)) if good[k]]
+        for k in moved:
+            lms[k].x = self.frames(lms[k].home).to_ecef(sol.x[k][None])[0]
+            lms[k].cov = cov[k]
+        if moved:
+            lat, lon, _ = GEODESY.to_geodetic(np.array([lms[k].x for k in moved]))
+            for k, t in zip(moved, quadkeys_of(lat, lon, self.opts.zoom).tolist(), strict=True):
+                lms[k].tile = str(t)
         for lm in lms:
             self.state.put(lm)
 

@@ -87,6 +87,15 @@ class PendingTile:
     added_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     received_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     """Ingest receipt time (latency tracing)."""
+    key: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    """:func:`pass_key` of each ray's (vehicle, pass): vectorised selection of a pass."""
+
+    def __post_init__(self) -> None:
+        if self.key.size != len(self.obs):
+            self.key = np.array(
+                [pass_key(v, int(p)) for v, p in zip(self.vehicle, self.pass_id, strict=True)],
+                np.int64,
+            )
 
     def __len__(self) -> int:
         return len(self.obs)
@@ -99,6 +108,7 @@ class PendingTile:
         self.pass_id = np.r_[self.pass_id, np.full(len(obs), pass_id, np.int64)]
         self.added_at = np.r_[self.added_at, np.full(len(obs), now)]
         self.received_at = np.r_[self.received_at, np.full(len(obs), received)]
+        self.key = np.r_[self.key, np.full(len(obs), pass_key(vehicle, pass_id), np.int64)]
 
     def keep(self, mask: NDArray[np.bool_]) -> None:
         self.obs = self.obs.take(mask)
@@ -106,6 +116,7 @@ class PendingTile:
         self.pass_id = self.pass_id[mask]
         self.added_at = self.added_at[mask]
         self.received_at = self.received_at[mask]
+        self.key = self.key[mask]
 
 
 class MatcherState:
