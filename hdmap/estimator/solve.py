@@ -40,6 +40,7 @@ Per landmark, with ``A = sum_p A_p`` and ``b = sum_p b_p`` summed over passes ``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -101,9 +102,14 @@ def hotelling_inflation(g: NDArray, level: float = 0.95, dims: int = 2) -> Array
     [4.251, 1.674, 1.155, 1.004]
     """
     g = np.maximum(np.asarray(g, float), dims + 1.0)
+    u, inv = np.unique(g, return_inverse=True)  # few distinct pass counts: ppf once each
+    return np.array([_hotelling(float(v), level, dims) for v in u])[inv].reshape(g.shape)
+
+
+@lru_cache(maxsize=4096)
+def _hotelling(g: float, level: float, dims: int) -> float:
     q = stats.chi2.ppf(level, dims)
-    t2 = dims * (g - 1.0) / (g - dims) * stats.f.ppf(level, dims, g - dims)
-    return t2 / q
+    return float(dims * (g - 1.0) / (g - dims) * stats.f.ppf(level, dims, g - dims) / q)
 
 
 def meat_matrix(x: Array, saa: Array, sab: Array, sbb: Array) -> Array:
