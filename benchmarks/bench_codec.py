@@ -5,15 +5,19 @@ machine state):
 
 - ObservationBatch of 1,000 observations: encode, strict decode, partial decode
   (all rows good, and with 1% bad rows so the per-row rejection path runs);
-- MapDelta with 100 and 1,000 landmarks: encode and decode;
-- reference: ``msgpack.packb`` / ``msgpack.unpackb`` of a list of 1,000 dicts with
-  the same fields (no validation, no numpy), i.e. the naive row-wise encoding.
+- MapDelta (publisher -> vehicles) with 10, 100 and 1,000 upserted landmarks, and one
+  with 1,000 upserts plus 100 removals: encode and decode;
+- MapSnapshot (the ``hdmap/v1/map/<tile>`` reply) of 100, 1,000 and 10,000 landmarks:
+  encode and decode;
+- references: ``msgpack.packb`` / ``msgpack.unpackb`` of a list of 1,000 dicts with
+  the same fields (no validation, no numpy), i.e. the naive row-wise encoding, for
+  observations and for landmarks.
 
 Each case is timed timeit-style (``Timer.autorange`` picks the loop count, then
 ``--repeat`` runs, default 9) and the median per call is reported as rows/s and
-MB/s of encoded message. Usage::
+MB/s of encoded message. ``--quick`` uses 3 runs of about 20 ms each. Usage::
 
-    .venv/bin/python benchmarks/bench_codec.py [--repeat 9] [--json out.json]
+    .venv/bin/python benchmarks/bench_codec.py [--quick] [--repeat 9] [--json out.json]
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import sys
 import time
 import timeit
 from collections.abc import Callable
+from importlib import metadata
 from pathlib import Path
 
 import msgpack
@@ -35,10 +40,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hdmap.signs import CATALOG
-from schemas import Landmarks, MapDelta, ObservationBatch, Observations, Removals
+from schemas import Landmarks, MapDelta, MapSnapshot, ObservationBatch, Observations, Removals
 
 T0 = 1.7e9
 REFERENCE = "reference: msgpack list of 1000 dicts"
+REFERENCE_LM = "reference: msgpack 1000 landmark dicts"
+TILE = "1201202110133102"
 
 
 def make_obs(n: int, seed: int = 0) -> Observations:
@@ -90,6 +97,12 @@ def obs_dicts(obs: Observations) -> list[dict]:
     return [{k: v[i] for k, v in cols.items()} for i in range(len(obs))]
 
 
+def landmark_dicts(lm: Landmarks) -> list[dict]:
+    """The same landmarks as one msgpack-native dict per row (the naive encoding)."""
+    cols = {name: getattr(lm, name).tolist() for name, _ in Landmarks.CODEC.cols}
+    return [{k: v[i] for k, v in cols.items()} for i in range(len(lm))]
+
+
 def machine() -> dict[str, str | int]:
     cpu = "unknown"
     try:
@@ -99,20 +112,31 @@ def machine() -> dict[str, str | int]:
                 break
     except OSError:
         pass
+    try:
+        zenoh_version = metadata.version("eclipse-zenoh")
+    except metadata.PackageNotFoundError:
+        zenoh_version = "missing"
     return {
         "cpu": cpu,
         "cores": os.cpu_count() or 0,
         "python": platform.python_version(),
         "numpy": np.__version__,
         "msgpack": ".".join(map(str, msgpack.version)),
+        "zenoh": zenoh_version,
         "platform": platform.platform(),
+        "loadavg_at_start": ", ".join(f"{x:.2f}" for x in os.getloadavg()),
     }
 
 
-def measure(fn: Callable[[], object], repeat: int) -> tuple[float, int]:
-    """Median seconds per call over ``repeat`` runs of an autoranged loop."""
+def measure(fn: Callable[[], object], repeat: int, quick: bool = False) -> tuple[float, int]:
+    """Median seconds per call over ``repeat`` runs of an autoranged loop (``quick``: loops
+    of about 20 ms instead of autorange's 0.2 s)."""
     timer = timeit.Timer(fn)
-    number, _ = timer.autorange()
+    if quick:
+        one = timer.timeit(1)
+        number = max(1, int(0.02 / max(one, 1e-7)))
+    else:
+        number, _ = timer.autorange()
     times = timer.repeat(repeat=repeat, number=number)
     return statistics.median(times) / number, number
 
@@ -144,25 +168,50 @@ def cases() -> list[tuple[str, str, int, int, Callable[[], object]]]:
     )
 
     no_removals = Removals(id=np.zeros(0, np.uint64), revision=np.zeros(0, np.uint64))
-    for n in (100, 1000):
-        delta = MapDelta("1201202110133102", 41, 42, T0, make_landmarks(n), no_removals)
+    for n in (10, 100, 1000):
+        delta = MapDelta(TILE, 41, 42, T0, make_landmarks(n), no_removals)
         ddata = delta.to_bytes()
         add(f"MapDelta {n} landmarks", "encode", n, ddata, delta.to_bytes)
         add(f"MapDelta {n} landmarks", "decode", n, ddata, lambda d=ddata: MapDelta.from_bytes(d))
+    removals = Removals(
+        id=np.arange(100, dtype=np.uint64) + 5_000_000, revision=np.full(100, 7, np.uint64)
+    )
+    delta = MapDelta(TILE, 41, 42, T0, make_landmarks(1000), removals)
+    ddata = delta.to_bytes()
+    group = "MapDelta 1000 landmarks + 100 removed"
+    add(group, "encode", 1100, ddata, delta.to_bytes)
+    add(group, "decode", 1100, ddata, lambda d=ddata: MapDelta.from_bytes(d))
+
+    for n in (100, 1000, 10_000):
+        snap = MapSnapshot(TILE, 42, make_landmarks(n, seed=2))
+        sdata = snap.to_bytes()
+        add(f"MapSnapshot {n} landmarks", "encode", n, sdata, snap.to_bytes)
+        add(
+            f"MapSnapshot {n} landmarks",
+            "decode",
+            n,
+            sdata,
+            lambda d=sdata: MapSnapshot.from_bytes(d),
+        )
 
     rows = obs_dicts(obs)
     ref = msgpack.packb(rows, use_bin_type=True)
     assert msgpack.unpackb(ref) == rows
     add(REFERENCE, "encode", 1000, ref, lambda: msgpack.packb(rows, use_bin_type=True))
     add(REFERENCE, "decode", 1000, ref, lambda: msgpack.unpackb(ref, raw=False))
+    lm_rows = landmark_dicts(make_landmarks(1000))
+    lm_ref = msgpack.packb(lm_rows, use_bin_type=True)
+    assert msgpack.unpackb(lm_ref) == lm_rows
+    add(REFERENCE_LM, "encode", 1000, lm_ref, lambda: msgpack.packb(lm_rows, use_bin_type=True))
+    add(REFERENCE_LM, "decode", 1000, lm_ref, lambda: msgpack.unpackb(lm_ref, raw=False))
     return out
 
 
-def run(repeat: int = 9) -> dict:
+def run(repeat: int = 9, quick: bool = False) -> dict:
     results = []
     for group, op, rows, nbytes, fn in cases():
         fn()  # warm up
-        sec, number = measure(fn, repeat)
+        sec, number = measure(fn, repeat, quick)
         results.append(
             dict(
                 message=group,
@@ -177,7 +226,14 @@ def run(repeat: int = 9) -> dict:
             )
         )
     when = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    return {"machine": machine(), "when": when, "results": results}
+    return {
+        "benchmark": "codec",
+        "machine": machine(),
+        "when": when,
+        "quick": quick,
+        "results": results,
+        "ratios": ratios(results),
+    }
 
 
 def ratios(results: list[dict]) -> list[str]:
@@ -192,6 +248,12 @@ def ratios(results: list[dict]) -> list[str]:
             f"the speed of msgpack dicts {ref_op}; size "
             f"{a['bytes'] / b['bytes']:.2f}x"
         )
+    for op in ("encode", "decode"):
+        a, b = by[("MapDelta 1000 landmarks", op)], by[(REFERENCE_LM, op)]
+        lines.append(
+            f"MapDelta 1000 landmarks {op} is {b['us_per_call'] / a['us_per_call']:.1f}x "
+            f"the speed of msgpack landmark dicts {op}; size {a['bytes'] / b['bytes']:.2f}x"
+        )
     return lines
 
 
@@ -199,8 +261,10 @@ def table(report: dict) -> str:
     m = report["machine"]
     head = [
         f"machine: {m['cpu']}, {m['cores']} cores; Python {m['python']}, numpy {m['numpy']}, "
-        f"msgpack {m['msgpack']}",
-        f"median of {report['results'][0]['repeat']} runs (timeit autorange loops)",
+        f"msgpack {m['msgpack']}, zenoh {m.get('zenoh', '?')}; "
+        f"load average at start {m.get('loadavg_at_start', '?')}",
+        f"median of {report['results'][0]['repeat']} runs "
+        f"({'~20 ms loops, --quick' if report.get('quick') else 'timeit autorange loops'})",
         "",
         f"| {'message':<38} | {'operation':<22} | {'bytes':>8} | {'us/call':>9} "
         f"| {'rows/s':>11} | {'MB/s':>7} |",
@@ -216,12 +280,14 @@ def table(report: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeat", type=int, default=9, help="timed runs per case (median; >= 7)")
+    ap.add_argument("--repeat", type=int, help="timed runs per case (median; >= 7, default 9)")
+    ap.add_argument("--quick", action="store_true", help="3 runs of ~20 ms loops (smoke test)")
     ap.add_argument("--json", type=Path, help="also write the results as JSON to this file")
     args = ap.parse_args(argv)
-    if args.repeat < 7:
+    repeat = args.repeat or (3 if args.quick else 9)
+    if repeat < 7 and not args.quick:
         ap.error("--repeat must be at least 7")
-    report = run(args.repeat)
+    report = run(repeat, args.quick)
     print(table(report))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -89,7 +89,7 @@ def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
         return
     order = np.argsort(idx, kind="stable")
     s = idx[order]
-    starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
+    starts = np.flatnonzero(np.concatenate(([True], s[1:] != s[:-1])))
     target[s[starts]] += np.add.reduceat(values[order], starts, axis=0)
 
 
@@ -117,6 +117,7 @@ class LandmarkSums:
         self._n_open = np.zeros(cap, np.int64)
         # open (landmark, pass) partial sums; slots recycled through a free list
         self._slot: dict[tuple[int, int], int] = {}
+        self._row_slots: dict[int, list[int]] = {}  # row -> its open slots (any order)
         self._free: list[int] = []
         self._o_hi = 0
         ocap = 16
@@ -229,6 +230,7 @@ class LandmarkSums:
                     arr[: old.shape[0]] = old
                     setattr(self, name, arr)
         self._slot[key] = s
+        self._row_slots.setdefault(key[0], []).append(s)
         self._o_row[s], self._o_cluster[s] = key
         self._o_last[s] = self._o_n[s] = 0
         self._o_a6[s] = 0.0
@@ -246,13 +248,33 @@ class LandmarkSums:
         _scatter_add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
         _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
         _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
-        for s in slots.tolist():
-            del self._slot[(int(self._o_row[s]), int(self._o_cluster[s]))]
+        self._release(slots)
+
+    def _release(self, slots: IntArray) -> None:
+        """Forget open slots (their sums already folded or dropped); free them in order."""
+        for s, row, cl in zip(
+            slots.tolist(),
+            self._o_row[slots].tolist(),
+            self._o_cluster[slots].tolist(),
+            strict=True,
+        ):
+            del self._slot[(row, cl)]
+            mine = self._row_slots[row]
+            mine.remove(s)
+            if not mine:
+                del self._row_slots[row]
             self._o_row[s] = -1
             self._free.append(s)
 
     def _open_slots(self) -> IntArray:
         return np.flatnonzero(self._o_row[: self._o_hi] >= 0)
+
+    def _slots_of(self, rows: IntArray) -> IntArray:
+        """Open slots of ``rows``, ascending: ``_open_slots()`` filtered to ``rows``, in
+        O(their open passes) instead of O(all open passes)."""
+        get = self._row_slots.get
+        found = [s for r in np.unique(rows).tolist() for s in get(r, ())]
+        return np.sort(np.array(found, np.int64))
 
     def close_passes(self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None) -> int:
         """Close open passes: all (no arguments), those of ``rows``, those with a cluster id
@@ -268,22 +290,26 @@ class LandmarkSums:
             found = [self._slot.get((int(r), int(c))) for r, c in keys]
             slots = np.array(sorted({s for s in found if s is not None}), np.int64)
         elif rows is not None:
-            slots = slots[np.isin(self._o_row[slots], np.asarray(rows, np.int64))]
+            slots = self._slots_of(np.asarray(rows, np.int64).reshape(-1))
         elif clusters is not None:
             slots = slots[np.isin(self._o_cluster[slots], np.asarray(clusters, np.int64))]
         self._close_slots(slots)
         return int(slots.size)
 
     def _evict(self, rows: IntArray) -> None:
+        """Close the least recently active passes of ``rows`` (unique, ascending) above
+        ``max_open_passes``: per row by (activity stamp, cluster), rows in order, in one
+        vectorised call (the same sums, in the same order, as closing row by row)."""
         over = rows[self._n_open[rows] > self.config.max_open_passes]
         if over.size == 0:
             return
-        slots = self._open_slots()
-        for r in over.tolist():
-            mine = slots[self._o_row[slots] == r]
-            order = np.lexsort((self._o_cluster[mine], self._o_last[mine]))
-            excess = int(self._n_open[r]) - self.config.max_open_passes
-            self._close_slots(mine[order[:excess]])
+        mine = self._slots_of(over)
+        r = self._o_row[mine]
+        order = np.lexsort((self._o_cluster[mine], self._o_last[mine], r))
+        mine, r = mine[order], r[order]
+        first = np.flatnonzero(np.concatenate(([True], r[1:] != r[:-1])))
+        rank = np.arange(r.size) - np.repeat(first, np.diff(np.append(first, r.size)))
+        self._close_slots(mine[rank < self._n_open[r] - self.config.max_open_passes])
 
     # ------------------------------------------------------------------ accumulate
     def accumulate(self, rows: ArrayLike, clusters: ArrayLike, rays: Rays) -> None:
@@ -345,9 +371,8 @@ class LandmarkSums:
         uniq, inv = np.unique(r, return_inverse=True)
         saa, sab, sbb = self._saa[uniq].copy(), self._sab[uniq].copy(), self._sbb[uniq].copy()
         n_cl = self._n_closed[uniq] + self._n_open[uniq]
-        slots = self._open_slots()
+        slots = self._slots_of(uniq)
         if slots.size:
-            slots = slots[np.isin(self._o_row[slots], uniq)]
             pos = np.searchsorted(uniq, self._o_row[slots])
             a6, b = self._o_a6[slots], self._o_b[slots]
             _scatter_add(saa, pos, outer6_to_tri(a6))
@@ -390,13 +415,12 @@ class LandmarkSums:
     def pack_rows(self, rows: ArrayLike) -> list[bytes]:
         """Serialise rows (closed sums, reference, open passes) to self-contained blobs."""
         r = self._check_rows(rows)
-        slots = self._open_slots()
         out = []
         for row in r.tolist():
             rec = np.zeros((), _ROW_DTYPE)
             for f in _ROW_FIELDS:
                 rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
-            mine = slots[self._o_row[slots] == row]
+            mine = np.sort(np.array(self._row_slots.get(row, ()), np.int64))
             mine = mine[np.lexsort((self._o_cluster[mine], self._o_last[mine]))]
             rec["n_open"] = mine.size
             op = np.zeros(mine.size, _OPEN_DTYPE)
@@ -418,12 +442,7 @@ class LandmarkSums:
             r = self._check_rows(rows)
             if r.size != len(blobs):
                 raise ValueError("rows and blobs differ in length")
-            slots = self._open_slots()
-            drop = slots[np.isin(self._o_row[slots], r)]
-            for s in drop.tolist():
-                del self._slot[(int(self._o_row[s]), int(self._o_cluster[s]))]
-                self._o_row[s] = -1
-                self._free.append(s)
+            self._release(self._slots_of(r))
         for row, blob in zip(r.tolist(), blobs, strict=True):
             if not blob or blob[0] != PACK_VERSION:
                 raise ValueError("unknown landmark state version")
