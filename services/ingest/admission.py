@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from schemas import DecodeError, ObservationBatch, Observations, Rejection
 
 MAX_PASS_ID = 2**63 - 1
@@ -38,6 +40,10 @@ class AdmissionPolicy:
     """Clock skew tolerated for capture times ahead of the ingest clock."""
     min_score: float = 0.0
     """Detections below this detector score are refused."""
+    max_per_image: int = 64
+    """Detections of one image beyond this many (in batch order) are refused: a camera
+    frame does not hold hundreds of signs, and the matcher's initiation is quadratic in
+    the rays of one pass (3,000 rays of one image kept it busy 17 s)."""
 
 
 def admit(
@@ -47,7 +53,8 @@ def admit(
     too_old = obs.t < now - policy.max_age_s
     future = obs.t > now + policy.max_future_s
     low = (obs.score < policy.min_score) & ~too_old & ~future
-    bad = too_old | future | low
+    crowded = _beyond_per_image(obs.image, policy.max_per_image) & ~too_old & ~future & ~low
+    bad = too_old | future | low | crowded
     if not bad.any():
         return obs, []
     rejected: list[Rejection] = []
@@ -55,6 +62,25 @@ def admit(
         (too_old, "obs.t", f"older than {policy.max_age_s:g} s"),
         (future, "obs.t", f"more than {policy.max_future_s:g} s in the future"),
         (low, "obs.score", f"below the minimum score {policy.min_score:g}"),
+        (crowded, "obs.image", f"more than {policy.max_per_image} detections in one image"),
     ):
         rejected += [Rejection(int(i), field, reason) for i in obs.obs_id[mask]]
     return obs.take(~bad), rejected
+
+
+def _beyond_per_image(image: np.ndarray, limit: int) -> np.ndarray:
+    """Rows past the first ``limit`` of their image (in order).
+
+    >>> _beyond_per_image(np.array([3, 3, 3, 5, 3]), 2).tolist()
+    [False, False, True, False, True]
+    """
+    image = np.asarray(image)
+    if image.size <= limit:
+        return np.zeros(image.size, bool)
+    order = np.argsort(image, kind="stable")
+    s = image[order]
+    start = np.r_[0, np.flatnonzero(s[1:] != s[:-1]) + 1]
+    rank = np.arange(s.size) - np.repeat(start, np.diff(np.r_[start, s.size]))
+    out = np.zeros(image.size, bool)
+    out[order] = rank >= limit
+    return out
