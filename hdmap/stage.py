@@ -201,6 +201,7 @@ class StageService(Service):
                 self.consumer.record([entry])
                 self.count("entries_failed")
                 self.count("entries_applied")
+                self.reject(f"{entry.stage}.apply_failed")  # in Stats.rejected, by reason
         except StorageError as exc:
             log.error("%s: cannot dead-letter: %s", self.name, exc)
             self.count("storage_errors")
