@@ -209,6 +209,7 @@ class LogConsumer:
         self._delivered = dict(self._committed)
         self._ahead: dict[tuple[str, str], dict[int, LogEntry]] = defaultdict(dict)
         self._pending_commit: dict[tuple[str, str], int] = {}
+        self._seen: dict[tuple[str, str], int] = {}
         self.need_catchup = True
         self.stats = ConsumerStats()
 
@@ -225,6 +226,8 @@ class LogConsumer:
         if not in_region(entry.tile, self.prefixes):
             return []
         k = (entry.producer, entry.tile)
+        if entry.seq > self._seen.get(k, 0):
+            self._seen[k] = entry.seq
         last = self._delivered.get(k, 0)
         if entry.seq <= last:
             self.stats.duplicates += 1
@@ -318,6 +321,11 @@ class LogConsumer:
                 break
         self.need_catchup = any(self._ahead.values())
         return out
+
+    @property
+    def lag(self) -> int:
+        """Entries seen from producers (live or replayed) but not applied yet."""
+        return sum(max(0, s - self._committed.get(k, 0)) for k, s in list(self._seen.items()))
 
     @property
     def offsets(self) -> dict[tuple[str, str], int]:

@@ -107,6 +107,7 @@ def test_fleet_through_the_pipeline_builds_the_town(stack, tmp_path):
     assert stats["solver"]["observations"] == m["linked"]
     assert m["received"] == m["linked"] + m["pending"] + m.get("expired", 0)
     assert all(v >= 1 for v in versions.values() if v > 0)
+    assert all(stats[n]["lag_entries"] == 0 for n in ("matcher", "solver", "publisher"))
 
     # a vehicle that joins late starts from the snapshots and holds the same map
     with open_session(stack.bus) as s:
