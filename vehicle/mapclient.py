@@ -51,6 +51,10 @@ class ClientStats:
     snapshots: int = 0
     subscribed: int = 0
     dropped: int = 0
+    resyncs: int = 0
+    """Every followed tile refetched because a publisher (re)appeared on the bus: after a
+    publisher restart or a reconnection, deltas may have been missed on tiles that do not
+    change again (no later delta would reveal the gap)."""
 
 
 class MapClient:
@@ -74,6 +78,14 @@ class MapClient:
         self.stats = ClientStats()
         self._thread = threading.Thread(target=self._run, name="mapclient", daemon=True)
         self._thread.start()
+
+        def on_alive(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._inbox.put(("resync", "", b""))
+
+        self._alive = session.liveliness().declare_subscriber(
+            keys.alive("publisher", "*", "*"), on_alive
+        )
 
     # -- subscriptions -------------------------------------------------------------------
 
@@ -108,6 +120,7 @@ class MapClient:
         self.stats.dropped += 1
 
     def close(self) -> None:
+        self._alive.undeclare()
         for tile in list(self._subs):
             sub = self._subs.pop(tile)
             sub.undeclare()
@@ -124,10 +137,21 @@ class MapClient:
                     payload.set()
                 elif kind == "fetch":
                     self._fetch(tile)
+                elif kind == "resync":
+                    self._resync()
                 else:
                     self._on_delta(tile, payload)
             except (DecodeError, zenoh.ZError) as exc:
                 log.warning("map client: %s on tile %s: %s", kind, tile, exc)
+
+    def _resync(self) -> None:
+        with self._lock:
+            tiles = sorted(self._tiles)
+            for t in tiles:
+                self._tiles[t].fetching = True  # deltas arriving meanwhile are buffered
+        self.stats.resyncs += 1
+        for t in tiles:
+            self._fetch(t)
 
     def _fetch(self, tile: str) -> None:
         snap = None
