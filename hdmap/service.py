@@ -197,6 +197,8 @@ class Service:
         counters["rss_bytes"] = self._process.memory_info().rss
         counters["rss_peak_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         counters["uptime_s"] = time.time() - self.started_at
+        counters = {k: _wire_number(v) for k, v in counters.items()}
+        rejected = {k: _wire_number(v) for k, v in rejected.items()}
         return Stats(self.name, self.instance, self.region, self.started_at, counters, rejected)
 
     def _answer_stats(self, q: zenoh.Query) -> None:
@@ -254,6 +256,17 @@ class Service:
                 if now >= due:
                     fn(now)
                     self._timers[i] = (period, time.monotonic() + period, fn)
+
+
+def _wire_number(v: float) -> float:
+    """A counter as msgpack can carry it (ints beyond 64 bits become floats).
+
+    >>> _wire_number(2**70) == float(2**70), _wire_number(3)
+    (True, 3)
+    """
+    if isinstance(v, int) and not -(2**63) <= v < 2**64:
+        return float(v)
+    return v
 
 
 def run_until_signalled(service: Service) -> int:

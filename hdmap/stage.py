@@ -213,7 +213,7 @@ class StageService(Service):
     def extra_counters(self) -> dict[str, float]:
         s = self.consumer.stats
         return {
-            "lag_entries": self.consumer.lag,
+            "lag_entries": float(self.consumer.lag),
             "entries_duplicate": s.duplicates,
             "entries_gap": s.gaps,
             "entries_replayed": s.replayed,

@@ -190,6 +190,9 @@ class ConsumerStats:
     catchups: int = 0
 
 
+LAG_CAP = 1_000_000
+
+
 class LogConsumer:
     """Consumer side: in-order, exactly-once delivery of a stage's entries for a region."""
 
@@ -324,8 +327,12 @@ class LogConsumer:
 
     @property
     def lag(self) -> int:
-        """Entries seen from producers (live or replayed) but not applied yet."""
-        return sum(max(0, s - self._committed.get(k, 0)) for k, s in list(self._seen.items()))
+        """Entries seen from producers (live or replayed) but not applied yet (each
+        (producer, tile) counts at most ``LAG_CAP``: a forged entry can claim any seq)."""
+        return sum(
+            min(max(0, s - self._committed.get(k, 0)), LAG_CAP)
+            for k, s in list(self._seen.items())
+        )
 
     @property
     def offsets(self) -> dict[tuple[str, str], int]:
