@@ -330,8 +330,7 @@ class LogConsumer:
         """Entries seen from producers (live or replayed) but not applied yet (each
         (producer, tile) counts at most ``LAG_CAP``: a forged entry can claim any seq)."""
         return sum(
-            min(max(0, s - self._committed.get(k, 0)), LAG_CAP)
-            for k, s in list(self._seen.items())
+            min(max(0, s - self._committed.get(k, 0)), LAG_CAP) for k, s in list(self._seen.items())
         )
 
     @property

@@ -211,8 +211,7 @@ def bin_table(state: EvalState, lm_rows: list[dict], links: dict, bins=BINS) -> 
                     n_unpaired[signs].sum() / max(n_obs[signs].sum(), 1)
                 ),
                 "assoc_unlinked": float(
-                    1.0
-                    - (n_right + n_other + n_unpaired)[signs].sum() / max(n_obs[signs].sum(), 1)
+                    1.0 - (n_right + n_other + n_unpaired)[signs].sum() / max(n_obs[signs].sum(), 1)
                 ),
             }
         )
