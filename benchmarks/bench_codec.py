@@ -24,14 +24,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import sys
 import time
 import timeit
 from collections.abc import Callable
-from importlib import metadata
 from pathlib import Path
 
 import msgpack
@@ -39,6 +36,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.common import machine
 from hdmap.signs import CATALOG
 from schemas import Landmarks, MapDelta, MapSnapshot, ObservationBatch, Observations, Removals
 
@@ -101,31 +99,6 @@ def landmark_dicts(lm: Landmarks) -> list[dict]:
     """The same landmarks as one msgpack-native dict per row (the naive encoding)."""
     cols = {name: getattr(lm, name).tolist() for name, _ in Landmarks.CODEC.cols}
     return [{k: v[i] for k, v in cols.items()} for i in range(len(lm))]
-
-
-def machine() -> dict[str, str | int]:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        zenoh_version = metadata.version("eclipse-zenoh")
-    except metadata.PackageNotFoundError:
-        zenoh_version = "missing"
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count() or 0,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "msgpack": ".".join(map(str, msgpack.version)),
-        "zenoh": zenoh_version,
-        "platform": platform.platform(),
-        "loadavg_at_start": ", ".join(f"{x:.2f}" for x in os.getloadavg()),
-    }
 
 
 def measure(fn: Callable[[], object], repeat: int, quick: bool = False) -> tuple[float, int]:

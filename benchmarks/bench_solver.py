@@ -37,15 +37,11 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
-import os
-import platform
 import statistics
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -53,55 +49,11 @@ from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.common import machine, machine_line, write_json
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.model import SYM_I, SYM_J, ray_angles, sym_to_mat
 
 # ---------------------------------------------------------------------------- shared helpers
-
-
-def machine() -> dict[str, str | int]:
-    """CPU model, cores and library versions (every benchmark's JSON carries it)."""
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    versions = {}
-    for dist in ("numpy", "scipy", "eclipse-zenoh", "msgpack"):
-        try:
-            versions[dist.removeprefix("eclipse-")] = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            versions[dist.removeprefix("eclipse-")] = "missing"
-    try:
-        load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    except OSError:
-        load = "unknown"
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count() or 0,
-        "python": platform.python_version(),
-        **versions,
-        "platform": platform.platform(),
-        "loadavg_at_start": load,
-    }
-
-
-def machine_line(m: dict) -> str:
-    return (
-        f"machine: {m['cpu']}, {m['cores']} cores; Python {m['python']}, numpy {m['numpy']}, "
-        f"scipy {m['scipy']}, zenoh {m['zenoh']}; load average at start {m['loadavg_at_start']}"
-    )
-
-
-def write_json(path: Path | None, report: dict) -> None:
-    if path is None:
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {path}", flush=True)
 
 
 def timed(fn: Callable[[], object], repeat: int) -> tuple[float, list[float], object]:

@@ -28,29 +28,11 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from benchmarks.common import machine
 from hdmap.bus import BusConfig, Publishers, open_session
 from hdmap.stack import Stack
 from schemas import ObservationBatch
 from tests.conftest import make_observations
-
-
-def machine() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import os
-
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "python": sys.version.split()[0],
-        "zenoh": "1.10.2",
-    }
 
 
 def serve(endpoint: str) -> None:

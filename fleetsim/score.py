@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetsim.truth import match_landmarks
+from fleetsim.truth import LandmarkMatch, match_landmarks
 from fleetsim.world import World
 from schemas import Landmarks
 
@@ -57,6 +57,37 @@ def cov_en(cov6: NDArray) -> NDArray:
     return np.stack([np.stack([c[:, 0], c[:, 1]], -1), np.stack([c[:, 1], c[:, 3]], -1)], -2)
 
 
+def inside_ellipse95(err_en: NDArray, cov6: NDArray) -> NDArray[np.bool_]:
+    """Whether each East/North error lies inside the 2D chi-square 95% ellipse of its
+    covariance ((n, 6) ENU as on the wire).
+
+    >>> inside_ellipse95(np.array([[1.0, 0.0], [3.0, 0.0]]), np.array([[1.0, 0, 0, 1, 0, 1]] * 2))
+    array([ True, False])
+    """
+    c = cov_en(cov6)
+    e = np.asarray(err_en, float).reshape(-1, 2)
+    m2 = np.einsum("ki,kij,kj->k", e, np.linalg.inv(c + 1e-12 * np.eye(2)), e)
+    return m2 <= CHI2_95_2D
+
+
+def duplicate_mask(
+    world: World, lm: Landmarks, m: LandmarkMatch, max_dist_m: float
+) -> NDArray[np.bool_]:
+    """Per landmark: unpaired, yet within ``max_dist_m`` of a paired true sign of its class
+    (a second copy of a sign)."""
+    dup = np.zeros(len(lm), bool)
+    if not m.spurious.size:
+        return dup
+    signs = world.signs
+    taken = np.zeros(len(signs), bool)
+    taken[m.sign_row] = True
+    est = world.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)[m.spurious, :2]
+    d = np.linalg.norm(est[:, None, :] - signs.position[None, :, :2], axis=-1)
+    same = lm.sign_class[m.spurious][:, None] == signs.sign_class[None, :]
+    dup[m.spurious] = (same & taken[None, :] & (d <= max_dist_m)).any(axis=1)
+    return dup
+
+
 def score(
     world: World,
     lm: Landmarks,
@@ -70,21 +101,13 @@ def score(
     m = match_landmarks(world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=max_dist_m)
     paired_true = np.zeros(n_true, bool)
     paired_true[m.sign_row] = True
-    dup = 0
-    if m.spurious.size:
-        est = world.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)[:, :2]
-        for e in m.spurious:
-            d = np.linalg.norm(signs.position[:, :2] - est[e], axis=1)
-            near = (d <= max_dist_m) & (signs.sign_class == int(lm.sign_class[e])) & paired_true
-            dup += int(near.any())
+    dup = int(duplicate_mask(world, lm, m, max_dist_m).sum())
     err_en = m.error_enu[:, :2]
     err_h = m.horizontal_error_m
     if err_h.size:
         c = cov_en(lm.cov)[m.landmark]
-        inv = np.linalg.inv(c + 1e-12 * np.eye(2))
-        m2 = np.einsum("ki,kij,kj->k", err_en, inv, err_en)
         sig = np.sqrt(np.stack([c[:, 0, 0], c[:, 1, 1]], -1))
-        cov95 = float(np.mean(m2 <= CHI2_95_2D))
+        cov95 = float(np.mean(inside_ellipse95(err_en, lm.cov[m.landmark])))
         cov_band = float(np.mean(np.all(np.abs(err_en) <= 2 * sig, axis=1)))
         mean_err, p95 = float(err_h.mean()), float(np.percentile(err_h, 95))
     else:

@@ -54,6 +54,10 @@ class StageService(Service):
         )
         self._log_server: LogServer | None = None
         self._outbox: list[LogEntry] = []
+        self.db.execute(
+            "CREATE TABLE IF NOT EXISTS dead_letters "
+            "(at REAL NOT NULL, stage TEXT NOT NULL, body BLOB NOT NULL)"
+        )
 
     # -- hooks for subclasses ----------------------------------------------------------------
 
@@ -190,10 +194,6 @@ class StageService(Service):
         """Keep a failing entry for inspection and mark it consumed (counted, not applied)."""
         try:
             with self.transaction([self.consumer]):
-                self.db.execute(
-                    "CREATE TABLE IF NOT EXISTS dead_letters "
-                    "(at REAL NOT NULL, stage TEXT NOT NULL, body BLOB NOT NULL)"
-                )
                 self.db.execute(
                     "INSERT INTO dead_letters(at, stage, body) VALUES (?, ?, ?)",
                     (time.time(), entry.stage, entry.to_bytes()),

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from fleetsim.world import straight_road
-from hdmap.evaluation.fleet_eval import EvalState, SignRecord, bin_table, targets
+from hdmap.evaluation.fleet_eval import EvalState, ObsKeys, SignRecord, bin_table, targets
 
 pytestmark = pytest.mark.integration
 
@@ -93,8 +93,9 @@ def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():
             np.array([7], np.uint64),
         ),
     ]
-    state = EvalState(world, records=rec, obs_truth={("v", 1): 0, ("v", 2): 0, ("v", 3): -1})
-    links = {("v", 1): 7, ("v", 2): 8, ("v", 3): 7}
+    truth = [ObsKeys("v", np.array([1, 2, 3]), np.array([0, 0, -1]))]  # obs 3: false positive
+    state = EvalState(world, records=rec, truth=truth)
+    links = [ObsKeys("v", np.array([1, 2, 3]), np.array([7, 8, 7]))]
     lm_rows = [{"lo": lo, "n": 1, "paired": 1, "dup": 0} for lo in (1, 2)]
     table = bin_table(state, lm_rows, links, bins=(1, 2))
     assert [r["passes_lo"] for r in table] == [1, 2]

@@ -80,6 +80,9 @@ _ROW_DTYPE = np.dtype(
 _OPEN_DTYPE = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )
+_ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
+_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open")
+"""The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
 _ROW_FIELDS = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
 
 
@@ -136,20 +139,7 @@ class LandmarkSums:
     def bytes_per_landmark(self) -> int:
         """In-memory closed state per landmark, bytes (each open pass adds
         ``open_pass_bytes``)."""
-        names = (
-            "_anchor",
-            "_x_ref",
-            "_a6",
-            "_j6",
-            "_b",
-            "_saa",
-            "_sab",
-            "_sbb",
-            "_n_obs",
-            "_n_closed",
-            "_n_open",
-        )
-        return int(sum(getattr(self, n)[0].nbytes for n in names))
+        return int(sum(getattr(self, n)[0].nbytes for n in _ROW_ARRAYS))
 
     @property
     def open_pass_bytes(self) -> int:
@@ -180,19 +170,7 @@ class LandmarkSums:
         new = cap
         while new < need:
             new *= 2
-        for name in (
-            "_anchor",
-            "_x_ref",
-            "_a6",
-            "_j6",
-            "_b",
-            "_saa",
-            "_sab",
-            "_sbb",
-            "_n_obs",
-            "_n_closed",
-            "_n_open",
-        ):
+        for name in _ROW_ARRAYS:
             old = getattr(self, name)
             arr = np.zeros((new, *old.shape[1:]), old.dtype)
             arr[:cap] = old

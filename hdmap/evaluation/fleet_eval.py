@@ -38,7 +38,7 @@ from fleetsim.fleet import Fleet, FleetConfig
 from fleetsim.noise import FLEET
 from fleetsim.osm_town import helsinki_town, same_class_pairs
 from fleetsim.pipeline import FleetDriver, model_for
-from fleetsim.score import CHI2_95_2D, cov_en
+from fleetsim.score import duplicate_mask, inside_ellipse95
 from fleetsim.town_run import follow_town
 from fleetsim.truth import match_landmarks
 from fleetsim.world import World, tile_border_distance
@@ -93,8 +93,47 @@ class EvalState:
     world: World
     records: list[SignRecord] = field(default_factory=list)
     rounds: list[dict] = field(default_factory=list)
-    obs_truth: dict[tuple[str, int], int] = field(default_factory=dict)
-    """(vehicle, obs id) -> true sign row (-1: false positive)."""
+    truth: list[ObsKeys] = field(default_factory=list)
+    """Per pass: its observations' keys and, in ``value``, their true sign row (-1: false
+    positive)."""
+
+
+@dataclass(frozen=True)
+class ObsKeys:
+    """Observations of one vehicle by id, each with a value (a sign row, a landmark id)."""
+
+    vehicle: str
+    obs_id: np.ndarray
+    value: np.ndarray
+
+
+def lookup(keys: list[ObsKeys], table: list[ObsKeys], missing: int = 0) -> np.ndarray:
+    """For every observation of ``keys`` (concatenated in order), its value in ``table``
+    (``missing`` where the table has none).
+
+    >>> a = [ObsKeys("v", np.array([1, 2, 3]), np.array([-1, -1, -1]))]
+    >>> t = [ObsKeys("v", np.array([3, 1]), np.array([30, 10]))]
+    >>> t.append(ObsKeys("w", np.array([2]), np.array([9])))
+    >>> lookup(a, t).tolist()
+    [10, 0, 30]
+    """
+    by_vehicle: dict[str, list[ObsKeys]] = {}
+    for t in table:
+        by_vehicle.setdefault(t.vehicle, []).append(t)
+    out = []
+    for k in keys:
+        got = np.full(k.obs_id.size, missing, np.int64)
+        parts = by_vehicle.get(k.vehicle, [])
+        if parts:
+            ids = np.concatenate([t.obs_id for t in parts])
+            vals = np.concatenate([t.value for t in parts])
+            order = np.argsort(ids, kind="stable")
+            ids, vals = ids[order], vals[order]
+            j = np.clip(np.searchsorted(ids, k.obs_id), 0, ids.size - 1)
+            hit = ids[j] == k.obs_id
+            got[hit] = vals[j[hit]]
+        out.append(got)
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
 def evaluation_world(cfg: FleetEvalConfig) -> World:
@@ -113,10 +152,7 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
     found[m.sign_row] = True
     err[m.sign_row] = m.horizontal_error_m
     if m.landmark.size:
-        c = cov_en(lm.cov[m.landmark])
-        e = m.error_enu[:, :2]
-        d2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(c), e)
-        inside[m.sign_row] = d2 <= CHI2_95_2D
+        inside[m.sign_row] = inside_ellipse95(m.error_enu[:, :2], lm.cov[m.landmark])
         landmark[m.sign_row] = lm.id[m.landmark]
     return SignRecord(n.copy(), found, err, inside, landmark)
 
@@ -128,54 +164,41 @@ def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) 
     paired = np.zeros(len(lm), bool)
     paired[m.landmark] = True
     key[m.landmark] = n[m.sign_row]
-    dup = np.zeros(len(lm), bool)
-    if m.spurious.size:
-        est = world.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)[:, :2]
-        taken = np.zeros(len(world.signs), bool)
-        taken[m.sign_row] = True
-        for e in m.spurious:
-            d = np.linalg.norm(world.signs.position[:, :2] - est[e], axis=1)
-            same = world.signs.sign_class == int(lm.sign_class[e])
-            dup[e] = bool((same & taken & (d <= match_m)).any())
-    return {"key": key, "paired": paired, "dup": dup}
+    return {"key": key, "paired": paired, "dup": duplicate_mask(world, lm, m, match_m)}
 
 
-def replay_links(session) -> dict[tuple[str, int], int]:
-    """(vehicle, obs id) -> landmark id, from the matcher's association log."""
+def replay_links(session) -> list[ObsKeys]:
+    """Landmark id of every linked observation, from the matcher's association log."""
     consumer = LogConsumer(sqlite3.connect(":memory:"), "assoc", [""])
-    out: dict[tuple[str, int], int] = {}
+    out: list[ObsKeys] = []
     for e in consumer.catch_up(session, timeout=30.0):
         g = AssocGroup.from_bytes(e.body)
-        for k in range(len(g.links)):
-            vid = g.vehicles[int(g.links.vehicle[k])]
-            out[(vid, int(g.obs.obs_id[k]))] = int(g.links.landmark_id[k])
+        for vi, vid in enumerate(g.vehicles):
+            mine = g.links.vehicle == vi
+            lid = g.links.landmark_id[mine].astype(np.int64)  # ids < 2^63 (tile << 24)
+            out.append(ObsKeys(vid, g.obs.obs_id[mine], lid))
     return out
 
 
-def bin_table(state: EvalState, lm_rows: list[dict], links: dict, bins=BINS) -> list[dict]:
+def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=BINS) -> list[dict]:
     """One row per pass-count bin (see the module doc)."""
     edges = [*bins, np.inf]
     final = state.records[-1]
-    sign_lm = final.landmark
-    # association correctness per sign (final pairing)
-    n_obs = np.zeros(len(final.n), np.int64)
-    n_right = np.zeros(len(final.n), np.int64)
-    n_other = np.zeros(len(final.n), np.int64)
-    n_unpaired = np.zeros(len(final.n), np.int64)
-    paired_lms = {int(v) for v in sign_lm if v}
-    for key, row in state.obs_truth.items():
-        if row < 0:
-            continue
-        n_obs[row] += 1
-        got = links.get(key)
-        if got is None:
-            continue
-        if sign_lm[row] and got == int(sign_lm[row]):
-            n_right[row] += 1
-        elif got in paired_lms:
-            n_other[row] += 1
-        else:
-            n_unpaired[row] += 1
+    sign_lm = final.landmark.astype(np.int64)
+    # association correctness per sign (final pairing); landmark id 0 = not linked
+    row = np.concatenate([t.value for t in state.truth]) if state.truth else np.zeros(0, int)
+    got = lookup(state.truth, links)
+    real = row >= 0
+    row, got = row[real], got[real]
+    linked = got != 0
+    right = linked & (sign_lm[row] != 0) & (got == sign_lm[row])
+    other = linked & ~right & np.isin(got, sign_lm[sign_lm != 0])
+    unpaired = linked & ~right & ~other
+    k = len(final.n)
+    n_obs = np.bincount(row, minlength=k)
+    n_right = np.bincount(row[right], minlength=k)
+    n_other = np.bincount(row[other], minlength=k)
+    n_unpaired = np.bincount(row[unpaired], minlength=k)
     rows = []
     for lo, hi in itertools.pairwise(edges):
         last: dict[int, tuple[SignRecord, int]] = {}
@@ -218,17 +241,14 @@ def bin_table(state: EvalState, lm_rows: list[dict], links: dict, bins=BINS) -> 
     return rows
 
 
-def landmark_rows(state: EvalState, lms: list[Landmarks], bins=BINS) -> list[dict]:
+def landmark_rows(state: EvalState, lms: list[Landmarks], match_m: float, bins=BINS) -> list[dict]:
     """Landmark precision/duplicates per bin, each landmark once per bin (last state)."""
-    edges = [*bins, np.inf]
     per_bin: dict[float, dict[int, tuple[bool, bool]]] = {lo: {} for lo in bins}
     for rec, lm in zip(state.records, lms, strict=True):
-        c = landmark_counts(state.world, lm, rec.n, 5.0)
-        for j in range(len(lm)):
-            k = int(c["key"][j])
-            for lo, hi in itertools.pairwise(edges):
-                if lo <= k < hi:
-                    per_bin[lo][int(lm.id[j])] = (bool(c["paired"][j]), bool(c["dup"][j]))
+        c = landmark_counts(state.world, lm, rec.n, match_m)
+        b = np.searchsorted(bins, c["key"], side="right") - 1  # bin of each landmark
+        for j in np.flatnonzero(b >= 0):
+            per_bin[bins[b[j]]][int(lm.id[j])] = (bool(c["paired"][j]), bool(c["dup"][j]))
     out = []
     for lo in bins:
         v = list(per_bin[lo].values())
@@ -312,9 +332,9 @@ def run_fleet_eval(
             finally:
                 client.close()
                 driver.close()
-    table = bin_table(state, landmark_rows(state, lms), links)
-    n_links = len(links)
-    n_true_obs = sum(1 for v in state.obs_truth.values() if v >= 0)
+    table = bin_table(state, landmark_rows(state, lms, cfg.match_m), links)
+    n_links = sum(t.obs_id.size for t in links)
+    n_true_obs = sum(int((t.value >= 0).sum()) for t in state.truth)
     pairs = same_class_pairs(world)
     border = tile_border_distance(world, world.signs.position[:, :2])
     result = {
@@ -348,15 +368,11 @@ def run_fleet_eval(
 
 
 def _remember(state: EvalState, driver: FleetDriver, p) -> None:
-    """Truth of the observations the agent just queued: (vehicle, obs id) -> sign row."""
-    agent = driver.agent(p.vehicle_id)
+    """Truth of the observations the agent just queued: their ids and true sign rows."""
     n = len(p.truth.sign_id)
-    last = agent.uploader.last_obs_id
-    ids = np.arange(last - n + 1, last + 1)
-    rows = state.world.signs.index_of(p.truth.sign_id)
-    rows = np.where(p.truth.sign_id >= 0, rows, -1)
-    for i, r in zip(ids.tolist(), rows.tolist(), strict=True):
-        state.obs_truth[(p.vehicle_id, int(i))] = int(r)
+    last = driver.agent(p.vehicle_id).uploader.last_obs_id
+    rows = np.where(p.truth.sign_id >= 0, state.world.signs.index_of(p.truth.sign_id), -1)
+    state.truth.append(ObsKeys(p.vehicle_id, np.arange(last - n + 1, last + 1), rows))
 
 
 def targets(table: list[dict]) -> dict:

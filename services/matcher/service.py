@@ -125,6 +125,17 @@ class MatcherService(StageService):
     def _reload(self) -> None:
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
+        self._flagged: dict[str, tuple[float, float]] = {}
+        for v, t in self.state.trust.items():
+            self._note_trust(v, t)
+
+    def _note_trust(self, vehicle: str, t) -> None:
+        """Keep (weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
+        w, c = t.weight(self.config.trust), t.chi2()
+        if w < 1.0 or c > self.config.trust.chi2_gate:
+            self._flagged[vehicle] = (w, c)
+        else:
+            self._flagged.pop(vehicle, None)
 
     def on_commit(self) -> None:
         pass
@@ -178,6 +189,7 @@ class MatcherService(StageService):
             if n_hit >= self.config.gate.min_offset_rays:
                 raw = res.offset[:2] + applied  # the vehicle's own offset, before correction
                 trust.add_offset(raw, res.offset_cov, self.config.trust.bias_sigma_m)
+            self._note_trust(g.vehicle_id, trust)
         hit = matched >= 0
         self.count("received", len(rays))
         self.count("associated", int(hit.sum()))
@@ -236,18 +248,16 @@ class MatcherService(StageService):
         if classes.size == 0:
             return set()
         frame = self.frames(tile)
-        pools = [(t, self.state.pending[t]) for t in area if t in self.state.pending]
-        parts, where = [], []
         key = pass_key(vehicle, pass_id)
-        for t, p in pools:
-            mine = p.key == key
-            if mine.any():
-                parts.append(p.obs.take(mine))
-                where += [(t, int(i)) for i in np.flatnonzero(mine)]
-        if not parts:
+        where: list[tuple[str, np.ndarray]] = []  # (tile, rows of its pending pool)
+        for t in area:
+            p = self.state.pending.get(t)
+            if p is not None and (mine := np.flatnonzero(p.key == key)).size:
+                where.append((t, mine))
+        if not where:
             return set()
-        obs = Observations.concat(parts)
-        received = max(self.state.pending[t].received_at[i] for t, i in where)
+        obs = Observations.concat([self.state.pending[t].obs.take(i) for t, i in where])
+        received = max(float(self.state.pending[t].received_at[i].max()) for t, i in where)
         rays = to_local(frame, obs)
         created: set[int] = set()
         used = np.zeros(len(rays), bool)
@@ -297,14 +307,16 @@ class MatcherService(StageService):
             if cand.size == 0:
                 continue
             local = to_local(frame, p.obs.take(cand))
-            groups: dict[tuple[str, int], list[int]] = defaultdict(list)
-            pids = p.pass_id[cand].tolist()
-            for j, i in enumerate(cand.tolist()):
-                groups[(p.vehicle[i], pids[j])].append(j)
+            # one unit per (vehicle, pass), in (vehicle, pass) order
+            _u, first, inv = np.unique(p.key[cand], return_index=True, return_inverse=True)
+            members = np.split(np.argsort(inv, kind="stable"), np.cumsum(np.bincount(inv))[:-1])
+            units = sorted(
+                (p.vehicle[cand[f]], int(p.pass_id[cand[f]]), js)
+                for f, js in zip(first.tolist(), members, strict=True)
+            )
             take = np.zeros(len(p), bool)
             links: list[tuple[np.ndarray, np.ndarray, str, int, float]] = []
-            for (v, pid), idx in sorted(groups.items()):
-                js = np.array(idx)
+            for v, pid, js in units:
                 sel = cand[js]
                 res = associate(local.take(js), x, cov, cls, self.config.gate)
                 hit = res.landmark >= 0
@@ -317,15 +329,16 @@ class MatcherService(StageService):
                 self.count("adopted", len(sel))
             self.state.drop_pending(t, take)
 
-    def _drop_used(self, where: list[tuple[str, int]], used: np.ndarray) -> None:
-        by_tile: dict[str, list[int]] = defaultdict(list)
-        for (t, i), u in zip(where, used, strict=True):
-            if u:
-                by_tile[t].append(i)
-        for t, idx in by_tile.items():
-            mask = np.zeros(len(self.state.pending[t]), bool)
-            mask[idx] = True
-            self.state.drop_pending(t, mask)
+    def _drop_used(self, where: list[tuple[str, np.ndarray]], used: np.ndarray) -> None:
+        """Remove from each tile's pool the rows ``used`` marks (``used`` follows ``where``)."""
+        start = 0
+        for t, rows in where:
+            u = used[start : start + rows.size]
+            start += rows.size
+            if u.any():
+                mask = np.zeros(len(self.state.pending[t]), bool)
+                mask[rows[u]] = True
+                self.state.drop_pending(t, mask)
 
     def _refresh(self, ids: list[int]) -> None:
         """Re-solve touched landmarks' gating estimates (vectorised over them)."""
@@ -400,14 +413,12 @@ class MatcherService(StageService):
             "landmarks": len(self.state.landmarks),
             "pending": self.state.pending_count(),
         }
-        low = sorted(
-            (w, v) for v, t in self.state.trust.items() if (w := t.weight(self.config.trust)) < 1.0
-        )
+        low = sorted((w, v) for v, (w, _c) in self._flagged.items() if w < 1.0)
         self._counts["vehicles_downweighted"] = len(low)
         for w, v in low[:20]:  # the 20 least trusted, by name
             self._counts[f"weight.{v}"] = round(w, 6)
         gate = self.config.trust.chi2_gate
-        odd = sorted(((c, v) for v, t in self.state.trust.items() if (c := t.chi2()) > gate))
+        odd = sorted((c, v) for v, (_w, c) in self._flagged.items() if c > gate)
         for c, v in odd[-5:]:  # the 5 most consistent offsets (whether or not trust is on)
             self._counts[f"offset_chi2.{v}"] = round(c, 2)
 
