@@ -49,12 +49,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hdmap.estimator.model import (
+    SYM_BASIS,
+    TRI6_I,
+    TRI6_J,
     EstimatorConfig,
     Rays,
+    apply_matrix,
     mat_to_sym,
     outer6_to_tri,
     predicted_information,
     ray_terms,
+    sym_to_mat,
+    tri_to_mat6,
 )
 from hdmap.estimator.solve import Solution, solve_sums
 
@@ -388,6 +394,74 @@ class LandmarkSums:
         if uniq.size == r.size and np.array_equal(uniq, r):
             return out
         return Solution(**{k: v[inv] for k, v in out.__dict__.items()})
+
+    # ------------------------------------------------------------------ merge
+    def merge_rows(
+        self,
+        dst: int,
+        src: int,
+        rotation: ArrayLike | None = None,
+        translation: ArrayLike | None = None,
+    ) -> None:
+        """Fold row ``src`` into row ``dst`` (two landmarks found to be one); ``src`` is
+        left empty.
+
+        ``rotation`` R and ``translation`` t map ``src``'s frame to ``dst``'s (``x_dst = R
+        x_src + t``; default: the same frame). Every ray term moves exactly: ``A_j -> R A_j
+        R^T`` (a linear map T of the 6-vector) and, with ``d = R anchor_src + t -
+        anchor_dst``, ``b_j -> R b_j + A'_j d = R b_j + L(d) alpha'_j``, so per pass
+        ``alpha' = T alpha``, ``b' = R b + L alpha'`` and the sandwich sums follow:
+
+            S_AA' = T S_AA T^T,   S_Ab' = T S_Ab R^T + S_AA' L^T,
+            S_bb' = R S_bb R^T + R S_Ab^T T^T L^T + L T S_Ab R^T + L S_AA' L^T.
+
+        An open pass of ``src`` joins ``dst``'s open pass of the same cluster (one pass
+        that saw "both" landmarks is one cluster again) or becomes a new open pass. The
+        rays keep the weights they got from their own row's reference; with the same
+        reference and a rotation about the vertical (the compensation is defined in az/el
+        about the local up), the result equals one row fed every ray.
+        """
+        if dst == src:
+            raise ValueError("cannot merge a row into itself")
+        d_row, s_row = self._check_rows([dst, src]).tolist()
+        r = np.eye(3) if rotation is None else np.asarray(rotation, float).reshape(3, 3)
+        t = np.zeros(3) if translation is None else np.asarray(translation, float).reshape(3)
+        t6 = np.stack([mat_to_sym(r @ SYM_BASIS[k] @ r.T) for k in range(6)], axis=1)
+        lm = apply_matrix(r @ self._anchor[s_row] + t - self._anchor[d_row])
+
+        def move(a6: Array, b: Array) -> tuple[Array, Array]:
+            a6n = a6 @ t6.T
+            return a6n, b @ r.T + a6n @ lm.T
+
+        a6, b = move(self._a6[s_row], self._b[s_row])
+        self._a6[d_row] += a6
+        self._b[d_row] += b
+        self._j6[d_row] += self._j6[s_row] @ t6.T
+        saa = t6 @ tri_to_mat6(self._saa[s_row]) @ t6.T
+        sab = self._sab[s_row]
+        t_sab_r = t6 @ sab @ r.T
+        self._saa[d_row] += saa[TRI6_I, TRI6_J]
+        self._sab[d_row] += t_sab_r + saa @ lm.T
+        cross = lm @ t_sab_r
+        sbb = r @ sym_to_mat(self._sbb[s_row]) @ r.T + cross + cross.T + lm @ saa @ lm.T
+        self._sbb[d_row] += mat_to_sym(sbb)
+        self._n_obs[d_row] += self._n_obs[s_row]
+        self._n_closed[d_row] += self._n_closed[s_row]
+        mine = np.sort(np.array(self._row_slots.get(s_row, ()), np.int64))
+        for sl in mine.tolist():
+            a6o, bo = move(self._o_a6[sl], self._o_b[sl])
+            key = (d_row, int(self._o_cluster[sl]))
+            to = self._slot.get(key)
+            if to is None:
+                to = self._alloc_slot(key)
+            self._o_a6[to] += a6o
+            self._o_b[to] += bo
+            self._o_n[to] += self._o_n[sl]
+            self._o_last[to] = max(self._o_last[to], self._o_last[sl])
+        self._release(mine)
+        for name in _ROW_ARRAYS:
+            getattr(self, name)[s_row] = 0
+        self._evict(np.array([d_row], np.int64))
 
     # ------------------------------------------------------------------ persistence
     def pack_rows(self, rows: ArrayLike) -> list[bytes]:
