@@ -167,6 +167,22 @@ class TileFrames:
         return f
 
 
+def frame_map(src: EnuFrame, dst: EnuFrame) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(R, t)`` with ``x_dst = R x_src + t`` between two ENU frames (both affine maps
+    of ECEF); ``(None, None)`` for the same frame.
+
+    >>> f = TileFrames()
+    >>> r, t = frame_map(f("1202"), f("1203"))
+    >>> bool(np.allclose(r @ r.T, np.eye(3))), frame_map(f("12"), f("12"))
+    (True, (None, None))
+    """
+    if src is dst:
+        return None, None
+    o = dst.from_ecef(src.to_ecef(np.zeros((1, 3))))[0]
+    basis = dst.from_ecef(src.to_ecef(np.eye(3))) - o
+    return basis.T, o
+
+
 def region_label(prefixes: Iterable[str]) -> str:
     """A key-expression-safe chunk naming a region ('all' for everywhere).
 

@@ -463,11 +463,17 @@ class AssocGroup(Message):
     obs: Observations
     created: NewLandmarks
     retired: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64))
+    """Landmarks that end here, after this entry's links (their rays stay in the map)."""
+    merged_into: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64))
+    """Per retired landmark, the landmark that takes over its rays (``retired[i]`` was the
+    same sign as ``merged_into[i]``); may be shorter than ``retired`` (the rest end
+    without a successor). Optional on the wire (absent = empty)."""
 
     def _encode(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "vehicles": list(self.vehicles),
             "retired": _ids(self.retired).tobytes(),
+            "merged_into": _ids(self.merged_into).tobytes(),
         }
         _put_table(out, "links", self.links)
         _put_table(out, "obs", self.obs)
@@ -487,12 +493,21 @@ class AssocGroup(Message):
             raise DecodeError("links", f"{len(links)} rows but obs has {len(obs)}")
         if len(links) and int(links.vehicle.max()) >= len(vehicles):
             raise DecodeError("links.vehicle", "index outside vehicles")
+        retired = _get_ids(m, "retired", MAX_TABLE_ROWS)
+        merged = np.zeros(0, np.uint64)
+        if "merged_into" in m:
+            merged = _get_ids(m, "merged_into", MAX_TABLE_ROWS)
+        if merged.size > retired.size:
+            raise DecodeError("merged_into", f"{merged.size} ids for {retired.size} retired")
+        if np.any(merged == retired[: merged.size]):
+            raise DecodeError("merged_into", "a landmark merged into itself")
         return cls(
             vehicles=vehicles,
             links=links,
             obs=obs,
             created=_table(m, "created", NewLandmarks, MAX_TABLE_ROWS),
-            retired=_get_ids(m, "retired", MAX_TABLE_ROWS),
+            retired=retired,
+            merged_into=merged,
         )
 
 

@@ -177,7 +177,7 @@ RELATED: dict[tuple[str, str], tuple[str, ...]] = {
     ("assoc_group", "links"): ("links",),
     ("assoc_group", "obs"): ("links",),
 }
-OPTIONAL = {("upload_ack", "error")}
+OPTIONAL = {("upload_ack", "error"), ("assoc_group", "merged_into")}
 
 
 def always_invalid(value: Any, mtype: str, key: str) -> bool:

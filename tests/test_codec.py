@@ -381,7 +381,7 @@ def test_float_header_fields(name: str, field: str) -> None:
 
 
 def _optional(name: str, key: str) -> bool:
-    return (name, key) in {("UploadAck", "error")}
+    return (name, key) in {("UploadAck", "error"), ("AssocGroup", "merged_into")}
 
 
 def _missing_cases() -> list:
@@ -643,6 +643,17 @@ def test_assoc_group_consistency() -> None:
     expect(AssocGroup, enc(d), "links")
     for bad in (b"\x00" * 7, [1, 2], None):
         expect(AssocGroup, with_(msg, retired=bad), "retired")
+        expect(AssocGroup, with_(msg, merged_into=bad), "merged_into")
+    ids = np.array([5, 6], "<u8")
+    merged = with_(msg, retired=ids.tobytes(), merged_into=ids[::-1].tobytes())
+    assert AssocGroup.from_bytes(merged).merged_into.tolist() == [6, 5]
+    expect(
+        AssocGroup, with_(msg, retired=ids[:1].tobytes(), merged_into=ids.tobytes()), "merged_into"
+    )
+    expect(AssocGroup, with_(msg, retired=ids.tobytes(), merged_into=ids.tobytes()), "merged_into")
+    d = raw(msg)
+    del d["merged_into"]  # written before the field existed
+    assert AssocGroup.from_bytes(enc(d)).merged_into.size == 0
 
 
 def test_map_delta_versions() -> None:

@@ -155,6 +155,15 @@ class LandmarkSums:
     def n_open_passes(self) -> int:
         return len(self._slot)
 
+    def n_obs(self, rows: ArrayLike) -> IntArray:
+        """Rays summed into each row."""
+        return self._n_obs[np.asarray(rows, np.int64)].copy()
+
+    def n_passes(self, rows: ArrayLike) -> IntArray:
+        """Passes (clusters, closed and open) summed into each row."""
+        r = np.asarray(rows, np.int64)
+        return self._n_closed[r] + self._n_open[r]
+
     def anchor(self, rows: ArrayLike) -> Array:
         return self._anchor[np.asarray(rows, np.int64)].copy()
 

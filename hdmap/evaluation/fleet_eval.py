@@ -168,15 +168,35 @@ def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) 
 
 
 def replay_links(session) -> list[ObsKeys]:
-    """Landmark id of every linked observation, from the matcher's association log."""
+    """Landmark id of every linked observation, from the matcher's association log; an
+    observation of a landmark that was later merged into another counts for the one that
+    holds it now."""
     consumer = LogConsumer(sqlite3.connect(":memory:"), "assoc", [""])
     out: list[ObsKeys] = []
+    successor: dict[int, int] = {}
     for e in consumer.catch_up(session, timeout=30.0):
         g = AssocGroup.from_bytes(e.body)
         for vi, vid in enumerate(g.vehicles):
             mine = g.links.vehicle == vi
             lid = g.links.landmark_id[mine].astype(np.int64)  # ids < 2^63 (tile << 24)
             out.append(ObsKeys(vid, g.obs.obs_id[mine], lid))
+        n = g.merged_into.size
+        successor.update(zip(g.retired[:n].tolist(), g.merged_into.tolist(), strict=True))
+    if not successor:
+        return out
+    final = {}
+    for lid in successor:  # follow chains a -> b -> c
+        k, seen = lid, set()
+        while k in successor and k not in seen:
+            seen.add(k)
+            k = successor[k]
+        final[lid] = k
+    src = np.array(sorted(final), np.int64)
+    dst = np.array([final[int(k)] for k in src], np.int64)
+    for t in out:
+        j = np.clip(np.searchsorted(src, t.value), 0, src.size - 1)
+        hit = src[j] == t.value
+        t.value[hit] = dst[j[hit]]
     return out
 
 

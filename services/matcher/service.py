@@ -10,7 +10,13 @@ Per obs entry (one upload's rays for one tile, in order; see :mod:`hdmap.stage`)
    pending rays of other passes are offered to the new landmarks;
 4. matched rays update the matcher's own gating sums (the same estimator as the
    solver, so gating is deterministic given the input order), and one
-   :class:`schemas.AssocGroup` per landmark home tile goes to the assoc log.
+   :class:`schemas.AssocGroup` per landmark home tile goes to the assoc log;
+5. merge: a touched landmark and another of its class whose estimates agree (chi-square
+   of the difference under both covariances), that are seen from the same side and were
+   (almost) never detected in one image together, are one sign: the younger one's sums
+   fold into the other's (:meth:`LandmarkSums.merge_rows`) and it is retired with
+   ``merged_into`` in the assoc log, so the solver does the same and the publisher
+   removes it.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from hdmap.estimator.provisional import prior_covariance, usable
 from hdmap.geodesy import GEODESY
 from hdmap.initiation import InitConfig, propose
 from hdmap.stage import StageService
-from hdmap.tiles import TileFrames, in_region, neighbours, quadkeys_of
+from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
 from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
 from services.matcher.state import Landmark, MatcherState, pass_key
 from services.matcher.trust import TrustConfig
@@ -49,6 +55,20 @@ class MatcherConfig:
     """Gate with the solution's covariance plus the pass-bias prior over its passes
     (``diag(bias^2) / G``): the between-pass covariance of a few passes is itself noisy,
     and a gate that is too tight splits one sign into several landmarks."""
+    merge: bool = True
+    """Merge landmarks found to be one sign (step 5 of the module doc)."""
+    merge_chi2: float = 16.27
+    """Largest chi-square (3 dof; 16.27 = 99.9 %) of the difference of two estimates, under
+    the sum of their gating covariances."""
+    merge_max_m: float = 10.0
+    """Largest horizontal distance between two landmarks that may merge."""
+    merge_max_covis: float = 0.1
+    """Largest share of the smaller landmark's rays in images that also detected the other
+    (a false positive of the same class can put both in one image now and then)."""
+    merge_min_view_cos: float = 0.5
+    """Smallest cosine between the two landmarks' mean viewing directions."""
+    merge_min_passes: int = 5
+    """Both landmarks need this many passes (younger estimates are too rough to merge on)."""
     provisional_passes: int = 0
     """If > 0, gating estimates follow the landmark's solution from this many passes on
     (before the estimator's ``min_clusters``, with the pass-bias prior in the covariance;
@@ -96,6 +116,8 @@ class _Out:
     weight: list[float] = field(default_factory=list)
     obs: list[Observations] = field(default_factory=list)
     created: list[tuple[int, int, float, float, float]] = field(default_factory=list)
+    retired: list[tuple[int, int]] = field(default_factory=list)
+    """(retired id, id it merged into)."""
 
     def vehicle_index(self, v: str) -> int:
         if v not in self.vehicles:
@@ -209,6 +231,7 @@ class MatcherService(StageService):
         new_classes = np.unique(obs.sign_class[~hit])
         touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id, new_classes)
         self._refresh(sorted(touched))
+        self._merge_touched(sorted(touched))
 
     def _link(
         self, obs: Observations, lms: list[Landmark], vehicle: str, pass_id: int, received: float
@@ -222,6 +245,7 @@ class MatcherService(StageService):
         if weight < 1.0:
             self.count("downweighted", len(obs))
         key = pass_key(vehicle, pass_id)
+        self._note_views(obs, lms)
         by_home: dict[str, list[int]] = defaultdict(list)
         for k, lm in enumerate(lms):
             by_home[lm.home].append(k)
@@ -238,6 +262,29 @@ class MatcherService(StageService):
             out.received_at += [received] * len(idx)
             out.weight += [weight] * len(idx)
             out.obs.append(sub)
+
+    def _note_views(self, obs: Observations, lms: list[Landmark]) -> None:
+        """Viewing directions, and same-class landmarks detected in one image (all rays
+        here are of one vehicle pass)."""
+        ids = np.array([lm.id for lm in lms], np.uint64)
+        uniq, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+        d = obs.direction[:, :2]
+        n = np.linalg.norm(d, axis=1, keepdims=True)
+        view = np.zeros((uniq.size, 2))
+        np.add.at(view, inv, np.divide(d, n, out=np.zeros_like(d), where=n > 0))
+        for j, k in enumerate(first.tolist()):
+            lms[k].view = lms[k].view + view[j]
+        if uniq.size < 2:
+            return
+        img = obs.image.astype(np.int64)
+        u, cnt = np.unique(img, return_counts=True)
+        for m in u[cnt > 1].tolist():
+            here = np.flatnonzero(img == m)
+            both = sorted({(lms[k].cls, lms[k].id) for k in here.tolist()})
+            for i, (ca, a) in enumerate(both):
+                for cb, b in both[i + 1 :]:
+                    if ca == cb:
+                        self.state.add_covis(a, b)
 
     def _initiate(
         self, tile: str, area: list[str], vehicle: str, pass_id: int, classes: np.ndarray
@@ -362,6 +409,64 @@ class MatcherService(StageService):
         for lm in lms:
             self.state.put(lm)
 
+    # -- merge --------------------------------------------------------------------------------
+
+    def _merge_touched(self, ids: list[int]) -> None:
+        if not self.config.merge:
+            return
+        for lid in ids:
+            lm = self.state.landmarks.get(lid)
+            if lm is None:  # merged away a moment ago
+                continue
+            other = self._merge_partner(lm)
+            if other is None:
+                continue
+            n = self.sums.n_obs([lm.row, other.row])
+            keep, drop = (lm, other) if (-n[0], lm.id) < (-n[1], other.id) else (other, lm)
+            self._merge(keep, drop)
+
+    def _merge_partner(self, lm: Landmark) -> Landmark | None:
+        """The same-class landmark ``lm`` is one sign with (best chi-square), if any."""
+        cfg = self.config
+        cands = [
+            c
+            for c in self.state.near([lm.tile, *neighbours(lm.tile)])
+            if c.cls == lm.cls and c.id != lm.id
+        ]
+        if cands and self.config.merge_min_passes > 0:
+            n = self.sums.n_passes([lm.row] + [c.row for c in cands])
+            if n[0] < self.config.merge_min_passes:
+                return None
+            cands = [c for c, k in zip(cands, n[1:], strict=True) if k >= cfg.merge_min_passes]
+        if not cands:
+            return None
+        frame = self.frames(lm.home)
+        d = frame.from_ecef(np.array([c.x for c in cands])) - frame.from_ecef(lm.x[None])
+        c = lm.cov[None] + np.array([c.cov for c in cands])
+        chi2 = np.einsum("ki,ki->k", d, np.linalg.solve(c, d[:, :, None])[:, :, 0])
+        near = (chi2 <= cfg.merge_chi2) & (np.hypot(d[:, 0], d[:, 1]) <= cfg.merge_max_m)
+        for k in np.argsort(chi2, kind="stable").tolist():
+            if not near[k]:
+                break
+            o = cands[k]
+            n = self.sums.n_obs([lm.row, o.row])
+            if self.state.covis_count(lm.id, o.id) > cfg.merge_max_covis * max(n.min(), 1):
+                continue
+            va, vb = lm.view, o.view
+            norm = float(np.linalg.norm(va) * np.linalg.norm(vb))
+            if norm > 0 and float(va @ vb) < cfg.merge_min_view_cos * norm:
+                continue
+            return o
+        return None
+
+    def _merge(self, keep: Landmark, drop: Landmark) -> None:
+        rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
+        self.sums.merge_rows(keep.row, drop.row, rot, t)
+        self.state.merge(keep, drop)
+        self._out[drop.home].retired.append((drop.id, keep.id))
+        self.count("merged")
+        self._refresh([keep.id])
+
     def _tile_of(self, x_ecef: np.ndarray) -> str:
         lat, lon, _ = GEODESY.to_geodetic(x_ecef[None])
         return str(quadkeys_of(lat, lon, self.opts.zoom)[0])
@@ -369,6 +474,7 @@ class MatcherService(StageService):
     def _assoc_body(self, out: _Out) -> bytes:
         links = np.array(out.links, dtype=np.uint64).reshape(-1, 3)
         created = out.created
+        retired = np.array(out.retired, np.uint64).reshape(-1, 2)
         return AssocGroup(
             vehicles=out.vehicles,
             links=Links(
@@ -386,6 +492,8 @@ class MatcherService(StageService):
                 lon=np.array([c[3] for c in created], float),
                 h=np.array([c[4] for c in created], float),
             ),
+            retired=retired[:, 0].copy(),
+            merged_into=retired[:, 1].copy(),
         ).to_bytes()
 
     # -- timers and stats -----------------------------------------------------------------------

@@ -35,9 +35,21 @@ CREATE TABLE IF NOT EXISTS trust (
     vehicle TEXT PRIMARY KEY, n INTEGER NOT NULL, i_ee REAL NOT NULL, i_en REAL NOT NULL,
     i_nn REAL NOT NULL, sx REAL NOT NULL, sy REAL NOT NULL,
     offered INTEGER NOT NULL, passed INTEGER NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS covis (
+    a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
 """
 
 COUNTER_BITS = 24
+
+
+def _i64(v: int) -> int:
+    """A u64 id as SQLite's signed 64-bit integer."""
+    return int(u64_to_i64(np.array([v], np.uint64))[0])
+
+
+def _u64(v: int) -> int:
+    return int(i64_to_u64(np.array([v], np.int64))[0])
 
 
 def landmark_id(home_tile: str, counter: int) -> int:
@@ -75,6 +87,9 @@ class Landmark:
     """Gating covariance, local ENU, m^2."""
     row: int
     created_at: float
+    view: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """Sum of the horizontal unit directions (East, North) of its rays: the side it is
+    seen from (two same-class signs back to back are never one)."""
 
 
 @dataclass
@@ -134,6 +149,14 @@ class MatcherState:
         self._dirty: set[int] = set()
         self._pending_dirty: set[str] = set()
         self._removed_pending: list[tuple[str, int]] = []
+        self.covis: dict[tuple[int, int], int] = {}
+        """Images in which two landmarks of one class were both detected (a < b): then
+        they are two signs, whatever their estimates say."""
+        self._covis_of: dict[int, set[int]] = defaultdict(set)
+        self._covis_dirty: set[tuple[int, int]] = set()
+        self._deleted: set[int] = set()
+        self._indexed: dict[int, str] = {}
+        """The tile each landmark is filed under in ``by_tile``."""
 
     # -- landmarks ------------------------------------------------------------------------
 
@@ -144,12 +167,41 @@ class MatcherState:
         return landmark_id(home, n)
 
     def put(self, lm: Landmark) -> None:
-        old = self.landmarks.get(lm.id)
-        if old is not None and old.tile != lm.tile:
-            self.by_tile[old.tile].discard(lm.id)
+        """Store ``lm`` (also after changing it in place: ``by_tile`` follows its tile)."""
+        prev = self._indexed.get(lm.id)
+        if prev is not None and prev != lm.tile:
+            self.by_tile[prev].discard(lm.id)
+        self._indexed[lm.id] = lm.tile
         self.landmarks[lm.id] = lm
         self.by_tile[lm.tile].add(lm.id)
         self._dirty.add(lm.id)
+
+    def add_covis(self, a: int, b: int, n: int = 1) -> None:
+        k = (a, b) if a < b else (b, a)
+        self.covis[k] = self.covis.get(k, 0) + n
+        self._covis_of[a].add(b)
+        self._covis_of[b].add(a)
+        self._covis_dirty.add(k)
+
+    def covis_count(self, a: int, b: int) -> int:
+        return self.covis.get((a, b) if a < b else (b, a), 0)
+
+    def merge(self, keep: Landmark, drop: Landmark) -> None:
+        """``drop`` becomes part of ``keep``: its view and co-visibility counts move over,
+        its record is deleted (the caller merges the sums rows)."""
+        keep.view = keep.view + drop.view
+        for other in sorted(self._covis_of.pop(drop.id, set())):
+            k = (drop.id, other) if drop.id < other else (other, drop.id)
+            n = self.covis.pop(k)
+            self._covis_dirty.add(k)
+            self._covis_of[other].discard(drop.id)
+            if other != keep.id:
+                self.add_covis(keep.id, other, n)
+        self.landmarks.pop(drop.id)
+        self.by_tile[self._indexed.pop(drop.id)].discard(drop.id)
+        self._dirty.discard(drop.id)
+        self._deleted.add(drop.id)
+        self.put(keep)
 
     def near(self, tiles: list[str]) -> list[Landmark]:
         ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))
@@ -220,6 +272,25 @@ class MatcherState:
             "VALUES (?,?,?,?,?,?,?,?)",
             rows,
         )
+        c.executemany(
+            "INSERT OR REPLACE INTO views(id, e, n) VALUES (?,?,?)",
+            [
+                (r[0], float(lm.view[0]), float(lm.view[1]))
+                for r, lm in zip(rows, dirty, strict=True)
+            ],
+        )
+        gone = [(_i64(i),) for i in sorted(self._deleted)]
+        c.executemany("DELETE FROM landmarks WHERE id=?", gone)
+        c.executemany("DELETE FROM views WHERE id=?", gone)
+        pairs = sorted(self._covis_dirty)
+        c.executemany(
+            "DELETE FROM covis WHERE a=? AND b=?",
+            [(_i64(a), _i64(b)) for a, b in pairs if (a, b) not in self.covis],
+        )
+        c.executemany(
+            "INSERT OR REPLACE INTO covis(a, b, n) VALUES (?,?,?)",
+            [(_i64(a), _i64(b), self.covis[(a, b)]) for a, b in pairs if (a, b) in self.covis],
+        )
         c.executemany("DELETE FROM pending WHERE vehicle=? AND obs_id=?", self._removed_pending)
         c.executemany(
             "INSERT OR REPLACE INTO trust(vehicle, n, i_ee, i_en, i_nn, sx, sy, offered, passed) "
@@ -252,6 +323,8 @@ class MatcherState:
         self.clear_marks()
 
     def clear_marks(self) -> None:
+        self._covis_dirty.clear()
+        self._deleted.clear()
         self._trust_dirty.clear()
         self._dirty.clear()
         self._pending_dirty.clear()
@@ -262,7 +335,10 @@ class MatcherState:
         c = self._conn
         self.landmarks.clear()
         self.by_tile.clear()
+        self._indexed.clear()
         self.pending.clear()
+        self.covis.clear()
+        self._covis_of.clear()
         self.clear_marks()
         self.counters = dict(c.execute("SELECT tile, n FROM id_counters").fetchall())
         self.trust = {
@@ -289,6 +365,13 @@ class MatcherState:
             )
             self.landmarks[lid] = lm
             self.by_tile[lm.tile].add(lid)
+            self._indexed[lid] = lm.tile
+        for i, e, n in c.execute("SELECT id, e, n FROM views"):
+            lm = self.landmarks.get(_u64(i))
+            if lm is not None:
+                lm.view = np.array([e, n], float)
+        for a, b, n in c.execute("SELECT a, b, n FROM covis"):
+            self.add_covis(_u64(a), _u64(b), int(n))
         prow = c.execute(
             "SELECT tile, vehicle, pass_id, added_at, received_at, rec FROM pending "
             "ORDER BY tile, added_at, vehicle, obs_id"

@@ -6,7 +6,10 @@ observation, updated in vectorised batches, in the ENU frame of the landmark's
 home tile). After each batch it solves the touched landmarks and appends, per tile,
 a :class:`schemas.LandmarkUpdates` entry to its update log with the landmarks whose
 information matrix passed the conditioning test (revision + 1 each time), and a
-removal where a landmark's estimate left its previous tile.
+removal where a landmark's estimate left its previous tile or was retired. A landmark
+retired with a successor (``AssocGroup.merged_into``: the matcher found two landmarks to
+be one sign) hands its sums to the successor (:meth:`LandmarkSums.merge_rows`, across
+tile frames), which is then re-solved and republished.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import usable
 from hdmap.geodesy import enu_rotation
 from hdmap.stage import StageService
-from hdmap.tiles import TileFrames, quadkeys_of
+from hdmap.tiles import TileFrames, frame_map, quadkeys_of
 from schemas import (
     STATUS_CANDIDATE,
     STATUS_CONFIRMED,
@@ -50,6 +53,23 @@ class SolverConfig:
     """Prior standard deviation (E, N, U) of the position error one pass shares by all its
     rays (GNSS bias): a candidate's covariance is at least this squared over its passes,
     since the between-pass spread of so few passes cannot measure it."""
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """What one publish solved: landmarks ``lms``, published ones ``ok`` (indices into
+    ``lms``) and, per published one, the wire values."""
+
+    lms: list[SolverLandmark]
+    ok: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    cov: np.ndarray
+    status: np.ndarray
+    n_obs: np.ndarray
+    n_clusters: np.ndarray
+    now: float
 
 
 def cov6(c: np.ndarray) -> np.ndarray:
@@ -90,6 +110,7 @@ class SolverService(StageService):
     def apply(self, entries: list[LogEntry]) -> None:
         touched: set[int] = set()
         self._source: dict[int, float] = {}
+        self._retired: list[SolverLandmark] = []
         for e in entries:
             try:
                 g = AssocGroup.from_bytes(e.body)
@@ -97,6 +118,7 @@ class SolverService(StageService):
                 self.reject(f"assoc.{exc.field}")
                 continue
             touched |= self._apply_group(g)
+        touched -= {lm.id for lm in self._retired}
         self._publish(sorted(touched))
         for lid in touched:  # their sums changed, published or not: save them
             self.state.put(self.state.landmarks[lid])
@@ -149,10 +171,39 @@ class SolverService(StageService):
                 touched.add(lid)
                 self._source[lid] = max(self._source.get(lid, 0.0), float(g.links.received_at[k]))
         self.count("observations", int(known.sum()))
+        return touched | self._retire(g)
+
+    def _retire(self, g: AssocGroup) -> set[int]:
+        """Retirements after the group's links; merged ones hand their sums over."""
+        touched: set[int] = set()
+        for k, rid in enumerate(g.retired.tolist()):
+            drop = self.state.landmarks.get(int(rid))
+            if drop is None:
+                self.reject("assoc.unknown_retired")
+                continue
+            if k < g.merged_into.size:
+                keep = self.state.landmarks.get(int(g.merged_into[k]))
+                if keep is None:  # owned by another solver: keep it rather than lose rays
+                    self.reject("assoc.unknown_merge_target")
+                    continue
+                rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
+                self.sums.merge_rows(keep.row, drop.row, rot, t)
+                touched.add(keep.id)
+                src = self._source.pop(drop.id, 0.0)
+                self._source[keep.id] = max(self._source.get(keep.id, 0.0), src)
+                self.count("merged")
+            self.state.delete(drop.id)
+            self._retired.append(drop)
+            self.count("retired")
         return touched
 
     def _publish(self, ids: list[int]) -> None:
+        removals: dict[str, list[tuple[int, int]]] = defaultdict(list)
+        for lm in self._retired:
+            if lm.tile:  # it was published: the map drops it
+                removals[lm.tile].append((lm.id, lm.revision + 1))
         if not ids:
+            self._emit_updates({}, removals, None)
             return
         lms = [self.state.landmarks[i] for i in ids]
         sol = self.sums.solve(np.array([lm.row for lm in lms], np.int64), update_reference=False)
@@ -168,6 +219,7 @@ class SolverService(StageService):
         self.count("solved_ok", int(sol.ok.sum()))
         self.count("solved_provisional", int(provisional.sum()))
         if ok.size == 0:
+            self._emit_updates({}, removals, None)
             return
         now = time.time()
         lat = np.empty(ok.size)
@@ -182,7 +234,6 @@ class SolverService(StageService):
             cov[j] = r @ sol_cov[k] @ r.T
         tiles = quadkeys_of(lat, lon, self.opts.zoom)
         upserts: dict[str, list[int]] = defaultdict(list)
-        removals: dict[str, list[tuple[int, int]]] = defaultdict(list)
         status = np.where(sol.ok[ok], STATUS_CONFIRMED, STATUS_CANDIDATE)
         for j, k in enumerate(ok):
             lm = lms[k]
@@ -193,31 +244,43 @@ class SolverService(StageService):
             lm.tile = tile
             upserts[tile].append(j)
             self.state.put(lm)
+        self._emit_updates(
+            upserts, removals, _Solved(lms, ok, lat, lon, h, cov, status, n_obs, n_clusters, now)
+        )
+        self.count("updates", int(ok.size))
+
+    def _emit_updates(self, upserts: dict, removals: dict, sol: _Solved | None) -> None:
+        """One update entry per tile with upserts (rows ``upserts[tile]`` of ``sol``'s
+        published arrays) and removals."""
         for tile in sorted(set(upserts) | set(removals)):
             sel = np.array(upserts.get(tile, []), np.int64)
-            ks = ok[sel]
+            if sol is None or sel.size == 0:
+                landmarks = Landmarks.empty()
+            else:
+                ks = sol.ok[sel]
+                lms = [sol.lms[k] for k in ks]
+                landmarks = Landmarks(
+                    id=np.array([lm.id for lm in lms], np.uint64),
+                    sign_class=np.array([lm.cls for lm in lms], np.uint16),
+                    lat=sol.lat[sel],
+                    lon=sol.lon[sel],
+                    h=sol.h[sel],
+                    cov=cov6(sol.cov[sel]),
+                    status=sol.status[sel].astype(np.uint8),
+                    n_obs=sol.n_obs[ks].astype(np.uint32),
+                    n_passes=sol.n_clusters[ks].astype(np.uint32),
+                    revision=np.array([lm.revision for lm in lms], np.uint64),
+                    updated_at=np.full(sel.size, sol.now),
+                    source_time=np.array([self._source.get(lm.id, sol.now) for lm in lms], float),
+                )
             body = LandmarkUpdates(
-                Landmarks(
-                    id=np.array([lms[k].id for k in ks], np.uint64),
-                    sign_class=np.array([lms[k].cls for k in ks], np.uint16),
-                    lat=lat[sel],
-                    lon=lon[sel],
-                    h=h[sel],
-                    cov=cov6(cov[sel]) if sel.size else np.zeros((0, 6)),
-                    status=status[sel].astype(np.uint8),
-                    n_obs=n_obs[ks].astype(np.uint32),
-                    n_passes=n_clusters[ks].astype(np.uint32),
-                    revision=np.array([lms[k].revision for k in ks], np.uint64),
-                    updated_at=np.full(sel.size, now),
-                    source_time=np.array([self._source.get(lms[k].id, now) for k in ks], float),
-                ),
+                landmarks,
                 Removals(
                     id=np.array([r[0] for r in removals.get(tile, [])], np.uint64),
                     revision=np.array([r[1] for r in removals.get(tile, [])], np.uint64),
                 ),
             )
             self.emit(tile, body.to_bytes())
-        self.count("updates", int(ok.size))
 
     def after_commit(self) -> None:
         self._snapshot_counts()

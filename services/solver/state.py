@@ -38,6 +38,7 @@ class SolverState:
         conn.executescript(SCHEMA)
         self.landmarks: dict[int, SolverLandmark] = {}
         self._dirty: set[int] = set()
+        self._deleted: set[int] = set()
 
     @staticmethod
     def home_of(landmark_id: int, zoom: int) -> str:
@@ -53,7 +54,16 @@ class SolverState:
         self.landmarks[lm.id] = lm
         self._dirty.add(lm.id)
 
+    def delete(self, lid: int) -> SolverLandmark:
+        self._dirty.discard(lid)
+        self._deleted.add(lid)
+        return self.landmarks.pop(lid)
+
     def save(self, pack_rows) -> None:
+        self._conn.executemany(
+            "DELETE FROM landmarks WHERE id=?", [(_i64(i),) for i in sorted(self._deleted)]
+        )
+        self._deleted.clear()
         dirty = [self.landmarks[i] for i in sorted(self._dirty)]
         blobs = pack_rows(np.array([lm.row for lm in dirty], np.int64)) if dirty else []
         self._conn.executemany(
@@ -69,6 +79,7 @@ class SolverState:
     def load(self, unpack_rows) -> None:
         self.landmarks.clear()
         self._dirty.clear()
+        self._deleted.clear()
         rows = self._conn.execute(
             "SELECT id, cls, home, tile, revision, sums FROM landmarks ORDER BY id"
         ).fetchall()
