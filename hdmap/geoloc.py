@@ -157,6 +157,9 @@ class ProjectionLines:
     def __len__(self) -> int:
         return int(self.t.size)
 
+    def take(self, idx: NDArray) -> ProjectionLines:
+        return ProjectionLines(**{k: getattr(self, k)[idx] for k in self.__dataclass_fields__})
+
 
 def _angles_in_vehicle(intr: Intrinsics, cam: Mount, uv: Array) -> tuple[Array, Array, Array]:
     """Pixel -> (direction in vehicle frame, azimuth at heading 0, elevation)."""
@@ -170,6 +173,55 @@ def _angles_in_vehicle(intr: Intrinsics, cam: Mount, uv: Array) -> tuple[Array, 
 
 def _wrap(a: Array) -> Array:
     return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class FixCheck:
+    """Onboard integrity check of GNSS fixes against their neighbours' track."""
+
+    window: int = 7
+    """Fixes in the sliding window (odd): the track at a fix is the window's median."""
+    k_sigma: float = 6.0
+    """A fix is suspect beyond this many reported horizontal sigmas from the track ..."""
+    floor_m: float = 10.0
+    """... and beyond this many metres (the spread of a window along the track)."""
+
+
+def fix_outliers(
+    fixes: GnssFixes, check: FixCheck | None = None, geodesy: Geodesy = GEODESY
+) -> NDArray[np.bool_]:
+    """Fixes that jump away from the track of their neighbours (multipath): per fix, the
+    horizontal distance to the componentwise median of the ``window`` fixes around it
+    (fewer at the ends), against ``max(floor_m, k_sigma * sigma_h)``. One jump moves a
+    window's median by one rank only, so the jump stands out by about its size; a bias
+    the whole pass shares does not. A receiver-level check any vehicle can run (an INS
+    would do better); its rays are not uploaded.
+
+    >>> t = np.arange(9) * 0.2
+    >>> lat = 60.0 + np.arange(9) * 2.5e-5  # 2.8 m per fix northward
+    >>> lat[4] += 30.0 / 111_000            # a 30 m multipath jump
+    >>> f = GnssFixes(t, lat, np.full(9, 25.0), np.zeros(9), np.zeros(9), np.ones(9),
+    ...               np.ones(9), np.full(9, 0.5))
+    >>> np.flatnonzero(fix_outliers(f)).tolist()
+    [4]
+    """
+    c = check or FixCheck()
+    n = len(fixes)
+    out = np.zeros(n, bool)
+    if n < 3:
+        return out
+    lat = np.asarray(fixes.lat, float)
+    lon = np.asarray(fixes.lon, float)
+    ecef = geodesy.to_ecef(lat, lon, np.asarray(fixes.h, float))
+    xy = ecef_to_enu_vectors(ecef - ecef[0], lat[0], lon[0])[:, :2]
+    half = max(c.window // 2, 1)
+    padded = np.full((n + 2 * half, 2), np.nan)
+    padded[half : half + n] = xy
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1, axis=0)
+    track = np.nanmedian(windows, axis=-1)
+    dev = np.hypot(*(xy - track).T)
+    limit = np.maximum(c.floor_m, c.k_sigma * np.asarray(fixes.sigma_h_m, float))
+    return dev > limit
 
 
 def geolocate(

@@ -349,3 +349,29 @@ def test_demo_command_rejects_a_bad_vehicle_config(tmp_path: Path, capsys) -> No
 def test_distinct_signs_seen() -> None:
     p = Fleet(TOWN, MODEL, EXACT, seed=0).drive(0, 0)
     assert distinct_signs_seen(p) == np.unique(p.truth.sign_id).size
+
+
+# --- the vehicle's fix check against simulated multipath ------------------------------
+
+
+@pytest.mark.parametrize("noise", [FLEET, PAPER], ids=["fleet", "paper"])
+def test_fix_check_finds_the_multipath_jumps_and_little_else(noise) -> None:
+    from hdmap.geoloc import fix_outliers
+
+    fleet = Fleet(TOWN, MODEL, noise, seed=4)
+    flagged, jumps, n = 0, 0, 0
+    hit = 0
+    for k in range(30):
+        p = fleet.drive(k % 5, k)
+        bad = fix_outliers(p.fixes)
+        mp = p.truth.gnss.multipath
+        n += mp.size
+        jumps += int(mp.sum())
+        hit += int((bad & mp).sum())
+        flagged += int((bad & ~mp).sum())
+    assert n > 3000
+    if noise is FLEET:  # 3 % of fixes jump 20-50 m
+        assert jumps > 0.02 * n and hit >= 0.97 * jumps, (hit, jumps)
+    else:
+        assert jumps == 0
+    assert flagged <= 0.002 * n, (flagged, n)

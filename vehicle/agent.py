@@ -11,9 +11,19 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from hdmap.geoloc import Detections, GnssFixes, ProjectionLines, VehicleModel, geolocate
+from hdmap.geoloc import (
+    Detections,
+    FixCheck,
+    GnssFixes,
+    ProjectionLines,
+    VehicleModel,
+    fix_outliers,
+    geolocate,
+)
 from schemas import Observations
 from vehicle.uploader import Uploader, UploadResult
+
+DEFAULT_FIX_CHECK = FixCheck()
 
 
 def to_observations(lines: ProjectionLines, obs_id: np.ndarray) -> Observations:
@@ -41,15 +51,33 @@ class VehicleAgent:
     """One vehicle: its calibration and its store-and-forward upload stream."""
 
     def __init__(
-        self, vehicle_id: str, model: VehicleModel, queue_dir: str | Path, batch_size: int = 500
+        self,
+        vehicle_id: str,
+        model: VehicleModel,
+        queue_dir: str | Path,
+        batch_size: int = 500,
+        fix_check: FixCheck | None = DEFAULT_FIX_CHECK,
     ):
         self.vehicle_id = vehicle_id
         self.model = model
+        self.fix_check = fix_check
+        """Drop detections of fixes that jump off the track (None: keep every one)."""
         self.uploader = Uploader(vehicle_id, Path(queue_dir) / f"{vehicle_id}.sqlite", batch_size)
+        self.last_kept = np.zeros(0, bool)
+        """Per detection of the last :meth:`record`, whether it was queued."""
+        self.dropped = 0
+        """Detections dropped for a suspect fix so far."""
 
     def record(self, pass_id: int, fixes: GnssFixes, det: Detections) -> Observations:
-        """Geolocate a pass's detections and queue them (durably, before any upload)."""
+        """Geolocate a pass's detections and queue them (durably, before any upload);
+        detections of suspect fixes (:func:`fix_outliers`) are dropped."""
         lines = geolocate(fixes, det, self.model)
+        keep = np.ones(len(lines), bool)
+        if self.fix_check is not None and len(lines):
+            keep = ~fix_outliers(fixes, self.fix_check)[np.asarray(det.image, np.int64)]
+            lines = lines.take(keep)
+        self.last_kept = keep
+        self.dropped += int((~keep).sum())
         obs = to_observations(lines, self.uploader.next_obs_ids(len(lines)))
         self.uploader.enqueue(pass_id, obs)
         return obs

@@ -388,10 +388,14 @@ def run_fleet_eval(
 
 
 def _remember(state: EvalState, driver: FleetDriver, p) -> None:
-    """Truth of the observations the agent just queued: their ids and true sign rows."""
-    n = len(p.truth.sign_id)
-    last = driver.agent(p.vehicle_id).uploader.last_obs_id
-    rows = np.where(p.truth.sign_id >= 0, state.world.signs.index_of(p.truth.sign_id), -1)
+    """Truth of the observations the agent just queued: their ids and true sign rows
+    (detections the vehicle dropped for a suspect fix were not queued)."""
+    agent = driver.agent(p.vehicle_id)
+    kept = agent.last_kept
+    sign_id = p.truth.sign_id[kept]
+    n = len(sign_id)
+    last = agent.uploader.last_obs_id
+    rows = np.where(sign_id >= 0, state.world.signs.index_of(sign_id), -1)
     state.truth.append(ObsKeys(p.vehicle_id, np.arange(last - n + 1, last + 1), rows))
 
 
