@@ -56,21 +56,32 @@ class Candidate:
     """Indices into the rays passed to :func:`propose`."""
 
 
+MIN_SIGMA_ANGLE_RAD = 1e-9
+MIN_SIGMA_POS_M = 1e-6
+MIN_SIGMA_RANGE_M = 1e-6
+"""Floors on the sigmas used as weights: a valid but tiny reported sigma (1e-300) must
+not make one ray's weight infinite."""
+
+
 def triangulate(rays: LocalRays, ranges: bool = True) -> tuple[Array, Array]:
-    """Least-squares point of rays (bearing terms + range pseudo-measurements) and its cov."""
+    """Least-squares point of rays (bearing terms + range pseudo-measurements) and its cov
+    (NaN where the rays fix no point)."""
     d, a = rays.direction, rays.origin
     r_hat = np.where(rays.range_m > 0, rays.range_m, DEFAULT_RANGE_M)
-    s_ang2 = (rays.sigma_az**2 + rays.sigma_el**2) / 2.0
-    w = 1.0 / (r_hat**2 * s_ang2 + rays.sigma_pos_h**2)
+    s_ang2 = np.maximum((rays.sigma_az**2 + rays.sigma_el**2) / 2.0, MIN_SIGMA_ANGLE_RAD**2)
+    w = 1.0 / (r_hat**2 * s_ang2 + np.maximum(rays.sigma_pos_h, MIN_SIGMA_POS_M) ** 2)
     p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     big_a = np.einsum("k,kij->ij", w, p)
     b = np.einsum("k,kij,kj->i", w, p, a)
     if ranges:
         has = (rays.range_m > 0) & (rays.sigma_range_m > 0)
-        v = np.where(has, 1.0 / np.where(has, rays.sigma_range_m, 1.0) ** 2, 0.0)
+        s_r = np.maximum(np.where(has, rays.sigma_range_m, 1.0), MIN_SIGMA_RANGE_M)
+        v = np.where(has, 1.0 / s_r**2, 0.0)
         dd = d[:, :, None] * d[:, None, :]
         big_a = big_a + np.einsum("k,kij->ij", v, dd)
         b = b + np.einsum("k,ki,k->i", v, d, np.einsum("ki,ki->k", d, a) + rays.range_m)
+    if not (np.isfinite(big_a).all() and np.isfinite(b).all()):
+        return np.full(3, np.nan), np.full((3, 3), np.nan)
     cov = np.linalg.pinv(big_a)
     return cov @ b, cov
 
@@ -136,13 +147,17 @@ def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidat
             if members.size < 2:
                 break
             x, cov = triangulate(rays.take(members))
+            if not np.isfinite(cov).all():
+                break
         if members.size < cfg.min_rays or np.unique(rays.image[members]).size < cfg.min_images:
             continue
         sub = rays.take(members)
         ranged = int(((sub.range_m > 0) & (sub.sigma_range_m > 0)).sum())
         if bearing_spread(sub, x) < cfg.min_parallax_rad and ranged < cfg.min_ranged:
             continue
-        if not np.all(np.isfinite(x)) or np.linalg.cond(np.linalg.pinv(cov)) > cfg.max_cond:
+        if not (np.isfinite(x).all() and np.isfinite(cov).all()):
+            continue
+        if np.linalg.cond(np.linalg.pinv(cov)) > cfg.max_cond:
             continue
         used[members] = True
         out.append(Candidate(x, cov, members))

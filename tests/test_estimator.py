@@ -140,9 +140,10 @@ def random_batch(rng, n_rows=7, n=300, x=None):
 def test_accumulate_mixed_unsorted_equals_per_row_sums_and_grows():
     rng = np.random.default_rng(5)
     rows, clusters, r, _ = random_batch(rng)
-    s = LandmarkSums(capacity=2)
+    s = LandmarkSums(EstimatorConfig(pass_sigma_m=(0.0, 0.0, 0.0)), capacity=2)
     s.new_rows(7, np.array([5.0, 0.0, 2.5]) + 10.0 * np.arange(7)[:, None] * [1.0, 0.5, 0.0])
     s.accumulate(rows, clusters, r)
+    s.close_passes()  # passes enter A and b when they close
     for k in range(7):
         m = rows == k
         anchor = s.anchor([k])[0]
@@ -157,14 +158,20 @@ def test_accumulate_mixed_unsorted_equals_per_row_sums_and_grows():
 def test_sandwich_equals_brute_force_per_pass_computation():
     rng = np.random.default_rng(6)
     rows, clusters, r, _ = random_batch(rng, n_rows=3, n=600)
+    sigma = np.array([2.5, 2.0, 3.0])  # the per-pass random-effects weighting, by hand
     s = LandmarkSums(
         EstimatorConfig(
-            second_order_variance=False, small_sample=False, model_floor=False, max_open_passes=16
+            second_order_variance=False,
+            small_sample=False,
+            model_floor=False,
+            max_open_passes=16,
+            pass_sigma_m=tuple(sigma),
         )
     )
     s.new_rows(3, np.array([5.0, 0.0, 2.5]) + 10.0 * np.arange(3)[:, None] * [1.0, 0.5, 0.0])
     for part in np.array_split(np.arange(rows.size), 4):  # passes split over calls
         s.accumulate(rows[part], clusters[part], r.take(part))
+    s.close_passes(rows=[1])  # closed and open passes alike
     sol = s.solve(np.arange(3), update_reference=False)
     for k in range(3):
         anchor = s.anchor([k])[0]
@@ -173,11 +180,20 @@ def test_sandwich_equals_brute_force_per_pass_computation():
         a_mat = sym_to_mat(alpha)
         x_rel = sol.x_raw[k] - anchor
         meat = np.zeros((3, 3))
+        w_sum, b_sum, terms = np.zeros((3, 3)), np.zeros(3), []
         for c in np.unique(clusters[m]):
             sel = clusters[m] == c
-            g = a_mat[sel].sum(0) @ x_rel - beta[sel].sum(0)
+            a_p, b_p = a_mat[sel].sum(0), beta[sel].sum(0)
+            w_p = np.linalg.inv(np.linalg.inv(a_p) + np.diag(sigma**2))  # (A_p^-1 + S)^-1
+            bt_p = w_p @ np.linalg.solve(a_p, b_p)
+            w_sum += w_p
+            b_sum += bt_p
+            terms.append((w_p, bt_p))
+        np.testing.assert_allclose(sol.x_raw[k] - anchor, np.linalg.solve(w_sum, b_sum), atol=1e-9)
+        for w_p, bt_p in terms:
+            g = w_p @ x_rel - bt_p
             meat += np.outer(g, g)
-        kinv = np.linalg.inv(a_mat.sum(0))
+        kinv = np.linalg.inv(w_sum)
         gcount = np.unique(clusters[m]).size
         expect = kinv @ meat @ kinv * gcount / (gcount - 1)
         np.testing.assert_allclose(sol.cov_sandwich[k], expect, rtol=1e-9, atol=1e-12)

@@ -4,7 +4,12 @@
     gives the incremental textbook sums' solution;
 (b) the incremental compensated solution agrees with a batch maximum-likelihood fit on
     the angular residuals (known origins) within a small fraction of the reported sigma;
-(c) accumulating in random batch splits (passes interleaved, unsorted) equals one shot.
+(c) accumulating in random batch splits (passes interleaved, unsorted) equals one shot;
+(d) the pass-weighted sums (``pass_sigma_m``) equal a batch least squares over the landmark
+    AND one unknown offset per pass with a Gaussian prior of that size (the random-effects
+    model the weighting eliminates in closed form).
+
+(a) and (b) are ray-level costs (no pass error in their data): ``pass_sigma_m = 0``.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays, weights, wrap
 from hdmap.estimator.model import ray_angles
 
 X_TRUE = np.array([5.0, 0.0, 2.5])
+NO_PASS = (0.0, 0.0, 0.0)
 
 
 def corridor(rng, n_pass, per_pass, s_az, s_el, s_pos, x=X_TRUE):
@@ -51,7 +57,9 @@ def test_a_batch_least_squares_on_textbook_residuals_equals_incremental_sums():
     rng = np.random.default_rng(21)
     rays, passes = corridor(rng, 40, 15, 0.05, 0.01, 1.0)
     x0 = X_TRUE + np.array([1.5, -3.0, 0.5])
-    cfg = EstimatorConfig(compensate=False, weight_correction=False, min_significance=0.0)
+    cfg = EstimatorConfig(
+        compensate=False, weight_correction=False, min_significance=0.0, pass_sigma_m=NO_PASS
+    )
     _, sol = incremental(rays, passes, cfg, x0, rng, splits=7)
     # the same cost in batch: horizontal and vertical orthogonal distances, same weights
     w_h, w_v, _, _ = weights(rays, rays.origin, np.broadcast_to(x0, rays.origin.shape), cfg)
@@ -87,7 +95,7 @@ def ml_fit(rays, x_start):
 def test_b_compensated_incremental_agrees_with_batch_ml(s_az, tol_sigma):
     rng = np.random.default_rng(22)
     rays, passes = corridor(rng, 150, 20, s_az, 0.005, 0.0)
-    cfg = EstimatorConfig(min_sigma_pos_m=1e-6)  # known origins: no floor, the same cost
+    cfg = EstimatorConfig(min_sigma_pos_m=1e-6, pass_sigma_m=NO_PASS)  # known origins
     x0 = X_TRUE + np.array([2.0, 5.0, 0.5])
     _, first = incremental(rays, passes, cfg, x0)
     # the solver's recursion: weights at the previous estimate
@@ -110,7 +118,7 @@ def test_b_at_the_papers_noise_compensated_is_consistent_but_not_ml():
     for _ in range(8):
         rays, passes = corridor(rng, 200, 20, 0.35, 0.005, 0.0)
         x0 = X_TRUE + np.array([2.0, 5.0, 0.5])
-        cfg = EstimatorConfig(min_sigma_pos_m=1e-6)
+        cfg = EstimatorConfig(min_sigma_pos_m=1e-6, pass_sigma_m=NO_PASS)
         _, first = incremental(rays, passes, cfg, x0)
         _, sol = incremental(rays, passes, cfg, first.x[0])
         d = sol.x[0] - ml_fit(rays, x0)
@@ -145,8 +153,47 @@ def test_c_random_batch_splits_equal_one_shot():
         if seed == 3:
             many.close_passes()
         got = many.solve([0, 1, 2], update_reference=False)
-        np.testing.assert_allclose(many._a6[:3], one._a6[:3], rtol=1e-11, atol=1e-12)
         np.testing.assert_allclose(got.x, ref.x, rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(got.cov, ref.cov, rtol=1e-8, atol=1e-14)
         assert np.array_equal(got.n_clusters, ref.n_clusters)
         assert np.array_equal(got.ok, ref.ok)
+
+
+def test_d_pass_weighting_equals_batch_least_squares_with_one_offset_per_pass():
+    rng = np.random.default_rng(25)
+    n_pass, per = 12, 10
+    rays, passes = corridor(rng, n_pass, per, 0.03, 0.01, 0.5)
+    bias = rng.normal(0, 2.0, (n_pass, 3))  # what the passes share
+    rays = Rays(rays.origin + bias[passes], rays.direction, rays.sigma_az, rays.sigma_el,
+                rays.sigma_pos_h, rays.sigma_pos_v)  # fmt: skip
+    sigma = np.array([2.0, 2.5, 3.0])
+    x0 = X_TRUE + np.array([1.0, -2.0, 0.5])
+    cfg = EstimatorConfig(
+        compensate=False,
+        weight_correction=False,
+        min_significance=0.0,
+        pass_sigma_m=tuple(sigma),
+        max_open_passes=n_pass,  # interleaved passes all stay open (none split by eviction)
+    )
+    _, sol = incremental(rays, passes, cfg, x0, rng, splits=5)
+    w_h, w_v, _, _ = weights(rays, rays.origin, np.broadcast_to(x0, rays.origin.shape), cfg)
+    az, el = ray_angles(rays.direction)
+    h = np.stack([np.cos(az), -np.sin(az), np.zeros_like(az)], 1)
+    v = np.stack([-np.sin(el) * np.sin(az), -np.sin(el) * np.cos(az), np.cos(el)], 1)
+
+    def resid(z):  # z = landmark (3) + one offset per pass (3 each)
+        x, beta = z[:3], z[3:].reshape(n_pass, 3)
+        d = x - rays.origin + beta[passes]
+        return np.concatenate(
+            [np.sqrt(w_h) * (d * h).sum(1), np.sqrt(w_v) * (d * v).sum(1), (beta / sigma).ravel()]
+        )
+
+    fit = least_squares(resid, np.r_[x0, np.zeros(3 * n_pass)], xtol=1e-15, ftol=1e-15,
+                        gtol=1e-15, method="lm")  # fmt: skip
+    np.testing.assert_allclose(sol.x_raw[0], fit.x[:3], rtol=0, atol=1e-6)  # LM tolerance
+    # and it is not the ray-level answer: the passes' shared offsets matter here
+    flat = EstimatorConfig(
+        compensate=False, weight_correction=False, min_significance=0.0, pass_sigma_m=NO_PASS
+    )
+    _, ray_level = incremental(rays, passes, flat, x0)
+    assert np.abs(ray_level.x_raw[0] - fit.x[:3]).max() > 0.05

@@ -70,3 +70,17 @@ def test_too_few_rays_make_nothing():
     o = np.c_[np.zeros(3), np.linspace(0, 10, 3), np.full(3, 1.4)]
     r = rays_to(np.broadcast_to(x, (3, 3)), o, rng)
     assert propose(r, GateConfig(), InitConfig()) == []
+
+
+def test_tiny_valid_sigmas_give_finite_weights_not_a_crash():
+    """The wire accepts any sigma > 0; 1e-300 squared underflows to zero (a fuzz find:
+    the matcher's initiation divided by zero and its SVD failed)."""
+    rng = np.random.default_rng(2)
+    x = np.array([4.0, 40.0, 2.4])
+    o = np.c_[np.zeros(8), np.linspace(0, 20, 8), np.full(8, 1.4)]
+    r = rays_to(np.broadcast_to(x, (8, 3)), o, rng, s_ang=1e-300, s_pos=1e-300)
+    est, cov = triangulate(r)
+    assert np.isfinite(est).all() and np.isfinite(cov).all()
+    assert np.allclose(est, x, atol=1e-3)
+    for cand in propose(r, GateConfig(), InitConfig()):
+        assert np.isfinite(cand.x).all()

@@ -109,6 +109,34 @@ def tri_to_mat6(t: ArrayLike) -> Array:
     return a[..., _TRI6_INDEX]
 
 
+def pass_weighted(a6: Array, b: Array, sigma: tuple[float, float, float]) -> tuple[Array, Array]:
+    """Per pass, ``(W_p, b~_p) = ((I + A_p S)^-1 A_p, (I + A_p S)^-1 b_p)`` with ``S =
+    diag(sigma^2)``, from the pass's raw sums as 6-vector ``a6`` (k, 6) and ``b`` (k, 3).
+
+    ``W_p^-1 = A_p^-1 + S``: the pass's own estimate ``A_p^-1 b_p`` with the shared error
+    added to its covariance, and ``W_p A_p^-1 b_p = b~_p`` (defined for singular ``A_p``
+    too). Translating the origin by ``d`` moves ``b~_p`` by ``W_p d``, as it moves ``b_p``
+    by ``A_p d``. A pass with huge information brings about ``S^-1``:
+
+    >>> w, bt = pass_weighted(np.array([[1e6, 1e6, 1e6, 0, 0, 0]]), np.array([[1e6, 0, 0]]),
+    ...                       (2.0, 2.0, 2.0))
+    >>> w.round(4).tolist(), bt.round(4).tolist()
+    ([[0.25, 0.25, 0.25, 0.0, 0.0, 0.0]], [[0.25, 0.0, 0.0]])
+    """
+    s2 = np.square(np.asarray(sigma, float))
+    if not s2.any() or a6.shape[0] == 0:
+        return a6, b
+    a = sym_to_mat(a6)
+    m = np.eye(3) + a * s2[None, None, :]  # I + A S
+    # singular only for a compensated A_p with an eigenvalue near -1/s^2 (noise, or
+    # hostile input): such a pass enters unweighted
+    good = np.abs(np.linalg.det(m)) > 1e-9
+    m[~good] = np.eye(3)
+    w = np.linalg.solve(m, a)
+    bt = np.linalg.solve(m, b[..., None])[..., 0]
+    return mat_to_sym(0.5 * (w + np.swapaxes(w, -1, -2))), bt
+
+
 def apply_matrix(x: Array) -> Array:
     """``L(x)`` (..., 3, 6) with ``A x = L(x) alpha`` for the 6-vector ``alpha`` of ``A``.
 
@@ -199,6 +227,17 @@ class EstimatorConfig:
     max_open_passes: int = 8
     """Per landmark, passes kept open (partial sums kept so later rays of the same pass join
     the same cluster). Opening one more closes the least recently active one."""
+    pass_sigma_m: tuple[float, float, float] = (2.5, 2.5, 3.0)
+    """Standard deviation (E, N, U) of the position error all rays of one pass share (GNSS
+    bias, heading bias at range). Each pass enters the sums with the random-effects weight
+    ``W_p = (I + A_p S)^-1 A_p`` and ``b~_p = (I + A_p S)^-1 b_p`` (``S = diag(sigma^2)``)
+    instead of ``A_p``, ``b_p``: a pass brings at most ``S^-1`` of information however many
+    rays it has (generalised least squares under a per-pass bias). Zeros: rays count alone
+    (the paper's model). Only with ``cluster_robust`` (a pass is known)."""
+    pass_weighting_max_sigma_rad: float = 0.05
+    """A pass whose rays' RMS angular sigma (azimuth and elevation, as reported plus the
+    extra terms) exceeds this enters unweighted: its sums are then mostly noise, and a
+    weight computed from them (nonlinear in them) would bias the estimate."""
 
     @staticmethod
     def paper() -> EstimatorConfig:
@@ -213,6 +252,7 @@ class EstimatorConfig:
             model_floor=False,
             min_significance=0.0,
             min_realized_significance=0.0,
+            pass_sigma_m=(0.0, 0.0, 0.0),
         )
 
 

@@ -7,25 +7,32 @@ field      n     meaning (coordinates relative to the row's anchor)
 =========  ====  =============================================================
 anchor     3     fixed origin of the row's sums (its first position), tile ENU
 x_ref      3     reference position for the weights (last published estimate)
-A          6     sum of the (compensated) ray terms ``Q~_j`` (symmetric)
+A          6     sum over closed passes of ``W_p`` (symmetric), the pass-weighted sum
+                 ``A_p`` of its (compensated) ray terms ``Q~_j``
 J          6     sum of the predicted terms ``Q_ref,j`` (conditioning test)
-b          3     sum of ``Q~_j a_j`` (with the weight correction)
-S_AA       21    sum over closed passes of ``alpha_p alpha_p^T`` (symmetric 6x6)
-S_Ab       18    sum over closed passes of ``alpha_p b_p^T``
-S_bb       6     sum over closed passes of ``b_p b_p^T``
+b          3     sum over closed passes of ``b~_p``, from ``b_p = sum Q~_j a_j`` (with
+                 the weight correction)
+S_AA       21    sum over closed passes of ``alpha_p alpha_p^T`` (symmetric 6x6;
+                 ``alpha_p`` = ``W_p`` as a 6-vector)
+S_Ab       18    sum over closed passes of ``alpha_p b~_p^T``
+S_bb       6     sum over closed passes of ``b~_p b~_p^T``
 n_obs      1     rays (int64)
 n_closed   1     closed passes (int64)
 n_open     1     open passes (int64, derived from the open-pass table)
 =========  ====  =============================================================
 
 so 66 float64 + 3 int64 = 552 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
-packed: 549 bytes plus 96 per open pass).
+packed: 549 bytes plus 104 per open pass).
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
 interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
-``b_p`` (9 floats + cluster id, ray count, activity stamp: 96 bytes). ``A`` and ``b`` get
-every ray at once; only the sandwich sums wait for the pass to close. :meth:`solve`
-includes the open passes, so a result never depends on when a pass is closed — unless a
+``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance sum: 104
+bytes). A pass enters ``A``, ``b`` and the sandwich sums when it closes, with the
+random-effects weighting of
+:func:`hdmap.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S`` the
+configured ``pass_sigma_m`` squared: a pass brings at most ``S^-1`` of information,
+however many rays it has). :meth:`solve` includes the open passes the same way, so a
+result never depends on when a pass is closed — unless a
 ray of an already closed pass arrives, which then starts a new cluster (the covariance
 misses that pass's cross term). Eviction rule: a row keeps at most ``max_open_passes``
 open; opening one more closes the least recently active (the activity stamp is the row's
@@ -55,8 +62,10 @@ from hdmap.estimator.model import (
     EstimatorConfig,
     Rays,
     apply_matrix,
+    effective_sigmas,
     mat_to_sym,
     outer6_to_tri,
+    pass_weighted,
     predicted_information,
     ray_terms,
     sym_to_mat,
@@ -67,7 +76,11 @@ from hdmap.estimator.solve import Solution, solve_sums
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-PACK_VERSION = 1
+PACK_VERSION = 2
+_OLD_PACK_VERSIONS = (1,)
+"""Version 1 kept open passes' raw sums in ``A`` and ``b`` as well; they are taken out
+on load (its closed passes keep their unweighted sums; its open passes had no angular
+variance sum: treated as precise)."""
 _ROW_DTYPE = np.dtype(
     [
         ("anchor", "<f8", 3),
@@ -84,11 +97,22 @@ _ROW_DTYPE = np.dtype(
     ]
 )
 _OPEN_DTYPE = np.dtype(
+    [
+        ("cluster", "<i8"),
+        ("last", "<i8"),
+        ("n", "<i8"),
+        ("a6", "<f8", 6),
+        ("b", "<f8", 3),
+        ("s2", "<f8"),
+    ]
+)
+_OPEN_DTYPE_V1 = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )
 _ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
 _ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open")
 """The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
+_OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2")
 _ROW_FIELDS = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
 
 
@@ -136,6 +160,7 @@ class LandmarkSums:
         self._o_n = np.zeros(ocap, np.int64)
         self._o_a6 = np.zeros((ocap, 6))
         self._o_b = np.zeros((ocap, 3))
+        self._o_s2 = np.zeros(ocap)  # sum over the pass's rays of their angular variance
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -217,7 +242,7 @@ class LandmarkSums:
             s = self._o_hi
             self._o_hi += 1
             if s >= self._o_row.shape[0]:
-                for name in ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b"):
+                for name in _OPEN_ARRAYS:
                     old = getattr(self, name)
                     arr = np.zeros((2 * old.shape[0], *old.shape[1:]), old.dtype)
                     arr[: old.shape[0]] = old
@@ -228,6 +253,7 @@ class LandmarkSums:
         self._o_last[s] = self._o_n[s] = 0
         self._o_a6[s] = 0.0
         self._o_b[s] = 0.0
+        self._o_s2[s] = 0.0
         self._n_open[key[0]] += 1
         return s
 
@@ -235,13 +261,27 @@ class LandmarkSums:
         if slots.size == 0:
             return
         rows = self._o_row[slots]
-        a6, b = self._o_a6[slots], self._o_b[slots]
+        a6, b = self._weighted(slots)
+        _scatter_add(self._a6, rows, a6)
+        _scatter_add(self._b, rows, b)
         _scatter_add(self._saa, rows, outer6_to_tri(a6))
         _scatter_add(self._sab, rows, a6[:, :, None] * b[:, None, :])
         _scatter_add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
         _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
         _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
         self._release(slots)
+
+    def _weighted(self, slots: IntArray) -> tuple[Array, Array]:
+        """Open passes' raw sums -> what they add to ``A``, ``b`` (:func:`pass_weighted`;
+        passes of imprecise rays unweighted, see ``pass_weighting_max_sigma_rad``)."""
+        a6, b = self._o_a6[slots].copy(), self._o_b[slots].copy()
+        rms2 = self._o_s2[slots] / np.maximum(self._o_n[slots], 1)
+        precise = rms2 <= self.config.pass_weighting_max_sigma_rad**2
+        if precise.any():
+            a6[precise], b[precise] = pass_weighted(
+                a6[precise], b[precise], self.config.pass_sigma_m
+            )
+        return a6, b
 
     def _release(self, slots: IntArray) -> None:
         """Forget open slots (their sums already folded or dropped); free them in order."""
@@ -326,10 +366,10 @@ class LandmarkSums:
         )
         if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
             raise ValueError("non-finite ray terms (check directions and sigmas)")
-        _scatter_add(self._a6, r, alpha)
-        _scatter_add(self._b, r, beta)
         _scatter_add(self._n_obs, r, np.ones(n, np.int64))
         if not self.config.cluster_robust:
+            _scatter_add(self._a6, r, alpha)
+            _scatter_add(self._b, r, beta)
             _scatter_add(self._saa, r, outer6_to_tri(alpha))
             _scatter_add(self._sab, r, alpha[:, :, None] * beta[:, None, :])
             _scatter_add(self._sbb, r, mat_to_sym(beta[:, :, None] * beta[:, None, :]))
@@ -340,6 +380,9 @@ class LandmarkSums:
         starts = np.flatnonzero(np.r_[True, (rs[1:] != rs[:-1]) | (cs[1:] != cs[:-1])])
         g_a6 = np.add.reduceat(alpha[order], starts, axis=0)
         g_b = np.add.reduceat(beta[order], starts, axis=0)
+        s_az, s_el = effective_sigmas(rays, self.config)
+        var = np.broadcast_to(0.5 * (s_az**2 + s_el**2), (n,))
+        g_s2 = np.add.reduceat(var[order], starts)
         g_n = np.diff(np.r_[starts, n])
         g_r, g_c = rs[starts], cs[starts]
         slots = np.empty(starts.size, np.int64)
@@ -348,6 +391,7 @@ class LandmarkSums:
             slots[i] = self._alloc_slot(key) if s is None else s
         self._o_a6[slots] += g_a6
         self._o_b[slots] += g_b
+        self._o_s2[slots] += g_s2
         self._o_n[slots] += g_n
         self._o_last[slots] = self._n_obs[g_r]
         self._evict(np.unique(g_r))
@@ -363,17 +407,20 @@ class LandmarkSums:
         r = self._check_rows(rows)
         uniq, inv = np.unique(r, return_inverse=True)
         saa, sab, sbb = self._saa[uniq].copy(), self._sab[uniq].copy(), self._sbb[uniq].copy()
+        a_all, b_all = self._a6[uniq].copy(), self._b[uniq].copy()
         n_cl = self._n_closed[uniq] + self._n_open[uniq]
         slots = self._slots_of(uniq)
         if slots.size:
             pos = np.searchsorted(uniq, self._o_row[slots])
-            a6, b = self._o_a6[slots], self._o_b[slots]
+            a6, b = self._weighted(slots)
+            _scatter_add(a_all, pos, a6)
+            _scatter_add(b_all, pos, b)
             _scatter_add(saa, pos, outer6_to_tri(a6))
             _scatter_add(sab, pos, a6[:, :, None] * b[:, None, :])
             _scatter_add(sbb, pos, mat_to_sym(b[:, :, None] * b[:, None, :]))
         sol = solve_sums(
-            self._a6[uniq],
-            self._b[uniq],
+            a_all,
+            b_all,
             saa,
             sab,
             sbb,
@@ -466,6 +513,7 @@ class LandmarkSums:
             self._o_a6[to] += a6o
             self._o_b[to] += bo
             self._o_n[to] += self._o_n[sl]
+            self._o_s2[to] += self._o_s2[sl]
             self._o_last[to] = max(self._o_last[to], self._o_last[sl])
         self._release(mine)
         for name in _ROW_ARRAYS:
@@ -490,7 +538,7 @@ class LandmarkSums:
                 self._o_last[mine],
                 self._o_n[mine],
             )
-            op["a6"], op["b"] = self._o_a6[mine], self._o_b[mine]
+            op["a6"], op["b"], op["s2"] = self._o_a6[mine], self._o_b[mine], self._o_s2[mine]
             out.append(bytes([PACK_VERSION]) + rec.tobytes() + op.tobytes())
         return out
 
@@ -505,7 +553,7 @@ class LandmarkSums:
                 raise ValueError("rows and blobs differ in length")
             self._release(self._slots_of(r))
         for row, blob in zip(r.tolist(), blobs, strict=True):
-            if not blob or blob[0] != PACK_VERSION:
+            if not blob or blob[0] not in (PACK_VERSION, *_OLD_PACK_VERSIONS):
                 raise ValueError("unknown landmark state version")
             rec = np.frombuffer(blob, _ROW_DTYPE, count=1, offset=1)[0]
             for f in _ROW_FIELDS:
@@ -513,10 +561,16 @@ class LandmarkSums:
                     getattr(self, "_" + f)[row].shape
                 )
             k = int(rec["n_open"])
-            op = np.frombuffer(blob, _OPEN_DTYPE, count=k, offset=1 + _ROW_DTYPE.itemsize)
+            old = blob[0] == 1
+            dt = _OPEN_DTYPE_V1 if old else _OPEN_DTYPE
+            op = np.frombuffer(blob, dt, count=k, offset=1 + _ROW_DTYPE.itemsize)
             self._n_open[row] = 0
             for o in op:
                 s = self._alloc_slot((row, int(o["cluster"])))
                 self._o_last[s], self._o_n[s] = int(o["last"]), int(o["n"])
                 self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
+                self._o_s2[s] = 0.0 if old else float(o["s2"])
+                if old and self.config.cluster_robust:
+                    self._a6[row] -= o["a6"]
+                    self._b[row] -= o["b"]
         return r
