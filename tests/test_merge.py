@@ -40,12 +40,12 @@ def tile_of(zoom: int) -> str:
     return str(quadkeys_of(np.array([LAT]), np.array([LON]), zoom)[0])
 
 
-def sign_rays(frame, p: int, rng, from_north: bool = False, n: int = 10, image0: int = 0):
-    """One pass's rays at the sign (obs ids unique per pass)."""
+def sign_rays(frame, p: int, rng, from_north: bool = False, n: int = 10, image0: int = 0, at=SIGN):
+    """One pass's rays at the sign ``at`` (obs ids unique per pass)."""
     ys = np.linspace(0.0, 22.0, n) if not from_north else np.linspace(60.0, 38.0, n)
     a = np.stack([np.full(n, 8.0 if from_north else 12.0), ys, np.full(n, 1.5)], 1)
     a_meas = a + np.r_[rng.normal(0, 1.0, 2), 0.0]  # the pass's shared bias
-    v = SIGN - a + rng.normal(0, 0.01, (n, 3)) * np.linalg.norm(SIGN - a, axis=1)[:, None]
+    v = at - a + rng.normal(0, 0.01, (n, 3)) * np.linalg.norm(at - a, axis=1)[:, None]
     d = v / np.linalg.norm(v, axis=1, keepdims=True)
     lat, lon, h = frame.to_geodetic(a_meas)
     return Observations(

@@ -32,7 +32,7 @@ from hdmap.association import Association, GateConfig, LocalRays, associate
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import prior_covariance, usable
 from hdmap.geodesy import GEODESY
-from hdmap.initiation import InitConfig, propose
+from hdmap.initiation import InitConfig, propose, triangulate
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
 from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
@@ -55,6 +55,13 @@ class MatcherConfig:
     """Gate with the solution's covariance plus the pass-bias prior over its passes
     (``diag(bias^2) / G``): the between-pass covariance of a few passes is itself noisy,
     and a gate that is too tight splits one sign into several landmarks."""
+    group_check: bool = True
+    """The rays of one unit given to one landmark must meet near it: their own
+    triangulation (origins moved by the unit's offset) against the landmark, chi-square
+    (3 dof) under both covariances and the offset's. Rays of a neighbouring sign of the
+    class pass the per-ray gate one by one, but they meet at their own sign."""
+    group_chi2: float = 16.27
+    group_min_rays: int = 2
     merge: bool = True
     """Merge landmarks found to be one sign (step 5 of the module doc)."""
     merge_chi2: float = 16.27
@@ -205,7 +212,7 @@ class MatcherService(StageService):
             cov = np.array([c.cov for c in cands])
             cls = np.array([c.cls for c in cands], np.int64)
             res: Association = associate(rays, x, cov, cls, self.config.gate)
-            matched = res.landmark
+            matched = self._group_check(rays, res, x, cov)
             n_hit = int((matched >= 0).sum())
             trust.add_gate(int(np.isin(rays.sign_class, cls).sum()), n_hit)
             if n_hit >= self.config.gate.min_offset_rays:
@@ -232,6 +239,33 @@ class MatcherService(StageService):
         touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id, new_classes)
         self._refresh(sorted(touched))
         self._merge_touched(sorted(touched))
+
+    def _group_check(
+        self, rays: LocalRays, res: Association, x: np.ndarray, cov: np.ndarray
+    ) -> np.ndarray:
+        """``res.landmark`` without the groups whose rays meet elsewhere (see config)."""
+        out = res.landmark.copy()
+        cfg = self.config
+        if not cfg.group_check:
+            return out
+        moved = replace(rays, origin=rays.origin + res.offset)
+        for k in np.unique(out[out >= 0]).tolist():
+            idx = np.flatnonzero(out == k)
+            if idx.size < cfg.group_min_rays:
+                continue
+            xt, ct = triangulate(moved.take(idx))
+            c = ct + cov[k] + res.offset_cov
+            if not (np.isfinite(xt).all() and np.isfinite(c).all()):
+                continue
+            d = xt - x[k]
+            try:
+                chi2 = float(d @ np.linalg.solve(c, d))
+            except np.linalg.LinAlgError:
+                continue
+            if chi2 > cfg.group_chi2:
+                out[idx] = -1
+                self.count("group_rejected", int(idx.size))
+        return out
 
     def _link(
         self, obs: Observations, lms: list[Landmark], vehicle: str, pass_id: int, received: float
