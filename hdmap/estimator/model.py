@@ -109,11 +109,12 @@ def tri_to_mat6(t: ArrayLike) -> Array:
     return a[..., _TRI6_INDEX]
 
 
-def pass_weighted(a6: Array, b: Array, sigma: tuple[float, float, float]) -> tuple[Array, Array]:
+def pass_weighted(a6: Array, b: Array, sigma: ArrayLike) -> tuple[Array, Array]:
     """Per pass, ``(W_p, b~_p) = ((I + A_p S)^-1 A_p, (I + A_p S)^-1 b_p)`` with ``S =
     diag(sigma^2)``, from the pass's raw sums as 6-vector ``a6`` (k, 6) and ``b`` (k, 3).
 
-    ``W_p^-1 = A_p^-1 + S``: the pass's own estimate ``A_p^-1 b_p`` with the shared error
+    ``sigma`` is (3,) or per pass (k, 3). ``W_p^-1 = A_p^-1 + S``: the pass's own
+    estimate ``A_p^-1 b_p`` with the shared error
     added to its covariance, and ``W_p A_p^-1 b_p = b~_p`` (defined for singular ``A_p``
     too). Translating the origin by ``d`` moves ``b~_p`` by ``W_p d``, as it moves ``b_p``
     by ``A_p d``. A pass with huge information brings about ``S^-1``:
@@ -127,7 +128,7 @@ def pass_weighted(a6: Array, b: Array, sigma: tuple[float, float, float]) -> tup
     if not s2.any() or a6.shape[0] == 0:
         return a6, b
     a = sym_to_mat(a6)
-    m = np.eye(3) + a * s2[None, None, :]  # I + A S
+    m = np.eye(3) + a * np.broadcast_to(s2, (a6.shape[0], 3))[:, None, :]  # I + A S
     # singular only for a compensated A_p with an eigenvalue near -1/s^2 (noise, or
     # hostile input): such a pass enters unweighted
     good = np.abs(np.linalg.det(m)) > 1e-9

@@ -190,8 +190,14 @@ def solve_sums(
     n_clusters: IntArray,
     cfg: EstimatorConfig,
     j6: Array | None = None,
+    floor_scale: Array | None = None,
 ) -> Solution:
-    """Solve every landmark from its sums (all coordinates relative to its anchor)."""
+    """Solve every landmark from its sums (all coordinates relative to its anchor).
+
+    ``floor_scale`` (per landmark, default 1) multiplies the model floor ``A^-1``: with ray
+    weights ``c`` (a vehicle's trust) it is ``sum c^2 / sum c``, the weighted least
+    squares variance for equal true variances (weights all 0.05 give the same floor as
+    weights all 1)."""
     m = a6.shape[0]
     amat = sym_to_mat(a6)
     lam, vec = np.linalg.eigh(amat)
@@ -212,7 +218,8 @@ def solve_sums(
         cov = v_s + second_order_term(v_s, amat, k, saa, g)
     cov = kappa[:, None, None] * cov
     if cfg.model_floor and cfg.weighting == "inverse_variance":
-        cov = loewner_max(cov, k)
+        fs = np.ones(m) if floor_scale is None else np.asarray(floor_scale, float)
+        cov = loewner_max(cov, k * fs[:, None, None])
     bias = np.zeros((m, 3))
     if cfg.bias_correction:
         bias = np.where((g >= 2)[:, None], bias_estimate(x_raw, k, saa, sab), 0.0)

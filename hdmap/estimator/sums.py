@@ -19,15 +19,17 @@ S_bb       6     sum over closed passes of ``b~_p b~_p^T``
 n_obs      1     rays (int64)
 n_closed   1     closed passes (int64)
 n_open     1     open passes (int64, derived from the open-pass table)
+w1, w2     2     sums of the rays' weights and of their squares (``Rays.weight``: a
+                 vehicle's trust; they scale the model floor of the covariance)
 =========  ====  =============================================================
 
-so 66 float64 + 3 int64 = 552 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
-packed: 549 bytes plus 104 per open pass).
+so 68 float64 + 3 int64 = 568 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
+packed: 565 bytes plus 112 per open pass).
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
 interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
-``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance sum: 104
-bytes). A pass enters ``A``, ``b`` and the sandwich sums when it closes, with the
+``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance and ray
+weight sums: 112 bytes). A pass enters ``A``, ``b`` and the sandwich sums when it closes, with the
 random-effects weighting of
 :func:`hdmap.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S`` the
 configured ``pass_sigma_m`` squared: a pass brings at most ``S^-1`` of information,
@@ -45,7 +47,7 @@ ray count at the pass's last ray, so the rule is deterministic and survives
 >>> s = LandmarkSums(capacity=2)
 >>> rows = s.new_rows(1, np.array([[0.0, 20.0, 2.0]]))
 >>> rows.tolist(), s.bytes_per_landmark, len(s.pack_rows(rows)[0])
-([0], 552, 549)
+([0], 568, 565)
 """
 
 from __future__ import annotations
@@ -76,12 +78,13 @@ from hdmap.estimator.solve import Solution, solve_sums
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-PACK_VERSION = 2
-_OLD_PACK_VERSIONS = (1,)
+PACK_VERSION = 3
+_OLD_PACK_VERSIONS = (1, 2)
 """Version 1 kept open passes' raw sums in ``A`` and ``b`` as well; they are taken out
 on load (its closed passes keep their unweighted sums; its open passes had no angular
-variance sum: treated as precise)."""
-_ROW_DTYPE = np.dtype(
+variance sum: treated as precise). Versions 1 and 2 had no ray weight sums: taken as
+weights of 1."""
+_ROW_DTYPE_V2 = np.dtype(
     [
         ("anchor", "<f8", 3),
         ("x_ref", "<f8", 3),
@@ -96,6 +99,7 @@ _ROW_DTYPE = np.dtype(
         ("n_open", "<i4"),
     ]
 )
+_ROW_DTYPE = np.dtype([*_ROW_DTYPE_V2.descr, ("w1", "<f8"), ("w2", "<f8")])
 _OPEN_DTYPE = np.dtype(
     [
         ("cluster", "<i8"),
@@ -104,16 +108,18 @@ _OPEN_DTYPE = np.dtype(
         ("a6", "<f8", 6),
         ("b", "<f8", 3),
         ("s2", "<f8"),
+        ("w", "<f8"),
     ]
 )
 _OPEN_DTYPE_V1 = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )
 _ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
-_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open")
+_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2")
 """The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
-_OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2")
-_ROW_FIELDS = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
+_OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2", "_o_w")
+_ROW_FIELDS_V2 = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
+_ROW_FIELDS = (*_ROW_FIELDS_V2, "w1", "w2")
 
 
 def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
@@ -148,6 +154,8 @@ class LandmarkSums:
         self._n_obs = np.zeros(cap, np.int64)
         self._n_closed = np.zeros(cap, np.int64)
         self._n_open = np.zeros(cap, np.int64)
+        self._w1 = np.zeros(cap)  # sum of the rays' weights (Rays.weight, default 1)
+        self._w2 = np.zeros(cap)  # sum of their squares (the model floor's scale)
         # open (landmark, pass) partial sums; slots recycled through a free list
         self._slot: dict[tuple[int, int], int] = {}
         self._row_slots: dict[int, list[int]] = {}  # row -> its open slots (any order)
@@ -161,6 +169,7 @@ class LandmarkSums:
         self._o_a6 = np.zeros((ocap, 6))
         self._o_b = np.zeros((ocap, 3))
         self._o_s2 = np.zeros(ocap)  # sum over the pass's rays of their angular variance
+        self._o_w = np.zeros(ocap)  # sum of the rays' weights (Rays.weight, default 1)
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -254,6 +263,7 @@ class LandmarkSums:
         self._o_a6[s] = 0.0
         self._o_b[s] = 0.0
         self._o_s2[s] = 0.0
+        self._o_w[s] = 0.0
         self._n_open[key[0]] += 1
         return s
 
@@ -275,12 +285,15 @@ class LandmarkSums:
         """Open passes' raw sums -> what they add to ``A``, ``b`` (:func:`pass_weighted`;
         passes of imprecise rays unweighted, see ``pass_weighting_max_sigma_rad``)."""
         a6, b = self._o_a6[slots].copy(), self._o_b[slots].copy()
-        rms2 = self._o_s2[slots] / np.maximum(self._o_n[slots], 1)
+        n = np.maximum(self._o_n[slots], 1)
+        rms2 = self._o_s2[slots] / n
         precise = rms2 <= self.config.pass_weighting_max_sigma_rad**2
         if precise.any():
-            a6[precise], b[precise] = pass_weighted(
-                a6[precise], b[precise], self.config.pass_sigma_m
-            )
+            # rays weighted by c (a vehicle's trust) carry c A_p: the pass's weight is
+            # c W_p(A_p), that is W for c A_p with S / c (weighting passes, not only rays)
+            c = np.maximum(self._o_w[slots][precise] / n[precise], 1e-12)
+            sigma = np.asarray(self.config.pass_sigma_m, float)[None, :] / np.sqrt(c)[:, None]
+            a6[precise], b[precise] = pass_weighted(a6[precise], b[precise], sigma)
         return a6, b
 
     def _release(self, slots: IntArray) -> None:
@@ -367,6 +380,9 @@ class LandmarkSums:
         if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
             raise ValueError("non-finite ray terms (check directions and sigmas)")
         _scatter_add(self._n_obs, r, np.ones(n, np.int64))
+        wr = rays.weights_or_ones()
+        _scatter_add(self._w1, r, np.broadcast_to(wr, (n,)).copy())
+        _scatter_add(self._w2, r, np.broadcast_to(wr**2, (n,)).copy())
         if not self.config.cluster_robust:
             _scatter_add(self._a6, r, alpha)
             _scatter_add(self._b, r, beta)
@@ -383,6 +399,7 @@ class LandmarkSums:
         s_az, s_el = effective_sigmas(rays, self.config)
         var = np.broadcast_to(0.5 * (s_az**2 + s_el**2), (n,))
         g_s2 = np.add.reduceat(var[order], starts)
+        g_w = np.add.reduceat(rays.weights_or_ones()[order], starts)
         g_n = np.diff(np.r_[starts, n])
         g_r, g_c = rs[starts], cs[starts]
         slots = np.empty(starts.size, np.int64)
@@ -392,6 +409,7 @@ class LandmarkSums:
         self._o_a6[slots] += g_a6
         self._o_b[slots] += g_b
         self._o_s2[slots] += g_s2
+        self._o_w[slots] += g_w
         self._o_n[slots] += g_n
         self._o_last[slots] = self._n_obs[g_r]
         self._evict(np.unique(g_r))
@@ -428,6 +446,9 @@ class LandmarkSums:
             n_cl,
             self.config,
             self._j6[uniq],
+            floor_scale=np.divide(
+                self._w2[uniq], self._w1[uniq], out=np.ones(uniq.size), where=self._w1[uniq] > 0
+            ),
         )
         if update_reference:
             ok = sol.ok
@@ -502,6 +523,8 @@ class LandmarkSums:
         sbb = r @ sym_to_mat(self._sbb[s_row]) @ r.T + cross + cross.T + lm @ saa @ lm.T
         self._sbb[d_row] += mat_to_sym(sbb)
         self._n_obs[d_row] += self._n_obs[s_row]
+        self._w1[d_row] += self._w1[s_row]
+        self._w2[d_row] += self._w2[s_row]
         self._n_closed[d_row] += self._n_closed[s_row]
         mine = np.sort(np.array(self._row_slots.get(s_row, ()), np.int64))
         for sl in mine.tolist():
@@ -514,6 +537,7 @@ class LandmarkSums:
             self._o_b[to] += bo
             self._o_n[to] += self._o_n[sl]
             self._o_s2[to] += self._o_s2[sl]
+            self._o_w[to] += self._o_w[sl]
             self._o_last[to] = max(self._o_last[to], self._o_last[sl])
         self._release(mine)
         for name in _ROW_ARRAYS:
@@ -539,6 +563,7 @@ class LandmarkSums:
                 self._o_n[mine],
             )
             op["a6"], op["b"], op["s2"] = self._o_a6[mine], self._o_b[mine], self._o_s2[mine]
+            op["w"] = self._o_w[mine]
             out.append(bytes([PACK_VERSION]) + rec.tobytes() + op.tobytes())
         return out
 
@@ -555,21 +580,29 @@ class LandmarkSums:
         for row, blob in zip(r.tolist(), blobs, strict=True):
             if not blob or blob[0] not in (PACK_VERSION, *_OLD_PACK_VERSIONS):
                 raise ValueError("unknown landmark state version")
-            rec = np.frombuffer(blob, _ROW_DTYPE, count=1, offset=1)[0]
-            for f in _ROW_FIELDS:
+            row_dt, fields = (
+                (_ROW_DTYPE, _ROW_FIELDS)
+                if blob[0] == PACK_VERSION
+                else (_ROW_DTYPE_V2, _ROW_FIELDS_V2)
+            )
+            rec = np.frombuffer(blob, row_dt, count=1, offset=1)[0]
+            for f in fields:
                 getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
                     getattr(self, "_" + f)[row].shape
                 )
+            if blob[0] != PACK_VERSION:
+                self._w1[row] = self._w2[row] = float(rec["n_obs"])
             k = int(rec["n_open"])
             old = blob[0] == 1
             dt = _OPEN_DTYPE_V1 if old else _OPEN_DTYPE
-            op = np.frombuffer(blob, dt, count=k, offset=1 + _ROW_DTYPE.itemsize)
+            op = np.frombuffer(blob, dt, count=k, offset=1 + row_dt.itemsize)
             self._n_open[row] = 0
             for o in op:
                 s = self._alloc_slot((row, int(o["cluster"])))
                 self._o_last[s], self._o_n[s] = int(o["last"]), int(o["n"])
                 self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
                 self._o_s2[s] = 0.0 if old else float(o["s2"])
+                self._o_w[s] = float(o["n"]) if old else float(o["w"])
                 if old and self.config.cluster_robust:
                     self._a6[row] -= o["a6"]
                     self._b[row] -= o["b"]

@@ -37,7 +37,7 @@ from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
 from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
 from services.matcher.state import Landmark, MatcherState, pass_key
-from services.matcher.trust import TrustConfig
+from services.matcher.trust import TrustConfig, fleet_reference
 
 log = logging.getLogger(__name__)
 
@@ -155,16 +155,23 @@ class MatcherService(StageService):
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
         self._flagged: dict[str, tuple[float, float]] = {}
+        ref = self._fleet_ref()
         for v, t in self.state.trust.items():
-            self._note_trust(v, t)
+            self._note_trust(v, t, ref)
 
-    def _note_trust(self, vehicle: str, t) -> None:
+    def _note_trust(self, vehicle: str, t, ref: np.ndarray | None) -> None:
         """Keep (weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
-        w, c = t.weight(self.config.trust), t.chi2()
+        w, c = t.weight(self.config.trust, ref), t.chi2(ref)
         if w < 1.0 or c > self.config.trust.chi2_gate:
             self._flagged[vehicle] = (w, c)
         else:
             self._flagged.pop(vehicle, None)
+
+    def _fleet_ref(self) -> np.ndarray | None:
+        """The fleet's reference offset for the trust test (None while trust is off)."""
+        if not self.config.trust.enabled:
+            return None
+        return fleet_reference(self.state.trust.values(), self.config.trust)
 
     def on_commit(self) -> None:
         pass
@@ -199,8 +206,9 @@ class MatcherService(StageService):
         trust = self.state.trust_of(g.vehicle_id)
         obs = g.obs
         applied = np.zeros(2)
-        if trust.suspect(self.config.trust):
-            applied = trust.mean_offset()
+        ref = self._fleet_ref()
+        if trust.suspect(self.config.trust, ref):
+            applied = trust.mean_offset(ref)
             obs = shift_origins(frame, obs, applied)
             self.count("shift_corrected", len(obs))
         rays = to_local(frame, obs)
@@ -217,8 +225,8 @@ class MatcherService(StageService):
             trust.add_gate(int(np.isin(rays.sign_class, cls).sum()), n_hit)
             if n_hit >= self.config.gate.min_offset_rays:
                 raw = res.offset[:2] + applied  # the vehicle's own offset, before correction
-                trust.add_offset(raw, res.offset_cov, self.config.trust.bias_sigma_m)
-            self._note_trust(g.vehicle_id, trust)
+                trust.add_offset(raw, res.offset_cov, self.config.trust.bias_sigma_m, g.pass_id)
+            self._note_trust(g.vehicle_id, trust, self._fleet_ref())
         hit = matched >= 0
         self.count("received", len(rays))
         self.count("associated", int(hit.sum()))
@@ -275,7 +283,7 @@ class MatcherService(StageService):
             return
         self.count("linked", len(obs))
         t = self.state.trust.get(vehicle)
-        weight = 1.0 if t is None else t.weight(self.config.trust)
+        weight = 1.0 if t is None else t.weight(self.config.trust, self._fleet_ref())
         if weight < 1.0:
             self.count("downweighted", len(obs))
         key = pass_key(vehicle, pass_id)

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from hdmap.store import i64_to_u64, u64_to_i64
 from hdmap.tiles import tile_id
 from schemas import Observations
-from services.matcher.trust import VehicleTrust
+from services.matcher.trust import PassOffsets, VehicleTrust
 
 _REC = Observations.CODEC.record_dtype
 
@@ -35,6 +35,9 @@ CREATE TABLE IF NOT EXISTS trust (
     vehicle TEXT PRIMARY KEY, n INTEGER NOT NULL, i_ee REAL NOT NULL, i_en REAL NOT NULL,
     i_nn REAL NOT NULL, sx REAL NOT NULL, sy REAL NOT NULL,
     offered INTEGER NOT NULL, passed INTEGER NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS trust_pass (
+    vehicle TEXT PRIMARY KEY, pass_id INTEGER NOT NULL, i_ee REAL NOT NULL, i_en REAL NOT NULL,
+    i_nn REAL NOT NULL, sx REAL NOT NULL, sy REAL NOT NULL, bias REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
@@ -297,6 +300,14 @@ class MatcherState:
             "VALUES (?,?,?,?,?,?,?,?,?)",
             [(v, *self.trust[v].as_row()) for v in sorted(self._trust_dirty)],
         )
+        c.executemany(
+            "INSERT OR REPLACE INTO trust_pass(vehicle, pass_id, i_ee, i_en, i_nn, sx, sy, bias) "
+            "VALUES (?,?,?,?,?,?,?,?)",
+            [
+                (v, *self.trust[v].current.as_row(), self.trust[v].bias_sigma_m)
+                for v in sorted(self._trust_dirty)
+            ],
+        )
         for tile in sorted(self._pending_dirty):
             p = self.pending.get(tile)
             if p is None or not len(p):
@@ -347,6 +358,13 @@ class MatcherState:
                 "SELECT vehicle, n, i_ee, i_en, i_nn, sx, sy, offered, passed FROM trust"
             )
         }
+        for v, pid, *sums, bias in c.execute(
+            "SELECT vehicle, pass_id, i_ee, i_en, i_nn, sx, sy, bias FROM trust_pass"
+        ):
+            t = self.trust.get(v)
+            if t is not None:
+                t.current = PassOffsets(int(pid), *map(float, sums))
+                t.bias_sigma_m = float(bias)
         rows = c.execute(
             "SELECT id, cls, home, tile, x, cov, sums, created_at FROM landmarks ORDER BY id"
         ).fetchall()
