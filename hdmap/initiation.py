@@ -66,24 +66,39 @@ not make one ray's weight infinite."""
 def triangulate(rays: LocalRays, ranges: bool = True) -> tuple[Array, Array]:
     """Least-squares point of rays (bearing terms + range pseudo-measurements) and its cov
     (NaN where the rays fix no point)."""
+    x, cov = triangulate_groups(rays, np.zeros(len(rays), np.int64), 1, ranges)
+    return x[0], cov[0]
+
+
+def triangulate_groups(
+    rays: LocalRays, groups: NDArray[np.int64], k: int, ranges: bool = True
+) -> tuple[Array, Array]:
+    """:func:`triangulate` of the rays of each group ``0..k-1`` at once: points (k, 3) and
+    covariances (k, 3, 3), NaN where a group fixes no point (or has no rays)."""
     d, a = rays.direction, rays.origin
+    g = np.asarray(groups, np.int64)
     r_hat = np.where(rays.range_m > 0, rays.range_m, DEFAULT_RANGE_M)
     s_ang2 = np.maximum((rays.sigma_az**2 + rays.sigma_el**2) / 2.0, MIN_SIGMA_ANGLE_RAD**2)
     w = 1.0 / (r_hat**2 * s_ang2 + np.maximum(rays.sigma_pos_h, MIN_SIGMA_POS_M) ** 2)
-    p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    big_a = np.einsum("k,kij->ij", w, p)
-    b = np.einsum("k,kij,kj->i", w, p, a)
+    dd = d[:, :, None] * d[:, None, :]
+    wp = w[:, None, None] * (np.eye(3)[None] - dd)
+    big_a = np.zeros((k, 3, 3))
+    b = np.zeros((k, 3))
+    np.add.at(big_a, g, wp)
+    np.add.at(b, g, np.einsum("nij,nj->ni", wp, a))
     if ranges:
         has = (rays.range_m > 0) & (rays.sigma_range_m > 0)
         s_r = np.maximum(np.where(has, rays.sigma_range_m, 1.0), MIN_SIGMA_RANGE_M)
         v = np.where(has, 1.0 / s_r**2, 0.0)
-        dd = d[:, :, None] * d[:, None, :]
-        big_a = big_a + np.einsum("k,kij->ij", v, dd)
-        b = b + np.einsum("k,ki,k->i", v, d, np.einsum("ki,ki->k", d, a) + rays.range_m)
-    if not (np.isfinite(big_a).all() and np.isfinite(b).all()):
-        return np.full(3, np.nan), np.full((3, 3), np.nan)
-    cov = np.linalg.pinv(big_a)
-    return cov @ b, cov
+        np.add.at(big_a, g, v[:, None, None] * dd)
+        np.add.at(b, g, (v * (np.einsum("ki,ki->k", d, a) + rays.range_m))[:, None] * d)
+    good = np.isfinite(big_a).all(axis=(1, 2)) & np.isfinite(b).all(axis=1)
+    good &= np.bincount(g, minlength=k)[:k] > 0
+    cov = np.full((k, 3, 3), np.nan)
+    if good.any():
+        cov[good] = np.linalg.pinv(big_a[good])
+    x = np.einsum("kij,kj->ki", cov, b)
+    return x, cov
 
 
 def bearing_spread(rays: LocalRays, x: Array) -> float:

@@ -28,16 +28,23 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hdmap.association import Association, GateConfig, LocalRays, associate
+from hdmap.association import (
+    Association,
+    GateConfig,
+    LocalRays,
+    associate,
+    origin_cov,
+    pair_chi2,
+)
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import prior_covariance, usable
 from hdmap.geodesy import GEODESY
-from hdmap.initiation import InitConfig, propose, triangulate
+from hdmap.initiation import InitConfig, propose, triangulate_groups
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
 from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
 from services.matcher.state import Landmark, MatcherState, pass_key
-from services.matcher.trust import TrustConfig, fleet_reference
+from services.matcher.trust import FleetOffsets, TrustConfig
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +82,9 @@ class MatcherConfig:
     merge_min_view_cos: float = 0.5
     """Smallest cosine between the two landmarks' mean viewing directions."""
     merge_min_passes: int = 5
-    """Both landmarks need this many passes (younger estimates are too rough to merge on)."""
+    """Both landmarks need this many passes (younger estimates are too rough to merge on).
+    A landmark looks for a partner at each of its passes up to twice this, then at every
+    third (the search is most of a unit's cost otherwise)."""
     provisional_passes: int = 0
     """If > 0, gating estimates follow the landmark's solution from this many passes on
     (before the estimator's ``min_clusters``, with the pass-bias prior in the covariance;
@@ -142,6 +151,7 @@ class MatcherService(StageService):
         super().__init__(opts)
         self.config = config or MatcherConfig()
         self.frames = TileFrames()
+        self._areas: dict[str, list[str]] = {}
         self.sums = LandmarkSums(self.config.estimator)
         self.state = MatcherState(self.db)
         self._reload()
@@ -155,6 +165,9 @@ class MatcherService(StageService):
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
         self._flagged: dict[str, tuple[float, float]] = {}
+        self._fleet = FleetOffsets(self.config.trust)
+        for v, t in sorted(self.state.trust.items()):
+            self._fleet.update(v, t)
         ref = self._fleet_ref()
         for v, t in self.state.trust.items():
             self._note_trust(v, t, ref)
@@ -167,11 +180,18 @@ class MatcherService(StageService):
         else:
             self._flagged.pop(vehicle, None)
 
+    def _area(self, tile: str) -> list[str]:
+        """``tile`` and its 8 neighbours (cached: mercantile costs ~0.1 ms a call)."""
+        a = self._areas.get(tile)
+        if a is None:
+            a = self._areas[tile] = [tile, *neighbours(tile)]
+        return a
+
     def _fleet_ref(self) -> np.ndarray | None:
         """The fleet's reference offset for the trust test (None while trust is off)."""
         if not self.config.trust.enabled:
             return None
-        return fleet_reference(self.state.trust.values(), self.config.trust)
+        return self._fleet.reference()
 
     def on_commit(self) -> None:
         pass
@@ -212,7 +232,7 @@ class MatcherService(StageService):
             obs = shift_origins(frame, obs, applied)
             self.count("shift_corrected", len(obs))
         rays = to_local(frame, obs)
-        area = [tile, *neighbours(tile)]
+        area = self._area(tile)
         cands = self.state.near(area)
         matched = np.full(len(rays), -1, np.int64)
         if cands:
@@ -226,6 +246,7 @@ class MatcherService(StageService):
             if n_hit >= self.config.gate.min_offset_rays:
                 raw = res.offset[:2] + applied  # the vehicle's own offset, before correction
                 trust.add_offset(raw, res.offset_cov, self.config.trust.bias_sigma_m, g.pass_id)
+            self._fleet.update(g.vehicle_id, trust)
             self._note_trust(g.vehicle_id, trust, self._fleet_ref())
         hit = matched >= 0
         self.count("received", len(rays))
@@ -256,23 +277,28 @@ class MatcherService(StageService):
         cfg = self.config
         if not cfg.group_check:
             return out
-        moved = replace(rays, origin=rays.origin + res.offset)
-        for k in np.unique(out[out >= 0]).tolist():
-            idx = np.flatnonzero(out == k)
-            if idx.size < cfg.group_min_rays:
-                continue
-            xt, ct = triangulate(moved.take(idx))
-            c = ct + cov[k] + res.offset_cov
-            if not (np.isfinite(xt).all() and np.isfinite(c).all()):
-                continue
-            d = xt - x[k]
-            try:
-                chi2 = float(d @ np.linalg.solve(c, d))
-            except np.linalg.LinAlgError:
-                continue
-            if chi2 > cfg.group_chi2:
-                out[idx] = -1
-                self.count("group_rejected", int(idx.size))
+        hit = np.flatnonzero(out >= 0)
+        if hit.size == 0:
+            return out
+        lms, grp, n = np.unique(out[hit], return_inverse=True, return_counts=True)
+        moved = replace(rays.take(hit), origin=rays.origin[hit] + res.offset)
+        xt, ct = triangulate_groups(moved, grp, lms.size)
+        c = ct + cov[lms] + res.offset_cov
+        d = xt - x[lms]
+        test = (
+            (n >= cfg.group_min_rays) & np.isfinite(d).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
+        )
+        test &= np.abs(np.linalg.det(np.where(test[:, None, None], c, np.eye(3)))) > 1e-12
+        chi2 = np.zeros(lms.size)
+        if test.any():
+            chi2[test] = np.einsum(
+                "ki,ki->k", d[test], np.linalg.solve(c[test], d[test][:, :, None])[:, :, 0]
+            )
+        bad = test & (chi2 > cfg.group_chi2)
+        if bad.any():
+            drop = np.isin(out, lms[bad])
+            out[drop] = -1
+            self.count("group_rejected", int(drop.sum()))
         return out
 
     def _link(
@@ -396,6 +422,16 @@ class MatcherService(StageService):
             if cand.size == 0:
                 continue
             local = to_local(frame, p.obs.take(cand))
+            # a unit none of whose rays passes the wide gate (the first step of associate)
+            # cannot be associated: offer only the others (exact, and the pool can be large)
+            g = self.config.gate
+            ri, li = np.nonzero(local.sign_class[:, None] == cls[None, :])
+            wide = origin_cov(local, g.pass_bias_sigma_m, g.vertical_bias_sigma_m)
+            chi2, ok = pair_chi2(local, ri, x[li], cov[li], wide, g)
+            live = np.zeros(len(local), bool)
+            live[ri[ok & (chi2 <= g.chi2_gate)]] = True
+            if not live.any():
+                continue
             # one unit per (vehicle, pass), in (vehicle, pass) order
             _u, first, inv = np.unique(p.key[cand], return_index=True, return_inverse=True)
             members = np.split(np.argsort(inv, kind="stable"), np.cumsum(np.bincount(inv))[:-1])
@@ -406,6 +442,8 @@ class MatcherService(StageService):
             take = np.zeros(len(p), bool)
             links: list[tuple[np.ndarray, np.ndarray, str, int, float]] = []
             for v, pid, js in units:
+                if not live[js].any():
+                    continue
                 sel = cand[js]
                 res = associate(local.take(js), x, cov, cls, self.config.gate)
                 hit = res.landmark >= 0
@@ -470,20 +508,19 @@ class MatcherService(StageService):
     def _merge_partner(self, lm: Landmark) -> Landmark | None:
         """The same-class landmark ``lm`` is one sign with (best chi-square), if any."""
         cfg = self.config
+        g = int(self.sums.n_passes([lm.row])[0])
+        if g < cfg.merge_min_passes or (g > 2 * cfg.merge_min_passes and g % 3):
+            return None  # checked at every pass while young, then at every third
         cands = [
-            c
-            for c in self.state.near([lm.tile, *neighbours(lm.tile)])
-            if c.cls == lm.cls and c.id != lm.id
+            c for c in self.state.near(self._area(lm.tile)) if c.cls == lm.cls and c.id != lm.id
         ]
-        if cands and self.config.merge_min_passes > 0:
-            n = self.sums.n_passes([lm.row] + [c.row for c in cands])
-            if n[0] < self.config.merge_min_passes:
-                return None
-            cands = [c for c, k in zip(cands, n[1:], strict=True) if k >= cfg.merge_min_passes]
+        if cands and cfg.merge_min_passes > 0:
+            n = self.sums.n_passes([c.row for c in cands])
+            cands = [c for c, k in zip(cands, n, strict=True) if k >= cfg.merge_min_passes]
         if not cands:
             return None
-        frame = self.frames(lm.home)
-        d = frame.from_ecef(np.array([c.x for c in cands])) - frame.from_ecef(lm.x[None])
+        # ENU differences: the frame's rotation of ECEF differences (no projection needed)
+        d = (np.array([c.x for c in cands]) - lm.x) @ self.frames(lm.home).rotation.T
         c = lm.cov[None] + np.array([c.cov for c in cands])
         chi2 = np.einsum("ki,ki->k", d, np.linalg.solve(c, d[:, :, None])[:, :, 0])
         near = (chi2 <= cfg.merge_chi2) & (np.hypot(d[:, 0], d[:, 1]) <= cfg.merge_max_m)
