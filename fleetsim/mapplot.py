@@ -71,6 +71,14 @@ def plot_map(
         c = t[zoom_sign]
         ax.set_xlim(c[0] - 15, c[0] + 15)
         ax.set_ylim(c[1] - 15, c[1] + 15)
+    else:  # the town, not the largest ellipse (a young landmark's can be hundreds of metres)
+        pts = [t[:, :2]] + (
+            [world.frame.from_geodetic(lm.lat, lm.lon, lm.h)[:, :2]] if len(lm) else []
+        )
+        xy = np.concatenate(pts)
+        lo, hi = xy.min(axis=0) - 30.0, xy.max(axis=0) + 30.0
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     ax.set_xlabel("East (m)")
     ax.set_ylabel("North (m)")
