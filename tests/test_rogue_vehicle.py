@@ -40,8 +40,8 @@ SHIFT_EN = np.array([5.0, 3.0])
 N_PASSES = 4 * 24
 TRUST = """\
 [matcher.trust]
-enabled = true       # off by default (see services/matcher/trust.py)
-probation_passes = 10
+enabled = true
+probation_passes = 10  # off by default (see services/matcher/trust.py)
 promote_chi2 = 9.21
 """
 
