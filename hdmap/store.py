@@ -151,3 +151,17 @@ def u64_to_i64(a: np.ndarray) -> np.ndarray:
 
 def i64_to_u64(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.int64).view(np.uint64)
+
+
+def id_to_sql(v: int) -> int:
+    """One u64 id as SQLite's signed integer (:func:`u64_to_i64` for a scalar).
+
+    >>> id_to_sql(2**64 - 1), id_from_sql(-1)
+    (-1, 18446744073709551615)
+    """
+    return int(u64_to_i64(np.array([v], np.uint64))[0])
+
+
+def id_from_sql(v: int) -> int:
+    """Inverse of :func:`id_to_sql`."""
+    return int(i64_to_u64(np.array([v], np.int64))[0])

@@ -381,8 +381,8 @@ class LandmarkSums:
             raise ValueError("non-finite ray terms (check directions and sigmas)")
         _scatter_add(self._n_obs, r, np.ones(n, np.int64))
         wr = rays.weights_or_ones()
-        _scatter_add(self._w1, r, np.broadcast_to(wr, (n,)).copy())
-        _scatter_add(self._w2, r, np.broadcast_to(wr**2, (n,)).copy())
+        _scatter_add(self._w1, r, wr)
+        _scatter_add(self._w2, r, wr**2)
         if not self.config.cluster_robust:
             _scatter_add(self._a6, r, alpha)
             _scatter_add(self._b, r, beta)
@@ -399,7 +399,7 @@ class LandmarkSums:
         s_az, s_el = effective_sigmas(rays, self.config)
         var = np.broadcast_to(0.5 * (s_az**2 + s_el**2), (n,))
         g_s2 = np.add.reduceat(var[order], starts)
-        g_w = np.add.reduceat(rays.weights_or_ones()[order], starts)
+        g_w = np.add.reduceat(wr[order], starts)
         g_n = np.diff(np.r_[starts, n])
         g_r, g_c = rs[starts], cs[starts]
         slots = np.empty(starts.size, np.int64)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from hdmap.store import i64_to_u64, u64_to_i64
+from hdmap.store import id_from_sql, id_to_sql, u64_to_i64
 from hdmap.tiles import tile_id
 from schemas import Observations
 from services.matcher.trust import PassOffsets, VehicleTrust
@@ -44,15 +44,6 @@ CREATE TABLE IF NOT EXISTS covis (
 """
 
 COUNTER_BITS = 24
-
-
-def _i64(v: int) -> int:
-    """A u64 id as SQLite's signed 64-bit integer."""
-    return int(u64_to_i64(np.array([v], np.uint64))[0])
-
-
-def _u64(v: int) -> int:
-    return int(i64_to_u64(np.array([v], np.int64))[0])
 
 
 def landmark_id(home_tile: str, counter: int) -> int:
@@ -260,7 +251,7 @@ class MatcherState:
             lid = lm.id
             rows.append(
                 (
-                    int(u64_to_i64(np.array([lid], np.uint64))[0]),
+                    id_to_sql(lid),
                     lm.cls,
                     lm.home,
                     lm.tile,
@@ -282,17 +273,21 @@ class MatcherState:
                 for r, lm in zip(rows, dirty, strict=True)
             ],
         )
-        gone = [(_i64(i),) for i in sorted(self._deleted)]
+        gone = [(id_to_sql(i),) for i in sorted(self._deleted)]
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
         pairs = sorted(self._covis_dirty)
         c.executemany(
             "DELETE FROM covis WHERE a=? AND b=?",
-            [(_i64(a), _i64(b)) for a, b in pairs if (a, b) not in self.covis],
+            [(id_to_sql(a), id_to_sql(b)) for a, b in pairs if (a, b) not in self.covis],
         )
         c.executemany(
             "INSERT OR REPLACE INTO covis(a, b, n) VALUES (?,?,?)",
-            [(_i64(a), _i64(b), self.covis[(a, b)]) for a, b in pairs if (a, b) in self.covis],
+            [
+                (id_to_sql(a), id_to_sql(b), self.covis[(a, b)])
+                for a, b in pairs
+                if (a, b) in self.covis
+            ],
         )
         c.executemany("DELETE FROM pending WHERE vehicle=? AND obs_id=?", self._removed_pending)
         c.executemany(
@@ -370,7 +365,7 @@ class MatcherState:
         ).fetchall()
         sums_rows = unpack_rows([r[6] for r in rows]) if rows else []
         for r, srow in zip(rows, sums_rows, strict=True):
-            lid = int(i64_to_u64(np.array([r[0]], np.int64))[0])
+            lid = id_from_sql(r[0])
             lm = Landmark(
                 lid,
                 int(r[1]),
@@ -385,11 +380,11 @@ class MatcherState:
             self.by_tile[lm.tile].add(lid)
             self._indexed[lid] = lm.tile
         for i, e, n in c.execute("SELECT id, e, n FROM views"):
-            lm = self.landmarks.get(_u64(i))
+            lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.view = np.array([e, n], float)
         for a, b, n in c.execute("SELECT a, b, n FROM covis"):
-            self.add_covis(_u64(a), _u64(b), int(n))
+            self.add_covis(id_from_sql(a), id_from_sql(b), int(n))
         prow = c.execute(
             "SELECT tile, vehicle, pass_id, added_at, received_at, rec FROM pending "
             "ORDER BY tile, added_at, vehicle, obs_id"

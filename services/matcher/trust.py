@@ -48,7 +48,7 @@ that passed it; a vehicle whose rays keep failing the gate (share of failures ab
 >>> a = VehicleTrust()  # three units of one pass are one observation of its bias
 >>> for _ in range(3):
 ...     a.add_offset(np.array([2.0, 0.0]), np.eye(2), 3.0, pass_id=7)
->>> a.n, a._folded()[0]
+>>> a.n, a.passes
 (0, 1)
 >>> honest = VehicleTrust()
 >>> for k in range(8):
@@ -182,6 +182,11 @@ class VehicleTrust:
         self.sx, self.sy = float(s[0]), float(s[1])
         self.current = PassOffsets()
 
+    @property
+    def passes(self) -> int:
+        """Passes with an offset, the current one included."""
+        return self._folded()[0]
+
     def mean_offset(self, ref: np.ndarray | None = None) -> np.ndarray:
         """Information-weighted mean offset (E, N), m, minus the fleet's ``ref``: the
         correction of a systematic shift."""
@@ -193,28 +198,29 @@ class VehicleTrust:
 
     def suspect(self, cfg: TrustConfig, ref: np.ndarray | None = None) -> bool:
         """Offsets too consistent to be chance (see the module doc)."""
-        return (
-            cfg.enabled and self._folded()[0] >= cfg.min_passes and self.chi2(ref) > cfg.chi2_gate
-        )
+        return cfg.enabled and self.passes >= cfg.min_passes and self.chi2(ref) > cfg.chi2_gate
 
     def add_gate(self, offered: int, passed: int) -> None:
         self.offered += int(offered)
         self.passed += int(passed)
 
     def chi2(self, ref: np.ndarray | None = None) -> float:
+        return self._chi2(ref)[1]
+
+    def _chi2(self, ref: np.ndarray | None) -> tuple[int, float]:
+        """(passes, chi2 against ``ref``) from one fold of the sums."""
         n, info, s = self._folded()
         if n == 0:
-            return 0.0
+            return 0, 0.0
         if ref is not None:
             s = s - info @ np.asarray(ref, float)
-        return float(s @ np.linalg.solve(info, s))
+        return n, float(s @ np.linalg.solve(info, s))
 
     def weight(self, cfg: TrustConfig, ref: np.ndarray | None = None) -> float:
         if not cfg.enabled:
             return 1.0
         w = 1.0
-        c = self.chi2(ref)
-        n = self._folded()[0]
+        n, c = self._chi2(ref)
         if cfg.probation_passes > 0 and (n < cfg.probation_passes or c > cfg.promote_chi2):
             w = cfg.probation_weight
         if n >= cfg.min_passes and c > cfg.chi2_gate:
@@ -238,38 +244,20 @@ class VehicleTrust:
         )
 
 
-def fleet_reference(trusts, cfg: TrustConfig) -> np.ndarray | None:
-    """The fleet's reference offset (E, N): componentwise median of the mean offsets of the
-    vehicles with at least ``min_passes`` passes; None with fewer than 3 of them or when
-    ``relative_to_fleet`` is off. (:class:`FleetOffsets` keeps the means between calls.)
+class FleetOffsets:
+    """The fleet's reference offset (E, N): the componentwise median of the mean offsets of
+    the vehicles with at least ``min_passes`` passes (None with fewer than 3 of them, or
+    when ``relative_to_fleet`` is off). Each vehicle's mean is kept as it changes, so the
+    reference costs O(vehicles) numpy work, once per change.
 
-    >>> vs = [VehicleTrust() for _ in range(4)]
-    >>> for v, o in zip(vs, ([-1.5, -0.9], [-1.4, -1.0], [-1.6, -0.8], [4.3, 2.2])):
+    >>> fo = FleetOffsets(TrustConfig())
+    >>> for i, o in enumerate(([-1.5, -0.9], [-1.4, -1.0], [-1.6, -0.8], [4.3, 2.2])):
+    ...     v = VehicleTrust()
     ...     for _ in range(5):
     ...         v.add_offset(np.array(o), np.zeros((2, 2)), 4.0)
-    >>> fleet_reference(vs, TrustConfig()).round(2).tolist()
+    ...     fo.update(f"v{i}", v)
+    >>> fo.reference().round(2).tolist()
     [-1.45, -0.85]
-    """
-    if not cfg.relative_to_fleet:
-        return None
-    means = [t.mean_offset() for t in trusts if t._folded()[0] >= cfg.min_passes]
-    if len(means) < 3:
-        return None
-    return np.median(np.array(means), axis=0)
-
-
-class FleetOffsets:
-    """The vehicles' mean offsets, kept as they change, for :func:`fleet_reference` in
-    O(vehicles) numpy work instead of re-deriving every vehicle's mean per unit.
-
-    >>> vs = {f"v{i}": VehicleTrust() for i in range(4)}
-    >>> fo = FleetOffsets(TrustConfig())
-    >>> for (name, v), o in zip(vs.items(), ([1.0, 0], [2.0, 0], [3.0, 0], [9.0, 0])):
-    ...     for _ in range(3):
-    ...         v.add_offset(np.array(o), np.zeros((2, 2)), 4.0)
-    ...     fo.update(name, v)
-    >>> bool(np.allclose(fo.reference(), fleet_reference(vs.values(), TrustConfig())))
-    True
     """
 
     def __init__(self, cfg: TrustConfig):
@@ -279,14 +267,14 @@ class FleetOffsets:
         self._stale = False
 
     def update(self, vehicle: str, t: VehicleTrust) -> None:
-        if t._folded()[0] >= self.cfg.min_passes:
+        if t.passes >= self.cfg.min_passes:
             self._means[vehicle] = t.mean_offset()
         else:
             self._means.pop(vehicle, None)
         self._stale = True
 
     def reference(self) -> np.ndarray | None:
-        """Same as :func:`fleet_reference` over the vehicles updated so far."""
+        """The reference over the vehicles updated so far."""
         if self._stale:
             self._stale = False
             self._ref = None

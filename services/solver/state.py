@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap.store import i64_to_u64, u64_to_i64
+from hdmap.store import id_from_sql, id_to_sql
 from services.matcher.state import COUNTER_BITS
 
 SCHEMA = """
@@ -26,10 +26,6 @@ class SolverLandmark:
     tile: str = ""
     """Tile it was last published in ('' = never published)."""
     revision: int = 0
-
-
-def _i64(v: int) -> int:
-    return int(u64_to_i64(np.array([v], np.uint64))[0])
 
 
 class SolverState:
@@ -61,7 +57,7 @@ class SolverState:
 
     def save(self, pack_rows) -> None:
         self._conn.executemany(
-            "DELETE FROM landmarks WHERE id=?", [(_i64(i),) for i in sorted(self._deleted)]
+            "DELETE FROM landmarks WHERE id=?", [(id_to_sql(i),) for i in sorted(self._deleted)]
         )
         self._deleted.clear()
         dirty = [self.landmarks[i] for i in sorted(self._dirty)]
@@ -70,7 +66,7 @@ class SolverState:
             "INSERT OR REPLACE INTO landmarks(id, cls, home, tile, revision, sums) "
             "VALUES (?,?,?,?,?,?)",
             [
-                (_i64(lm.id), lm.cls, lm.home, lm.tile, lm.revision, blob)
+                (id_to_sql(lm.id), lm.cls, lm.home, lm.tile, lm.revision, blob)
                 for lm, blob in zip(dirty, blobs, strict=True)
             ],
         )
@@ -85,5 +81,5 @@ class SolverState:
         ).fetchall()
         srows = unpack_rows([r[5] for r in rows]) if rows else []
         for r, srow in zip(rows, srows, strict=True):
-            lid = int(i64_to_u64(np.array([r[0]], np.int64))[0])
+            lid = id_from_sql(r[0])
             self.landmarks[lid] = SolverLandmark(lid, int(r[1]), r[2], int(srow), r[3], int(r[4]))
