@@ -110,12 +110,12 @@ def test_quick_numbers_are_sane(quick):
     assert white["published"][-1] > 0.9 and white["mean_error_m"][-1] < 12.0
     corr = res["models"]["correlated"]["estimators"]
     # trusting the reported sigmas under-compensates: biased like the textbook sums
-    assert corr["ours_no_floor"]["bias_north_m"][-1] < -10.0
+    assert corr["ours_no_floor"]["bias_north_m"][-1] < -5.0
     # ray-level covariance is over-confident under pass-level errors
     assert corr["independent"]["coverage_ellipse"][-1] < 0.75
     cal = res["models"]["correlated"]["calibration"]
     assert math.isclose(cal["extra_sigma_az_used"], CORRELATED.heading_bias_rad)
-    assert 0.15 < cal["extra_sigma_az_pilot_estimate"] < 0.4
+    assert 0.05 < cal["extra_sigma_az_pilot_estimate"] < 0.3
 
 
 def test_simulated_rays_match_the_stated_geometry_and_noise():

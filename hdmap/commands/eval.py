@@ -46,8 +46,9 @@ def add_paper_sim_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--models",
-        default="white,correlated",
-        help="comma-separated error models (default white,correlated)",
+        default=None,
+        help="comma-separated error models (default white,correlated,correlated_equal; "
+        "--quick: white,correlated)",
     )
 
 
@@ -78,7 +79,10 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
     trials = args.trials or (40 if quick else 500)
     passes = args.max_passes or (100 if quick else 1000)
     workers = 1 if quick else max(1, int(getattr(args, "workers", 2) or 1))
-    models = tuple(m for m in str(getattr(args, "models", "white,correlated")).split(",") if m)
+    names = getattr(args, "models", None) or (
+        "white,correlated" if quick else "white,correlated,correlated_equal"
+    )
+    models = tuple(m for m in str(names).split(",") if m)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -78,12 +78,12 @@ from hdmap.estimator.solve import Solution, solve_sums
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-PACK_VERSION = 3
-_OLD_PACK_VERSIONS = (1, 2)
+PACK_VERSION = 4
+_OLD_PACK_VERSIONS = (1, 2, 3)
 """Version 1 kept open passes' raw sums in ``A`` and ``b`` as well; they are taken out
 on load (its closed passes keep their unweighted sums; its open passes had no angular
 variance sum: treated as precise). Versions 1 and 2 had no ray weight sums: taken as
-weights of 1."""
+weights of 1. Versions 1-3 had no held passes."""
 _ROW_DTYPE_V2 = np.dtype(
     [
         ("anchor", "<f8", 3),
@@ -100,7 +100,7 @@ _ROW_DTYPE_V2 = np.dtype(
     ]
 )
 _ROW_DTYPE = np.dtype([*_ROW_DTYPE_V2.descr, ("w1", "<f8"), ("w2", "<f8")])
-_OPEN_DTYPE = np.dtype(
+_OPEN_DTYPE_V3 = np.dtype(
     [
         ("cluster", "<i8"),
         ("last", "<i8"),
@@ -111,6 +111,7 @@ _OPEN_DTYPE = np.dtype(
         ("w", "<f8"),
     ]
 )
+_OPEN_DTYPE = np.dtype([*_OPEN_DTYPE_V3.descr, ("w2", "<f8"), ("hold", "<i8"), ("j6", "<f8", 6)])
 _OPEN_DTYPE_V1 = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )
@@ -118,6 +119,7 @@ _ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
 _ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2")
 """The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
 _OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2", "_o_w")
+_OPEN_ARRAYS += ("_o_w2", "_o_hold", "_o_j6")
 _ROW_FIELDS_V2 = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
 _ROW_FIELDS = (*_ROW_FIELDS_V2, "w1", "w2")
 
@@ -170,6 +172,9 @@ class LandmarkSums:
         self._o_b = np.zeros((ocap, 3))
         self._o_s2 = np.zeros(ocap)  # sum over the pass's rays of their angular variance
         self._o_w = np.zeros(ocap)  # sum of the rays' weights (Rays.weight, default 1)
+        self._o_w2 = np.zeros(ocap)  # sum of their squares
+        self._o_hold = np.zeros(ocap, np.int64)  # held: the holder's key (0: not held)
+        self._o_j6 = np.zeros((ocap, 6))  # held passes' predicted information
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -263,7 +268,9 @@ class LandmarkSums:
         self._o_a6[s] = 0.0
         self._o_b[s] = 0.0
         self._o_s2[s] = 0.0
-        self._o_w[s] = 0.0
+        self._o_w[s] = self._o_w2[s] = 0.0
+        self._o_hold[s] = 0
+        self._o_j6[s] = 0.0
         self._n_open[key[0]] += 1
         return s
 
@@ -339,6 +346,7 @@ class LandmarkSums:
             slots = self._slots_of(np.asarray(rows, np.int64).reshape(-1))
         elif clusters is not None:
             slots = slots[np.isin(self._o_cluster[slots], np.asarray(clusters, np.int64))]
+        slots = slots[self._o_hold[slots] == 0]  # held passes stay apart (see hold)
         self._close_slots(slots)
         return int(slots.size)
 
@@ -350,18 +358,87 @@ class LandmarkSums:
         if over.size == 0:
             return
         mine = self._slots_of(over)
+        mine = mine[self._o_hold[mine] == 0]  # held passes are never closed here
+        if mine.size == 0:
+            return
         r = self._o_row[mine]
         order = np.lexsort((self._o_cluster[mine], self._o_last[mine], r))
         mine, r = mine[order], r[order]
         first = np.flatnonzero(np.concatenate(([True], r[1:] != r[:-1])))
-        rank = np.arange(r.size) - np.repeat(first, np.diff(np.append(first, r.size)))
-        self._close_slots(mine[rank < self._n_open[r] - self.config.max_open_passes])
+        count = np.diff(np.append(first, r.size))
+        rank = np.arange(r.size) - np.repeat(first, count)
+        self._close_slots(mine[rank < np.repeat(count, count) - self.config.max_open_passes])
+
+    # ------------------------------------------------------------------ held passes
+    def _held(self, hold: int) -> IntArray:
+        slots = self._open_slots()
+        return slots[self._o_hold[slots] == int(hold)] if hold else slots[:0]
+
+    def release(self, hold: int, weight: float) -> int:
+        """Let ``hold``'s held passes go, their rays re-weighted to ``weight`` (exactly as if
+        they had come with it: every ray term is linear in its weight); they become
+        ordinary open passes. Returns how many passes were released.
+
+        >>> import numpy as np
+        >>> from hdmap.estimator.model import Rays
+        >>> s = LandmarkSums(capacity=1)
+        >>> row = s.new_rows(1, np.zeros((1, 3)))
+        >>> from dataclasses import replace
+        >>> r = Rays.from_angles(np.zeros((2, 3)), [0.1, 0.2], [0.1, 0.1], 0.01, 0.01, 1.0, 1.0)
+        >>> rays = replace(r, weight=np.full(2, 0.05))
+        >>> s.accumulate([0, 0], [11, 11], rays, hold=[7, 7])
+        >>> s.release(7, 1.0), s.release(7, 1.0)
+        (1, 0)
+        """
+        slots = self._held(hold)
+        if slots.size == 0:
+            return 0
+        rows = self._o_row[slots]
+        n = np.maximum(self._o_n[slots], 1)
+        f = float(weight) / np.maximum(self._o_w[slots] / n, 1e-300)
+        self._o_a6[slots] *= f[:, None]
+        self._o_b[slots] *= f[:, None]
+        _scatter_add(self._j6, rows, f[:, None] * self._o_j6[slots])
+        _scatter_add(self._w1, rows, (f - 1.0) * self._o_w[slots])
+        _scatter_add(self._w2, rows, (f**2 - 1.0) * self._o_w2[slots])
+        self._o_w[slots] *= f
+        self._o_w2[slots] *= f**2
+        self._o_j6[slots] = 0.0
+        self._o_hold[slots] = 0
+        self._evict(np.unique(rows))
+        return int(slots.size)
+
+    def drop_held(self, hold: int) -> int:
+        """Take ``hold``'s held passes out, as if their rays had never been added. Returns
+        how many passes were dropped."""
+        slots = self._held(hold)
+        if slots.size == 0:
+            return 0
+        rows = self._o_row[slots]
+        _scatter_add(self._n_obs, rows, -self._o_n[slots])
+        _scatter_add(self._w1, rows, -self._o_w[slots])
+        _scatter_add(self._w2, rows, -self._o_w2[slots])
+        _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
+        self._release(slots)
+        return int(slots.size)
+
+    def n_held(self, rows: ArrayLike | None = None) -> int:
+        """Held passes (of ``rows``, default all)."""
+        slots = self._open_slots() if rows is None else self._slots_of(np.asarray(rows))
+        return int(np.count_nonzero(self._o_hold[slots]))
 
     # ------------------------------------------------------------------ accumulate
-    def accumulate(self, rows: ArrayLike, clusters: ArrayLike, rays: Rays) -> None:
+    def accumulate(
+        self, rows: ArrayLike, clusters: ArrayLike, rays: Rays, hold: ArrayLike | None = None
+    ) -> None:
         """Add rays (``rows[j]`` is ray j's landmark, ``clusters[j]`` its pass key).
 
-        Weights use each row's reference position as it is before this call.
+        Weights use each row's reference position as it is before this call. ``hold[j]``
+        (default 0: none) puts ray j's pass *on hold* for the holder with that key (a
+        vehicle on probation): the pass stays open and separate, counts in :meth:`solve`
+        with the weight its rays have, and is later either re-weighted and let go
+        (:meth:`release`) or taken out as if never added (:meth:`drop_held`). A cluster is
+        held or not for good: use distinct cluster keys for a pass's held rays.
         """
         r = self._check_rows(rows)
         n = r.size
@@ -372,11 +449,16 @@ class LandmarkSums:
         c = np.asarray(clusters, np.int64).reshape(-1)
         if c.size != n:
             raise ValueError("clusters and rays differ in length")
+        hk = np.zeros(n, np.int64) if hold is None else np.asarray(hold, np.int64).reshape(-1)
+        if hk.size != n:
+            raise ValueError("hold and rays differ in length")
+        held = hk != 0
+        if held.any() and not self.config.cluster_robust:
+            raise ValueError("held passes need pass-level sums (cluster_robust)")
         origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
         alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
-        _scatter_add(
-            self._j6, r, predicted_information(rays, origin_rel, self._x_ref[r], self.config)
-        )
+        j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
+        _scatter_add(self._j6, r[~held], j6[~held])
         if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
             raise ValueError("non-finite ray terms (check directions and sigmas)")
         _scatter_add(self._n_obs, r, np.ones(n, np.int64))
@@ -402,10 +484,26 @@ class LandmarkSums:
         g_w = np.add.reduceat(wr[order], starts)
         g_n = np.diff(np.r_[starts, n])
         g_r, g_c = rs[starts], cs[starts]
+        hs = hk[order]
+        g_h = hs[starts]
+        if held.any() and np.any(
+            np.minimum.reduceat(hs, starts) != np.maximum.reduceat(hs, starts)
+        ):
+            raise ValueError("rays of one (landmark, pass) both held and not")
         slots = np.empty(starts.size, np.int64)
+        fresh = np.zeros(starts.size, bool)
         for i, key in enumerate(zip(g_r.tolist(), g_c.tolist(), strict=True)):
             s = self._slot.get(key)
+            fresh[i] = s is None
             slots[i] = self._alloc_slot(key) if s is None else s
+        if np.any(self._o_hold[slots[~fresh]] != g_h[~fresh]):
+            raise ValueError("rays of one (landmark, pass) both held and not")
+        self._o_hold[slots] = g_h
+        if held.any():
+            self._o_j6[slots] += np.add.reduceat(
+                np.where(held[:, None], j6, 0.0)[order], starts, axis=0
+            )
+        self._o_w2[slots] += np.add.reduceat((wr**2)[order], starts)
         self._o_a6[slots] += g_a6
         self._o_b[slots] += g_b
         self._o_s2[slots] += g_s2
@@ -427,9 +525,11 @@ class LandmarkSums:
         saa, sab, sbb = self._saa[uniq].copy(), self._sab[uniq].copy(), self._sbb[uniq].copy()
         a_all, b_all = self._a6[uniq].copy(), self._b[uniq].copy()
         n_cl = self._n_closed[uniq] + self._n_open[uniq]
+        j6 = self._j6[uniq].copy()
         slots = self._slots_of(uniq)
         if slots.size:
             pos = np.searchsorted(uniq, self._o_row[slots])
+            _scatter_add(j6, pos, self._o_j6[slots])
             a6, b = self._weighted(slots)
             _scatter_add(a_all, pos, a6)
             _scatter_add(b_all, pos, b)
@@ -445,7 +545,7 @@ class LandmarkSums:
             self._n_obs[uniq],
             n_cl,
             self.config,
-            self._j6[uniq],
+            j6,
             floor_scale=np.divide(
                 self._w2[uniq], self._w1[uniq], out=np.ones(uniq.size), where=self._w1[uniq] > 0
             ),
@@ -538,6 +638,9 @@ class LandmarkSums:
             self._o_n[to] += self._o_n[sl]
             self._o_s2[to] += self._o_s2[sl]
             self._o_w[to] += self._o_w[sl]
+            self._o_w2[to] += self._o_w2[sl]
+            self._o_j6[to] += self._o_j6[sl] @ t6.T
+            self._o_hold[to] = self._o_hold[sl]
             self._o_last[to] = max(self._o_last[to], self._o_last[sl])
         self._release(mine)
         for name in _ROW_ARRAYS:
@@ -563,7 +666,8 @@ class LandmarkSums:
                 self._o_n[mine],
             )
             op["a6"], op["b"], op["s2"] = self._o_a6[mine], self._o_b[mine], self._o_s2[mine]
-            op["w"] = self._o_w[mine]
+            op["w"], op["w2"] = self._o_w[mine], self._o_w2[mine]
+            op["hold"], op["j6"] = self._o_hold[mine], self._o_j6[mine]
             out.append(bytes([PACK_VERSION]) + rec.tobytes() + op.tobytes())
         return out
 
@@ -581,20 +685,18 @@ class LandmarkSums:
             if not blob or blob[0] not in (PACK_VERSION, *_OLD_PACK_VERSIONS):
                 raise ValueError("unknown landmark state version")
             row_dt, fields = (
-                (_ROW_DTYPE, _ROW_FIELDS)
-                if blob[0] == PACK_VERSION
-                else (_ROW_DTYPE_V2, _ROW_FIELDS_V2)
+                (_ROW_DTYPE, _ROW_FIELDS) if blob[0] >= 3 else (_ROW_DTYPE_V2, _ROW_FIELDS_V2)
             )
             rec = np.frombuffer(blob, row_dt, count=1, offset=1)[0]
             for f in fields:
                 getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
                     getattr(self, "_" + f)[row].shape
                 )
-            if blob[0] != PACK_VERSION:
+            if blob[0] < 3:
                 self._w1[row] = self._w2[row] = float(rec["n_obs"])
             k = int(rec["n_open"])
             old = blob[0] == 1
-            dt = _OPEN_DTYPE_V1 if old else _OPEN_DTYPE
+            dt = {1: _OPEN_DTYPE_V1, 4: _OPEN_DTYPE}.get(blob[0], _OPEN_DTYPE_V3)
             op = np.frombuffer(blob, dt, count=k, offset=1 + row_dt.itemsize)
             self._n_open[row] = 0
             for o in op:
@@ -603,6 +705,11 @@ class LandmarkSums:
                 self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
                 self._o_s2[s] = 0.0 if old else float(o["s2"])
                 self._o_w[s] = float(o["n"]) if old else float(o["w"])
+                if blob[0] == PACK_VERSION:
+                    self._o_w2[s], self._o_hold[s] = float(o["w2"]), int(o["hold"])
+                    self._o_j6[s] = o["j6"]
+                else:
+                    self._o_w2[s] = self._o_w[s] ** 2 / max(int(o["n"]), 1)
                 if old and self.config.cluster_robust:
                     self._a6[row] -= o["a6"]
                     self._b[row] -= o["b"]
