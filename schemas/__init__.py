@@ -5,7 +5,9 @@ See ``schemas/README.md`` for every message, field by field.
 
 from schemas.codec import VERSION, DecodeError
 from schemas.messages import (
+    DROP,
     MAX_BATCH,
+    RELEASE,
     STATUS_CANDIDATE,
     STATUS_CONFIRMED,
     STATUS_RETIRED,
@@ -25,11 +27,14 @@ from schemas.messages import (
     Rejection,
     Removals,
     Stats,
+    TrustChanges,
     UploadAck,
 )
 
 __all__ = [
+    "DROP",
     "MAX_BATCH",
+    "RELEASE",
     "STATUS_CANDIDATE",
     "STATUS_CONFIRMED",
     "STATUS_RETIRED",
@@ -51,5 +56,6 @@ __all__ = [
     "Rejection",
     "Removals",
     "Stats",
+    "TrustChanges",
     "UploadAck",
 ]

@@ -90,6 +90,20 @@ class Links(Table):
 
 
 @table
+class TrustChanges(Table):
+    """A vehicle leaves probation: its held passes (links with ``held``) are let go at a new
+    weight (``action`` 1: promoted) or taken out (``action`` 2: caught shifting its data)."""
+
+    vehicle: np.ndarray = col("u4", doc="index into AssocGroup.vehicles")
+    action: np.ndarray = col("u1", lo=1, hi=2, doc="1 = release (promoted), 2 = drop (caught)")
+    weight: np.ndarray = col("f4", lo=0.0, hi=1.0, doc="weight of the released rays")
+
+
+RELEASE, DROP = 1, 2
+"""``TrustChanges.action`` values."""
+
+
+@table
 class NewLandmarks(Table):
     """Landmarks created by the matcher, with the triangulated initial position."""
 
@@ -468,6 +482,11 @@ class AssocGroup(Message):
     """Per retired landmark, the landmark that takes over its rays (``retired[i]`` was the
     same sign as ``merged_into[i]``); may be shorter than ``retired`` (the rest end
     without a successor). Optional on the wire (absent = empty)."""
+    held: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    """Per link, whether its vehicle is on probation (its pass is held apart until a
+    ``trust`` change settles it); empty = none held. Optional on the wire."""
+    trust: TrustChanges = field(default_factory=lambda: TrustChanges.empty())
+    """Vehicles leaving probation, applied after this entry's links. Optional on the wire."""
 
     def _encode(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -478,6 +497,10 @@ class AssocGroup(Message):
         _put_table(out, "links", self.links)
         _put_table(out, "obs", self.obs)
         _put_table(out, "created", self.created)
+        if np.any(self.held):
+            out["held"] = np.ascontiguousarray(self.held, np.uint8).tobytes()
+        if len(self.trust):
+            _put_table(out, "trust", self.trust)
         return out
 
     @classmethod
@@ -501,6 +524,19 @@ class AssocGroup(Message):
             raise DecodeError("merged_into", f"{merged.size} ids for {retired.size} retired")
         if np.any(merged == retired[: merged.size]):
             raise DecodeError("merged_into", "a landmark merged into itself")
+        held = np.zeros(0, bool)
+        if "held" in m:
+            raw = np.frombuffer(get_bytes(m, "held"), np.uint8)
+            if raw.size != len(links):
+                raise DecodeError("held", f"{raw.size} flags for {len(links)} links")
+            if np.any(raw > 1):
+                raise DecodeError("held", "flags must be 0 or 1")
+            held = raw.astype(bool)
+        trust = TrustChanges.empty()
+        if "trust" in m or "n_trust" in m:
+            trust = _table(m, "trust", TrustChanges, MAX_TABLE_ROWS)
+            if len(trust) and int(trust.vehicle.max()) >= len(vehicles):
+                raise DecodeError("trust.vehicle", "index outside vehicles")
         return cls(
             vehicles=vehicles,
             links=links,
@@ -508,6 +544,8 @@ class AssocGroup(Message):
             created=_table(m, "created", NewLandmarks, MAX_TABLE_ROWS),
             retired=retired,
             merged_into=merged,
+            held=held,
+            trust=trust,
         )
 
 

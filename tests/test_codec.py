@@ -28,6 +28,7 @@ from schemas import (
     Rejection,
     Removals,
     Stats,
+    TrustChanges,
     UploadAck,
 )
 from schemas.codec import MAX_MESSAGE_BYTES, Table, unpack
@@ -139,7 +140,15 @@ def messages(n: int = 5) -> dict[str, object]:
         ),
         "ObsGroup": ObsGroup("veh-1", 4, 5, T0 + 2, make_obs(n, 7)),
         "AssocGroup": AssocGroup(
-            ["veh-1", "veh-2", "veh-3"], make_links(n, 3), make_obs(n, 8), make_new(3), ids(11, 12)
+            ["veh-1", "veh-2", "veh-3"],
+            make_links(n, 3),
+            make_obs(n, 8),
+            make_new(3),
+            ids(11, 12),
+            held=np.arange(n) % 2 == 0,
+            trust=TrustChanges(
+                np.array([0, 2], np.uint32), np.array([1, 2], np.uint8), np.array([1.0, 0.0])
+            ),
         ),
         "LandmarkUpdates": LandmarkUpdates(make_landmarks(n), make_removals(2)),
         "MapDelta": MapDelta(
@@ -381,7 +390,11 @@ def test_float_header_fields(name: str, field: str) -> None:
 
 
 def _optional(name: str, key: str) -> bool:
-    return (name, key) in {("UploadAck", "error"), ("AssocGroup", "merged_into")}
+    return (name, key) in {
+        ("UploadAck", "error"),
+        ("AssocGroup", "merged_into"),
+        ("AssocGroup", "held"),
+    }
 
 
 def _missing_cases() -> list:
@@ -652,8 +665,18 @@ def test_assoc_group_consistency() -> None:
     )
     expect(AssocGroup, with_(msg, retired=ids.tobytes(), merged_into=ids.tobytes()), "merged_into")
     d = raw(msg)
-    del d["merged_into"]  # written before the field existed
-    assert AssocGroup.from_bytes(enc(d)).merged_into.size == 0
+    for key in ("merged_into", "held", "trust", "n_trust"):
+        del d[key]  # written before the fields existed
+    old = AssocGroup.from_bytes(enc(d))
+    assert old.merged_into.size == old.held.size == len(old.trust) == 0
+    for bad in (b"\x01" * 3, b"\x02" * 4, [1, 0, 1, 0]):
+        expect(AssocGroup, with_(msg, held=bad), "held")
+    d = raw(msg)
+    d["trust"]["action"] = np.array([1, 3], np.uint8).tobytes()
+    expect(AssocGroup, enc(d), "trust.action")
+    d = raw(msg)
+    d["trust"]["vehicle"] = np.array([0, 3], "<u4").tobytes()
+    expect(AssocGroup, enc(d), "trust.vehicle")
 
 
 def test_map_delta_versions() -> None:

@@ -6,8 +6,8 @@ Real router and services (the ``stack`` fixture); one sign beside a straight roa
 every pass; the FLEET noise (per-pass GNSS bias 2.5 m, drift, multipath, 3 px). The same
 honest passes are driven twice, without and with a rogue vehicle whose GNSS fixes are all
 shifted by 5 m east and 3 m north (each rogue pass interleaved with the honest ones).
-The matcher runs with vehicle probation on (``TRUST``; off by default, see
-services/matcher/trust.py for what it costs an honest fleet).
+The matcher runs with its defaults: every new vehicle is on probation (its passes held
+apart in the sums, services/matcher/trust.py) until promoted or caught.
 """
 
 from __future__ import annotations
@@ -38,12 +38,6 @@ HONEST = 3
 ROGUE = "veh-0004"
 SHIFT_EN = np.array([5.0, 3.0])
 N_PASSES = 4 * 24
-TRUST = """\
-[matcher.trust]
-enabled = true
-probation_passes = 10  # off by default (see services/matcher/trust.py)
-promote_chi2 = 9.21
-"""
 
 
 def shifted(world: World, p: Pass, shift_en: np.ndarray) -> Pass:
@@ -74,9 +68,6 @@ def passes(fleet: Fleet, with_rogue: bool) -> list[Pass]:
 
 def drive(stack: Stack, fleet: Fleet, ps: list[Pass], tmp: Path) -> tuple[Landmarks, dict]:
     tmp.mkdir(parents=True, exist_ok=True)
-    cfg = tmp / "services.toml"
-    cfg.write_text(TRUST)
-    stack.extra_service_args["matcher"] = ["--config", str(cfg)]
     stack.start_all()
     with open_session(stack.bus) as s:
         client = MapClient(s, radius_m=0.0)
@@ -104,6 +95,7 @@ class Runs:
     moved_en: np.ndarray
     sigma_en: np.ndarray
     matcher: dict
+    solver: dict
 
 
 @pytest.fixture(scope="module")
@@ -123,19 +115,27 @@ def runs(tmp_path_factory) -> Runs:
     e = world.frame.from_geodetic(got.lat[j : j + 1], got.lon[j : j + 1], got.h[j : j + 1])[0]
     r = world.frame.from_geodetic(ref.lat[i : i + 1], ref.lon[i : i + 1], ref.h[i : i + 1])[0]
     sd = np.sqrt([got.cov[j, 0], got.cov[j, 3]])
-    return Runs(world, e[:2] - r[:2], sd, stats["matcher"])
+    return Runs(world, e[:2] - r[:2], sd, stats["matcher"], stats["solver"])
 
 
 def test_the_rogue_vehicle_is_found_out_and_weighs_less(runs):
     m = runs.matcher
-    print({k: v for k, v in m.items() if k.startswith(("weight.", "vehicles_down"))})
+    print({k: v for k, v in m.items() if k.startswith(("weight.", "vehicles_", "held"))})
     assert m["vehicles_downweighted"] >= 1
     assert m[f"weight.{ROGUE}"] < 0.5
     assert m["downweighted"] > 0 and m["shift_corrected"] > 0
+    # on probation until settled: the honest ones promoted, the rogue caught
+    assert m["vehicles_promoted"] == HONEST and m["vehicles_caught"] == 1
+    assert m["held"] > 0
+
+
+def test_the_solver_applied_the_settlements(runs):
+    s = runs.solver
+    assert s["vehicles_released"] >= HONEST and s["vehicles_dropped"] >= 1
 
 
 def test_rogue_vehicle_moves_no_landmark_beyond_one_sigma(runs):
-    """With probation (``TRUST``): new vehicles weigh 0.05 for their first 10 passes and
-    until their offsets agree with the fleet's; the rogue never gets there."""
+    """New vehicles weigh 0.05 and their passes are held until their offsets show them
+    honest (promoted: the held passes count in full) or shifted (caught: taken out)."""
     print(f"moved by {runs.moved_en.round(3)} m, reported sigma {runs.sigma_en.round(3)} m")
     assert np.all(np.abs(runs.moved_en) <= runs.sigma_en), (runs.moved_en, runs.sigma_en)

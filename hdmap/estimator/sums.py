@@ -374,10 +374,10 @@ class LandmarkSums:
         slots = self._open_slots()
         return slots[self._o_hold[slots] == int(hold)] if hold else slots[:0]
 
-    def release(self, hold: int, weight: float) -> int:
+    def release(self, hold: int, weight: float) -> IntArray:
         """Let ``hold``'s held passes go, their rays re-weighted to ``weight`` (exactly as if
         they had come with it: every ray term is linear in its weight); they become
-        ordinary open passes. Returns how many passes were released.
+        ordinary open passes. Returns the rows that had some.
 
         >>> import numpy as np
         >>> from hdmap.estimator.model import Rays
@@ -387,13 +387,13 @@ class LandmarkSums:
         >>> r = Rays.from_angles(np.zeros((2, 3)), [0.1, 0.2], [0.1, 0.1], 0.01, 0.01, 1.0, 1.0)
         >>> rays = replace(r, weight=np.full(2, 0.05))
         >>> s.accumulate([0, 0], [11, 11], rays, hold=[7, 7])
-        >>> s.release(7, 1.0), s.release(7, 1.0)
-        (1, 0)
+        >>> s.n_held(), s.release(7, 1.0).tolist(), s.n_held(), s.release(7, 1.0).tolist()
+        (1, [0], 0, [])
         """
         slots = self._held(hold)
-        if slots.size == 0:
-            return 0
         rows = self._o_row[slots]
+        if slots.size == 0:
+            return rows
         n = np.maximum(self._o_n[slots], 1)
         f = float(weight) / np.maximum(self._o_w[slots] / n, 1e-300)
         self._o_a6[slots] *= f[:, None]
@@ -406,21 +406,21 @@ class LandmarkSums:
         self._o_j6[slots] = 0.0
         self._o_hold[slots] = 0
         self._evict(np.unique(rows))
-        return int(slots.size)
+        return np.unique(rows)
 
-    def drop_held(self, hold: int) -> int:
+    def drop_held(self, hold: int) -> IntArray:
         """Take ``hold``'s held passes out, as if their rays had never been added. Returns
-        how many passes were dropped."""
+        the rows that had some."""
         slots = self._held(hold)
-        if slots.size == 0:
-            return 0
         rows = self._o_row[slots]
+        if slots.size == 0:
+            return rows
         _scatter_add(self._n_obs, rows, -self._o_n[slots])
         _scatter_add(self._w1, rows, -self._o_w[slots])
         _scatter_add(self._w2, rows, -self._o_w2[slots])
         _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
         self._release(slots)
-        return int(slots.size)
+        return np.unique(rows)
 
     def n_held(self, rows: ArrayLike | None = None) -> int:
         """Held passes (of ``rows``, default all)."""

@@ -29,9 +29,11 @@ Noise models (per-axis standard deviations; vertical GNSS noise = horizontal):
   half and half (0.247 rad per passing + 0.247 rad white). A heading bias of 14 degrees
   shared by the 31 images of a passing leaves about one independent look per passing at
   the sign's along-road position, so over 100..1000 passings the estimate is still in its
-  small-sample regime (published share 0.66 at 100; docs/estimator.md section 11). What a residual calibration against a surveyed sign
-  (:func:`hdmap.estimator.excess_angular_variance`, on a separate pilot fleet) would have
-  set is reported beside it.
+  small-sample regime (published share 0.59 at 100; docs/estimator.md section 11).
+
+For both correlated models, what a residual calibration against a surveyed sign
+(:func:`hdmap.estimator.excess_angular_variance`, on a separate pilot fleet) would have set
+is reported beside the configured budget.
 
 Estimators (same rays): ``ours`` (:class:`~hdmap.estimator.EstimatorConfig` defaults:
 compensated sums, pass-level sandwich), ``independent`` (ours, every ray its own

@@ -42,9 +42,20 @@ from hdmap.geodesy import GEODESY
 from hdmap.initiation import InitConfig, propose, triangulate_groups
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
-from schemas import AssocGroup, DecodeError, Links, LogEntry, NewLandmarks, Observations, ObsGroup
-from services.matcher.state import Landmark, MatcherState, pass_key
-from services.matcher.trust import FleetOffsets, TrustConfig
+from schemas import (
+    DROP,
+    RELEASE,
+    AssocGroup,
+    DecodeError,
+    Links,
+    LogEntry,
+    NewLandmarks,
+    Observations,
+    ObsGroup,
+    TrustChanges,
+)
+from services.matcher.state import Landmark, MatcherState, hold_key, pass_key
+from services.matcher.trust import CAUGHT, FleetOffsets, TrustConfig, VehicleTrust
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +141,10 @@ class _Out:
     links: list[tuple[int, int, int]] = field(default_factory=list)
     received_at: list[float] = field(default_factory=list)
     weight: list[float] = field(default_factory=list)
+    held: list[bool] = field(default_factory=list)
     obs: list[Observations] = field(default_factory=list)
+    trust: list[tuple[int, int, float]] = field(default_factory=list)
+    """(vehicle index, action, weight): vehicles leaving probation."""
     created: list[tuple[int, int, float, float, float]] = field(default_factory=list)
     retired: list[tuple[int, int]] = field(default_factory=list)
     """(retired id, id it merged into)."""
@@ -248,6 +262,7 @@ class MatcherService(StageService):
                 trust.add_offset(raw, res.offset_cov, self.config.trust.bias_sigma_m, g.pass_id)
             self._fleet.update(g.vehicle_id, trust)
             self._note_trust(g.vehicle_id, trust, self._fleet_ref())
+            self._settle(g.vehicle_id, trust)
         hit = matched >= 0
         self.count("received", len(rays))
         self.count("associated", int(hit.sum()))
@@ -308,11 +323,15 @@ class MatcherService(StageService):
         if not len(obs):
             return
         self.count("linked", len(obs))
-        t = self.state.trust.get(vehicle)
-        weight = 1.0 if t is None else t.weight(self.config.trust, self._fleet_ref())
+        t = self.state.trust_of(vehicle)
+        weight = t.weight(self.config.trust, self._fleet_ref())
         if weight < 1.0:
             self.count("downweighted", len(obs))
-        key = pass_key(vehicle, pass_id)
+        held = t.held(self.config.trust)
+        if held:
+            self.count("held", len(obs))
+        key = pass_key(vehicle, pass_id, held)
+        hold = np.full(len(obs), hold_key(vehicle) if held else 0, np.int64)
         self._note_views(obs, lms)
         by_home: dict[str, list[int]] = defaultdict(list)
         for k, lm in enumerate(lms):
@@ -323,12 +342,15 @@ class MatcherService(StageService):
             local = to_local(self.frames(home), sub)
             rows = np.array([lms[k].row for k in idx], np.int64)
             rays = to_rays(local, np.full(len(idx), weight) if weight < 1.0 else None)
-            self.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays)
+            self.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays, hold[sel])
             out = self._out[home]
             vi = out.vehicle_index(vehicle)
             out.links += [(lms[k].id, vi, pass_id) for k in idx]
             out.received_at += [received] * len(idx)
             out.weight += [weight] * len(idx)
+            out.held += [held] * len(idx)
+            if held:
+                t.held_homes.add(home)
             out.obs.append(sub)
 
     def _note_views(self, obs: Observations, lms: list[Landmark]) -> None:
@@ -395,6 +417,38 @@ class MatcherService(StageService):
             self.count("created", len(created))
             self._adopt(area, [self.state.landmarks[i] for i in sorted(created)])
         return created
+
+    def _settle(self, vehicle: str, t: VehicleTrust) -> None:
+        """A vehicle leaves probation: its held passes count in full (promoted) or go
+        (caught), here and, through the assoc output of every home tile it has held passes
+        in, in the solvers."""
+        status = t.settle(self.config.trust, self._fleet_ref())
+        if status is None:
+            return
+        ref = self._fleet_ref()
+        log.info(
+            "vehicle %s %s after %d passes (offset chi2 %.2f, mean offset %s m)",
+            vehicle,
+            "caught" if status == CAUGHT else "promoted",
+            t.passes,
+            t.chi2(ref),
+            np.round(t.mean_offset(ref), 2).tolist(),
+        )
+        key = hold_key(vehicle)
+        if status == CAUGHT:
+            action, weight, rows = DROP, 0.0, self.sums.drop_held(key)
+            self.count("vehicles_caught")
+        else:
+            weight = t.weight(self.config.trust, self._fleet_ref())
+            action, rows = RELEASE, self.sums.release(key, weight)
+            self.count("vehicles_promoted")
+        for home in sorted(t.held_homes):
+            out = self._out[home]
+            out.trust.append((out.vehicle_index(vehicle), action, weight))
+        t.held_homes.clear()
+        if rows.size:
+            by_row = {lm.row: lm.id for lm in self.state.landmarks.values()}
+            self._refresh(sorted(by_row[r] for r in rows.tolist() if r in by_row))
 
     def _create(self, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray) -> Landmark:
         lid = self.state.next_id(home)
@@ -573,6 +627,12 @@ class MatcherService(StageService):
             ),
             retired=retired[:, 0].copy(),
             merged_into=retired[:, 1].copy(),
+            held=np.array(out.held, bool),
+            trust=TrustChanges(
+                np.array([c[0] for c in out.trust], np.uint32),
+                np.array([c[1] for c in out.trust], np.uint8),
+                np.array([c[2] for c in out.trust], np.float32),
+            ),
         ).to_bytes()
 
     # -- timers and stats -----------------------------------------------------------------------

@@ -38,6 +38,8 @@ CREATE TABLE IF NOT EXISTS trust (
 CREATE TABLE IF NOT EXISTS trust_pass (
     vehicle TEXT PRIMARY KEY, pass_id INTEGER NOT NULL, i_ee REAL NOT NULL, i_en REAL NOT NULL,
     i_nn REAL NOT NULL, sx REAL NOT NULL, sy REAL NOT NULL, bias REAL NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS trust_status (
+    vehicle TEXT PRIMARY KEY, status INTEGER NOT NULL, held_homes TEXT NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
@@ -57,14 +59,26 @@ def landmark_id(home_tile: str, counter: int) -> int:
     return (tile_id(home_tile) << COUNTER_BITS) | counter
 
 
-def pass_key(vehicle: str, pass_id: int) -> int:
-    """Stable 63-bit cluster key of (vehicle, pass), the same in every process.
+def _key63(text: str) -> int:
+    h = hashlib.blake2b(text.encode(), digest_size=8).digest()
+    return int.from_bytes(h, "little") & ((1 << 63) - 1) or 1
+
+
+def pass_key(vehicle: str, pass_id: int, held: bool = False) -> int:
+    """Stable 63-bit cluster key of (vehicle, pass), the same in every process; the rays a
+    pass sent while its vehicle was on probation form a cluster of their own (``held``).
 
     >>> pass_key("veh-1", 7) == pass_key("veh-1", 7) != pass_key("veh-1", 8)
     True
+    >>> pass_key("veh-1", 7, held=True) != pass_key("veh-1", 7)
+    True
     """
-    h = hashlib.blake2b(f"{vehicle}\x00{pass_id}".encode(), digest_size=8).digest()
-    return int.from_bytes(h, "little") & ((1 << 63) - 1)
+    return _key63(f"{vehicle}\x00{pass_id}" + ("\x00held" if held else ""))
+
+
+def hold_key(vehicle: str) -> int:
+    """Non-zero key of a vehicle's held passes (``LandmarkSums.accumulate(hold=...)``)."""
+    return _key63(f"{vehicle}\x00hold")
 
 
 @dataclass
@@ -296,6 +310,13 @@ class MatcherState:
             [(v, *self.trust[v].as_row()) for v in sorted(self._trust_dirty)],
         )
         c.executemany(
+            "INSERT OR REPLACE INTO trust_status(vehicle, status, held_homes) VALUES (?,?,?)",
+            [
+                (v, self.trust[v].status, " ".join(sorted(self.trust[v].held_homes)))
+                for v in sorted(self._trust_dirty)
+            ],
+        )
+        c.executemany(
             "INSERT OR REPLACE INTO trust_pass(vehicle, pass_id, i_ee, i_en, i_nn, sx, sy, bias) "
             "VALUES (?,?,?,?,?,?,?,?)",
             [
@@ -360,6 +381,10 @@ class MatcherState:
             if t is not None:
                 t.current = PassOffsets(int(pid), *map(float, sums))
                 t.bias_sigma_m = float(bias)
+        for v, status, homes in c.execute("SELECT vehicle, status, held_homes FROM trust_status"):
+            t = self.trust.get(v)
+            if t is not None:
+                t.status, t.held_homes = int(status), set(homes.split())
         rows = c.execute(
             "SELECT id, cls, home, tile, x, cov, sums, created_at FROM landmarks ORDER BY id"
         ).fetchall()

@@ -21,8 +21,14 @@ vehicle's offsets are tested against the fleet's reference: the componentwise me
 mean offsets of the vehicles with at least ``min_passes`` passes (at least 3 of them), which
 the majority sets. ``s`` becomes ``s - I r`` and the shift correction ``I^-1 s - r``.
 
-A new vehicle is on probation (weight ``probation_weight``) until ``probation_passes`` of
-its passes had an offset, and while its ``chi2`` exceeds ``promote_chi2``.
+Probation (``probation_passes`` > 0): a new vehicle's rays weigh ``probation_weight`` and
+its passes are *held* apart in the sums (:meth:`hdmap.estimator.LandmarkSums.accumulate`,
+``hold``) until it leaves probation, once (:meth:`VehicleTrust.settle`): promoted when
+``probation_passes`` of its passes had an offset and its ``chi2`` is at most
+``promote_chi2`` (its held passes are then re-weighted to its full weight, exactly as if
+they had come with it), or caught when its offsets are suspect (its held passes are taken
+out, as if never sent). So an honest vehicle loses nothing in the end, and a shifted one
+leaves nothing of what it sent before it was found out.
 
 The units of one pass (its tiles, its upload batches) share the pass's GNSS bias: they are
 combined into one offset per pass (:class:`PassOffsets`) before they enter the test.
@@ -43,6 +49,8 @@ that passed it; a vehicle whose rays keep failing the gate (share of failures ab
 1.0
 >>> VehicleTrust().weight(TrustConfig(probation_passes=10))  # new: on probation
 0.05
+>>> VehicleTrust().held(TrustConfig(probation_passes=10)), VehicleTrust().held(on)
+(True, False)
 >>> VehicleTrust().weight(TrustConfig(enabled=False))
 1.0
 >>> a = VehicleTrust()  # three units of one pass are one observation of its bias
@@ -53,8 +61,11 @@ that passed it; a vehicle whose rays keep failing the gate (share of failures ab
 >>> honest = VehicleTrust()
 >>> for k in range(8):
 ...     honest.add_offset(np.array([(-1.0) ** k, 0.5]), np.zeros((2, 2)), 3.0)
->>> honest.weight(replace(on, probation_passes=8, promote_chi2=5.99))
-1.0
+>>> prob = replace(on, probation_passes=8, promote_chi2=5.99)
+>>> honest.settle(prob), honest.weight(prob), honest.held(prob), honest.settle(prob)
+(1, 1.0, False, None)
+>>> t.settle(replace(prob, bias_sigma_m=3.0)), t.held(prob)  # shifted by 5 m: caught
+(2, False)
 """
 
 from __future__ import annotations
@@ -62,6 +73,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace  # noqa: F401 (doctests)
 
 import numpy as np
+
+NEW, TRUSTED, CAUGHT = 0, 1, 2
+"""``VehicleTrust.status``: on probation (if probation is on), promoted, caught."""
 
 
 @dataclass(frozen=True)
@@ -84,19 +98,19 @@ class TrustConfig:
     min_passes: int = 3
     relative_to_fleet: bool = True
     """Test offsets against the fleet's median mean offset, not zero (module doc)."""
-    probation_passes: int = 0
-    """If > 0, a vehicle weighs ``probation_weight`` until this many of its passes had an
-    offset and while its chi2 exceeds ``promote_chi2`` (a shifted vehicle is only found out
-    after several passes, and what it put in the sums before that cannot be taken back).
-    With 10 (and ``promote_chi2`` 9.21), a vehicle shifted by 5.8 m in a quarter of the
-    passes moves the landmark 0.23 / 0.24 m against a reported sigma of 0.39 / 0.64 m
-    (tests/test_rogue_vehicle.py). Off by default: every vehicle's first passes then count
-    20 times less, and in the Helsinki evaluation (10 vehicles of 16 passes each) the mean
-    error at 50+ passes went from 0.73 to 0.99 m and coverage from 0.86-0.94 to
-    0.83-0.96. A fleet open to strangers should turn it on."""
+    probation_passes: int = 10
+    """A new vehicle is on probation until this many of its passes had an offset and its
+    chi2 is at most ``promote_chi2`` (0: no probation). While on probation its rays weigh
+    ``probation_weight`` and its passes are held apart in the sums; promoted, they count in
+    full; caught, they are taken out (module doc). A shifted vehicle is only found out
+    after several passes: without probation what it sent before stays in the map."""
     probation_weight: float = 0.05
-    promote_chi2: float = 9.21
-    """99% of chi-square with 2 dof."""
+    promote_chi2: float = 4.61
+    """90% of chi-square with 2 dof: promotion is for good, so it asks for offsets well
+    inside the honest range (an honest vehicle passes each check with probability 0.9; at
+    9.21 the shifted vehicle of tests/test_rogue_vehicle.py was promoted after 10 passes
+    with chi2 6.0, its offsets being shrunk toward zero by the association's offset
+    prior)."""
     max_gate_failure: float = 0.5
     """Share of gated rays failing the gate tolerated before the weight drops."""
     min_gated: int = 200
@@ -138,6 +152,9 @@ class VehicleTrust:
     current: PassOffsets = field(default_factory=PassOffsets)
     bias_sigma_m: float = 4.0
     """Set by :meth:`add_offset` (the configured ``bias_sigma_m``)."""
+    status: int = NEW
+    held_homes: set[str] = field(default_factory=set)
+    """Home tiles where this vehicle has held passes (where to send its settlement)."""
 
     def add_offset(
         self,
@@ -216,12 +233,30 @@ class VehicleTrust:
             s = s - info @ np.asarray(ref, float)
         return n, float(s @ np.linalg.solve(info, s))
 
+    def held(self, cfg: TrustConfig) -> bool:
+        """On probation: its passes are held apart in the sums."""
+        return cfg.enabled and cfg.probation_passes > 0 and self.status == NEW
+
+    def settle(self, cfg: TrustConfig, ref: np.ndarray | None = None) -> int | None:
+        """Leave probation if the evidence is in: returns the new status (``TRUSTED`` or
+        ``CAUGHT``) once, else None."""
+        if not self.held(cfg):
+            return None
+        n, c = self._chi2(ref)
+        if n >= cfg.min_passes and c > cfg.chi2_gate:
+            self.status = CAUGHT
+        elif n >= cfg.probation_passes and c <= cfg.promote_chi2:
+            self.status = TRUSTED
+        else:
+            return None
+        return self.status
+
     def weight(self, cfg: TrustConfig, ref: np.ndarray | None = None) -> float:
         if not cfg.enabled:
             return 1.0
         w = 1.0
         n, c = self._chi2(ref)
-        if cfg.probation_passes > 0 and (n < cfg.probation_passes or c > cfg.promote_chi2):
+        if cfg.probation_passes > 0 and self.status != TRUSTED:
             w = cfg.probation_weight
         if n >= cfg.min_passes and c > cfg.chi2_gate:
             w *= (cfg.chi2_gate / c) ** cfg.weight_power

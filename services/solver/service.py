@@ -27,6 +27,7 @@ from hdmap.geodesy import enu_rotation
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, quadkeys_of
 from schemas import (
+    DROP,
     STATUS_CANDIDATE,
     STATUS_CONFIRMED,
     AssocGroup,
@@ -36,7 +37,7 @@ from schemas import (
     LogEntry,
     Removals,
 )
-from services.matcher.state import pass_key
+from services.matcher.state import hold_key, pass_key
 from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
@@ -148,10 +149,18 @@ class SolverService(StageService):
         known = np.array([int(i) in self.state.landmarks for i in ids], bool)
         if (~known).any():
             self.reject("assoc.unknown_landmark", int((~known).sum()))
+        held = g.held if g.held.size else np.zeros(len(g.links), bool)
         keys_ = np.array(
             [
-                pass_key(g.vehicles[v], int(p))
-                for v, p in zip(g.links.vehicle, g.links.pass_id, strict=True)
+                pass_key(g.vehicles[v], int(p), bool(h))
+                for v, p, h in zip(g.links.vehicle, g.links.pass_id, held, strict=True)
+            ],
+            np.int64,
+        )
+        holds = np.array(
+            [
+                hold_key(g.vehicles[v]) if h else 0
+                for v, h in zip(g.links.vehicle, held, strict=True)
             ],
             np.int64,
         )
@@ -172,13 +181,29 @@ class SolverService(StageService):
                 g.links.weight[sel].astype(float),
             )
             rows = np.array([self.state.landmarks[int(ids[k])].row for k in idx], np.int64)
-            self.sums.accumulate(rows, keys_[sel], rays)
+            self.sums.accumulate(rows, keys_[sel], rays, holds[sel])
             for k in idx:
                 lid = int(ids[k])
                 touched.add(lid)
                 self._source[lid] = max(self._source.get(lid, 0.0), float(g.links.received_at[k]))
         self.count("observations", int(known.sum()))
-        return touched | self._retire(g)
+        return touched | self._settle(g) | self._retire(g)
+
+    def _settle(self, g: AssocGroup) -> set[int]:
+        """Vehicles leaving probation: their held passes count in full or go."""
+        rows: list[int] = []
+        for v, action, w in zip(g.trust.vehicle, g.trust.action, g.trust.weight, strict=True):
+            key = hold_key(g.vehicles[int(v)])
+            if int(action) == DROP:
+                rows += self.sums.drop_held(key).tolist()
+                self.count("vehicles_dropped")
+            else:
+                rows += self.sums.release(key, float(w)).tolist()
+                self.count("vehicles_released")
+        if not rows:
+            return set()
+        by_row = {lm.row: lm.id for lm in self.state.landmarks.values()}
+        return {by_row[r] for r in rows if r in by_row}
 
     def _retire(self, g: AssocGroup) -> set[int]:
         """Retirements after the group's links; merged ones hand their sums over."""
