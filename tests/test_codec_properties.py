@@ -30,6 +30,7 @@ from schemas import (
     Rejection,
     Removals,
     Stats,
+    TrustChanges,
     UploadAck,
 )
 
@@ -134,6 +135,18 @@ def _valid_messages() -> list[bytes]:
         LogQuery("obs", {"ingest-1": {"1201": 4}}, limit=10),
         ObsGroup("veh-1", 1, 2, 1.7e9, _obs(3, 1)),
         AssocGroup(["a", "b"], links, _obs(3, 2), new, ids[:1]),
+        AssocGroup(
+            ["a", "b"],
+            links,
+            _obs(3, 2),
+            new,
+            ids[:2],
+            merged_into=ids[2:],
+            held=np.array([True, False, True]),
+            trust=TrustChanges(
+                np.array([1, 0], np.uint32), np.array([1, 2], np.uint8), np.ones(2, np.float32)
+            ),
+        ),
         LandmarkUpdates(lm, rem),
         MapDelta("1201", 1, 2, 1.7e9, lm, rem),
         MapSnapshot("1201", 2, lm),
