@@ -224,6 +224,7 @@ class MatcherService(StageService):
 
     def apply(self, entries: list[LogEntry]) -> None:
         self._out = defaultdict(_Out)
+        now = 0.0
         for e in entries:
             try:
                 group = ObsGroup.from_bytes(e.body)
@@ -231,6 +232,8 @@ class MatcherService(StageService):
                 self.reject(f"obs.{exc.field}")
                 continue
             self._unit(e.tile, group)
+            now = max(now, group.received_at)
+        self._freeze_stale(now)
         for home, out in sorted(self._out.items()):
             self.emit(home, self._assoc_body(out))
         self.state.save(self.sums.pack_rows)
@@ -238,6 +241,7 @@ class MatcherService(StageService):
     def _unit(self, tile: str, g: ObsGroup) -> None:
         frame = self.frames(tile)
         trust = self.state.trust_of(g.vehicle_id)
+        trust.last_seen = max(trust.last_seen, g.received_at)
         obs = g.obs
         applied = np.zeros(2)
         ref = self._fleet_ref()
@@ -434,14 +438,30 @@ class MatcherService(StageService):
             t.chi2(ref),
             np.round(t.mean_offset(ref), 2).tolist(),
         )
-        key = hold_key(vehicle)
         if status == CAUGHT:
-            action, weight, rows = DROP, 0.0, self.sums.drop_held(key)
+            self._let_go(vehicle, t, DROP, 0.0)
             self.count("vehicles_caught")
         else:
-            weight = t.weight(self.config.trust, self._fleet_ref())
-            action, rows = RELEASE, self.sums.release(key, weight)
+            self._let_go(vehicle, t, RELEASE, t.weight(self.config.trust, ref))
             self.count("vehicles_promoted")
+
+    def _freeze_stale(self, now: float) -> None:
+        """Vehicles on probation that stopped driving before they could be settled (none for
+        ``probation_ttl_s`` of ingest time): their held passes go at the probation weight."""
+        cfg = self.config.trust
+        cutoff = now - cfg.probation_ttl_s
+        for v in sorted(v for v, t in self.state.trust.items() if t.held_homes):
+            t = self.state.trust[v]
+            if t.held(cfg) and t.last_seen < cutoff:
+                self.state.trust_of(v)  # marks it for saving
+                self._let_go(v, t, RELEASE, t.weight(cfg, self._fleet_ref()))
+                self.count("probation_timed_out")
+
+    def _let_go(self, vehicle: str, t: VehicleTrust, action: int, weight: float) -> None:
+        """Settle ``vehicle``'s held passes here and, through the assoc output of every home
+        tile it has held passes in, in the solvers."""
+        key = hold_key(vehicle)
+        rows = self.sums.drop_held(key) if action == DROP else self.sums.release(key, weight)
         for home in sorted(t.held_homes):
             out = self._out[home]
             out.trust.append((out.vehicle_index(vehicle), action, weight))

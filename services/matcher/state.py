@@ -39,7 +39,8 @@ CREATE TABLE IF NOT EXISTS trust_pass (
     vehicle TEXT PRIMARY KEY, pass_id INTEGER NOT NULL, i_ee REAL NOT NULL, i_en REAL NOT NULL,
     i_nn REAL NOT NULL, sx REAL NOT NULL, sy REAL NOT NULL, bias REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS trust_status (
-    vehicle TEXT PRIMARY KEY, status INTEGER NOT NULL, held_homes TEXT NOT NULL) WITHOUT ROWID;
+    vehicle TEXT PRIMARY KEY, status INTEGER NOT NULL, held_homes TEXT NOT NULL,
+    last_seen REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
@@ -310,9 +311,15 @@ class MatcherState:
             [(v, *self.trust[v].as_row()) for v in sorted(self._trust_dirty)],
         )
         c.executemany(
-            "INSERT OR REPLACE INTO trust_status(vehicle, status, held_homes) VALUES (?,?,?)",
+            "INSERT OR REPLACE INTO trust_status(vehicle, status, held_homes, last_seen) "
+            "VALUES (?,?,?,?)",
             [
-                (v, self.trust[v].status, " ".join(sorted(self.trust[v].held_homes)))
+                (
+                    v,
+                    self.trust[v].status,
+                    " ".join(sorted(self.trust[v].held_homes)),
+                    self.trust[v].last_seen,
+                )
                 for v in sorted(self._trust_dirty)
             ],
         )
@@ -381,10 +388,12 @@ class MatcherState:
             if t is not None:
                 t.current = PassOffsets(int(pid), *map(float, sums))
                 t.bias_sigma_m = float(bias)
-        for v, status, homes in c.execute("SELECT vehicle, status, held_homes FROM trust_status"):
+        for v, status, homes, seen in c.execute(
+            "SELECT vehicle, status, held_homes, last_seen FROM trust_status"
+        ):
             t = self.trust.get(v)
             if t is not None:
-                t.status, t.held_homes = int(status), set(homes.split())
+                t.status, t.held_homes, t.last_seen = int(status), set(homes.split()), float(seen)
         rows = c.execute(
             "SELECT id, cls, home, tile, x, cov, sums, created_at FROM landmarks ORDER BY id"
         ).fetchall()

@@ -105,6 +105,10 @@ class TrustConfig:
     full; caught, they are taken out (module doc). A shifted vehicle is only found out
     after several passes: without probation what it sent before stays in the map."""
     probation_weight: float = 0.05
+    probation_ttl_s: float = 86400.0
+    """A vehicle still on probation this long after its last pass (by ingest time) has its
+    held passes let go at the probation weight: they then close and fold like any pass, so
+    vehicles that stop driving before they are settled do not keep passes open for ever."""
     promote_chi2: float = 4.61
     """90% of chi-square with 2 dof: promotion is for good, so it asks for offsets well
     inside the honest range (an honest vehicle passes each check with probability 0.9; at
@@ -153,6 +157,8 @@ class VehicleTrust:
     bias_sigma_m: float = 4.0
     """Set by :meth:`add_offset` (the configured ``bias_sigma_m``)."""
     status: int = NEW
+    last_seen: float = 0.0
+    """Ingest time of its latest unit (probation time-out)."""
     held_homes: set[str] = field(default_factory=set)
     """Home tiles where this vehicle has held passes (where to send its settlement)."""
 
