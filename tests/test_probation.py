@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from hdmap.service import ServiceOptions
-from schemas import DROP, RELEASE, AssocGroup, LogEntry
+from schemas import DROP, RELEASE, AssocGroup, LogEntry, ObsGroup
 from services.matcher.service import MatcherConfig, MatcherService, _Out
 from services.matcher.state import hold_key
 from services.matcher.trust import NEW, TrustConfig
@@ -120,3 +120,27 @@ def test_a_vehicle_that_never_settles_is_let_go_at_the_probation_weight(tmp_path
     assert m.counters["probation_timed_out"] == 1
     assert m.state.trust["veh-3"].held_homes == set() and m.state.trust["veh-3"].status == NEW
     assert hold_key("veh-3") != 0
+
+
+def test_a_vehicle_whose_rays_keep_failing_the_gate_weighs_less_in_stats(tmp_path: Path):
+    """Its rays are offered to the gate of a landmark of their class and fail it (a loose
+    camera: 0.15 rad of direction noise while it reports 0.01): past ``min_gated`` rays its
+    weight drops and stats show it."""
+    m = matcher(tmp_path)
+    tile = tile_of(m.opts.zoom)
+    frame = m.frames(tile)
+    m._out = defaultdict(_Out)
+    m._create(tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 0.25)
+    rng = np.random.default_rng(2)
+    t0 = time.time()
+    for p in range(25):  # 250 rays offered
+        o = sign_rays(frame, p, rng)
+        d = o.direction + rng.normal(0.0, 0.15, o.direction.shape)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        m._unit(tile, ObsGroup("veh-bad", p, p, t0 + p, type(o)(**{**o.__dict__, "direction": d})))
+    t = m.state.trust["veh-bad"]
+    assert t.offered >= 200 and t.passed < 0.5 * t.offered
+    m._snapshot_counts()
+    stats = m.extra_counters()
+    assert 0 < stats["weight.veh-bad"] < 0.05  # probation weight x the gate-failure factor
+    assert stats["vehicles_downweighted"] >= 1
