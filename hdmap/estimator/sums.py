@@ -24,12 +24,13 @@ w1, w2     2     sums of the rays' weights and of their squares (``Rays.weight``
 =========  ====  =============================================================
 
 so 68 float64 + 3 int64 = 568 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
-packed: 565 bytes plus 112 per open pass).
+packed: 565 bytes plus 176 per open pass).
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
 interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
-``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance and ray
-weight sums: 112 bytes). A pass enters ``A``, ``b`` and the sandwich sums when it closes, with the
+``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance, ray weight
+sums c and c^2, holder key and held ``J``: 176 bytes). A pass enters ``A``, ``b`` and the
+sandwich sums when it closes, with the
 random-effects weighting of
 :func:`hdmap.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S`` the
 configured ``pass_sigma_m`` squared: a pass brings at most ``S^-1`` of information,
