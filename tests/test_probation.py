@@ -144,3 +144,21 @@ def test_a_vehicle_whose_rays_keep_failing_the_gate_weighs_less_in_stats(tmp_pat
     stats = m.extra_counters()
     assert 0 < stats["weight.veh-bad"] < 0.05  # probation weight x the gate-failure factor
     assert stats["vehicles_downweighted"] >= 1
+
+
+def test_a_landmark_only_a_caught_vehicle_saw_leaves_the_map(tmp_path: Path):
+    t0 = time.time()
+    m = matcher(tmp_path / "m")
+    lid = held_passes(m, ["veh-9"], 6, t0)
+    s = solver(tmp_path / "s")
+    s._apply_in_transaction(emitted(m))
+    (u,) = updates(s)
+    assert u.landmarks.id.tolist() == [lid] and len(u.removed) == 0  # on the map
+    m._let_go("veh-9", m.state.trust_of("veh-9"), DROP, 0.0)
+    s._apply_in_transaction(
+        [LogEntry("assoc", "matcher-test", e.tile, 2, 2, e.body) for e in emitted(m)]
+    )
+    (u2,) = updates(s)
+    assert u2.removed.id.tolist() == [lid] and len(u2.landmarks) == 0
+    assert int(u2.removed.revision[0]) > int(u.landmarks.revision[0])
+    assert s.counters["emptied"] == 1 and s.state.landmarks[lid].tile == ""

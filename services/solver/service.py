@@ -248,6 +248,13 @@ class SolverService(StageService):
             self.config.pass_bias_sigma_m,
         )
         sol_cov = sol_cov + np.diag(np.square(self.config.systematic_sigma_m))
+        for k in np.flatnonzero(~good & (n_obs == 0)):
+            lm = lms[k]  # every ray taken out (a caught vehicle's): off the map until seen again
+            if lm.tile:
+                lm.revision += 1
+                removals[lm.tile].append((lm.id, lm.revision))
+                lm.tile = ""
+                self.count("emptied")
         ok = np.flatnonzero(good)
         self.count("solved_ok", int(sol.ok.sum()))
         self.count("solved_provisional", int(provisional.sum()))
