@@ -65,6 +65,9 @@ class MatcherConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     init: InitConfig = field(default_factory=InitConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    gate_probation_full: bool = True
+    """Rays of a vehicle on probation count in full in the matcher's own (gating) sums; the
+    solver's, which make the map, get the probation weight."""
     pending_ttl_s: float = 3600.0
     """Unmatched rays older than this are dropped (counted as expired)."""
     trust: TrustConfig = field(default_factory=TrustConfig)
@@ -332,8 +335,11 @@ class MatcherService(StageService):
         if weight < 1.0:
             self.count("downweighted", len(obs))
         held = t.held(self.config.trust)
+        gating = weight
         if held:
             self.count("held", len(obs))
+            if self.config.gate_probation_full:
+                gating = weight / self.config.trust.probation_weight
         key = pass_key(vehicle, pass_id, held)
         hold = np.full(len(obs), hold_key(vehicle) if held else 0, np.int64)
         self._note_views(obs, lms)
@@ -345,7 +351,7 @@ class MatcherService(StageService):
             sub = obs.take(sel)
             local = to_local(self.frames(home), sub)
             rows = np.array([lms[k].row for k in idx], np.int64)
-            rays = to_rays(local, np.full(len(idx), weight) if weight < 1.0 else None)
+            rays = to_rays(local, np.full(len(idx), gating) if gating < 1.0 else None)
             self.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays, hold[sel])
             out = self._out[home]
             vi = out.vehicle_index(vehicle)
