@@ -460,14 +460,22 @@ class MatcherService(StageService):
             t = self.state.trust[v]
             if t.held(cfg) and t.last_seen < cutoff:
                 self.state.trust_of(v)  # marks it for saving
-                self._let_go(v, t, RELEASE, t.weight(cfg, self._fleet_ref()))
+                w = t.weight(cfg, self._fleet_ref())
+                local = w / cfg.probation_weight if self.config.gate_probation_full else w
+                self._let_go(v, t, RELEASE, w, local)
                 self.count("probation_timed_out")
 
-    def _let_go(self, vehicle: str, t: VehicleTrust, action: int, weight: float) -> None:
-        """Settle ``vehicle``'s held passes here and, through the assoc output of every home
-        tile it has held passes in, in the solvers."""
+    def _let_go(
+        self, vehicle: str, t: VehicleTrust, action: int, weight: float, local: float | None = None
+    ) -> None:
+        """Settle ``vehicle``'s held passes here (released at ``local``, default ``weight``)
+        and, through the assoc output of every home tile it has held passes in, in the
+        solvers (released at ``weight``)."""
         key = hold_key(vehicle)
-        rows = self.sums.drop_held(key) if action == DROP else self.sums.release(key, weight)
+        if action == DROP:
+            rows = self.sums.drop_held(key)
+        else:
+            rows = self.sums.release(key, weight if local is None else local)
         for home in sorted(t.held_homes):
             out = self._out[home]
             out.trust.append((out.vehicle_index(vehicle), action, weight))
