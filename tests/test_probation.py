@@ -155,10 +155,15 @@ def test_a_landmark_only_a_caught_vehicle_saw_leaves_the_map(tmp_path: Path):
     (u,) = updates(s)
     assert u.landmarks.id.tolist() == [lid] and len(u.removed) == 0  # on the map
     m._let_go("veh-9", m.state.trust_of("veh-9"), DROP, 0.0)
-    s._apply_in_transaction(
-        [LogEntry("assoc", "matcher-test", e.tile, 2, 2, e.body) for e in emitted(m)]
-    )
+    assert lid not in m.state.landmarks and m.counters["emptied"] == 1  # retired, no successor
+    (e,) = emitted(m)
+    g = AssocGroup.from_bytes(e.body)
+    assert g.retired.tolist() == [lid] and g.merged_into.size == 0
+    s._apply_in_transaction([LogEntry("assoc", "matcher-test", e.tile, 2, 2, e.body)])
     (u2,) = updates(s)
-    assert u2.removed.id.tolist() == [lid] and len(u2.landmarks) == 0
+    assert u2.removed.id.tolist() == [lid] and len(u2.landmarks) == 0  # removed once
     assert int(u2.removed.revision[0]) > int(u.landmarks.revision[0])
-    assert s.counters["emptied"] == 1 and s.state.landmarks[lid].tile == ""
+    assert lid not in s.state.landmarks
+    with m.transaction([m]):
+        m.state.save(m.sums.pack_rows)
+    assert lid not in matcher(tmp_path / "m").state.landmarks

@@ -151,6 +151,8 @@ class _Out:
     created: list[tuple[int, int, float, float, float]] = field(default_factory=list)
     retired: list[tuple[int, int]] = field(default_factory=list)
     """(retired id, id it merged into)."""
+    ended: list[int] = field(default_factory=list)
+    """Retired without a successor (emptied: every ray taken out)."""
 
     def vehicle_index(self, v: str) -> int:
         if v not in self.vehicles:
@@ -270,6 +272,9 @@ class MatcherService(StageService):
             self._fleet.update(g.vehicle_id, trust)
             self._note_trust(g.vehicle_id, trust, self._fleet_ref())
             self._settle(g.vehicle_id, trust)
+            gone = np.array([c.id not in self.state.landmarks for c in cands])
+            if gone.any():  # emptied by the settlement: these rays wait like unmatched ones
+                matched = np.where((matched >= 0) & gone[np.maximum(matched, 0)], -1, matched)
         hit = matched >= 0
         self.count("received", len(rays))
         self.count("associated", int(hit.sum()))
@@ -481,8 +486,14 @@ class MatcherService(StageService):
             out.trust.append((out.vehicle_index(vehicle), action, weight))
         t.held_homes.clear()
         if rows.size:
-            by_row = {lm.row: lm.id for lm in self.state.landmarks.values()}
-            self._refresh(sorted(by_row[r] for r in rows.tolist() if r in by_row))
+            by_row = {lm.row: lm for lm in self.state.landmarks.values()}
+            lms = [by_row[r] for r in rows.tolist() if r in by_row]
+            empty = self.sums.n_obs([lm.row for lm in lms]) == 0
+            for lm in (lm for lm, e in zip(lms, empty, strict=True) if e):
+                self.state.remove(lm)  # only the caught vehicle saw it
+                self._out[lm.home].ended.append(lm.id)
+                self.count("emptied")
+            self._refresh(sorted(lm.id for lm, e in zip(lms, empty, strict=True) if not e))
 
     def _create(self, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray) -> Landmark:
         lid = self.state.next_id(home)
@@ -659,7 +670,7 @@ class MatcherService(StageService):
                 lon=np.array([c[3] for c in created], float),
                 h=np.array([c[4] for c in created], float),
             ),
-            retired=retired[:, 0].copy(),
+            retired=np.r_[retired[:, 0], np.array(out.ended, np.uint64)],
             merged_into=retired[:, 1].copy(),
             held=np.array(out.held, bool),
             trust=TrustChanges(

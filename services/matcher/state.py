@@ -206,11 +206,23 @@ class MatcherState:
             self._covis_of[other].discard(drop.id)
             if other != keep.id:
                 self.add_covis(keep.id, other, n)
-        self.landmarks.pop(drop.id)
-        self.by_tile[self._indexed.pop(drop.id)].discard(drop.id)
-        self._dirty.discard(drop.id)
-        self._deleted.add(drop.id)
+        self._unlist(drop)
         self.put(keep)
+
+    def remove(self, lm: Landmark) -> None:
+        """``lm`` ends without a successor (every ray it had was taken out)."""
+        for other in sorted(self._covis_of.pop(lm.id, set())):
+            k = (lm.id, other) if lm.id < other else (other, lm.id)
+            self.covis.pop(k, None)
+            self._covis_dirty.add(k)
+            self._covis_of[other].discard(lm.id)
+        self._unlist(lm)
+
+    def _unlist(self, lm: Landmark) -> None:
+        self.landmarks.pop(lm.id)
+        self.by_tile[self._indexed.pop(lm.id)].discard(lm.id)
+        self._dirty.discard(lm.id)
+        self._deleted.add(lm.id)
 
     def near(self, tiles: list[str]) -> list[Landmark]:
         ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))
