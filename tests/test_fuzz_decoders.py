@@ -34,20 +34,12 @@ from tests.hostile import (
 
 # --- decoders ---------------------------------------------------------------------------------
 
+MESSAGES = (ObservationBatch, UploadAck, LogEntry, LogQuery, ObsGroup, AssocGroup)
+MESSAGES += (LandmarkUpdates, MapDelta, MapSnapshot, ErrorReply, Stats)
 DECODERS: dict[str, tuple[str, Callable[[bytes], Any]]] = {
-    "ObservationBatch": ("obs_batch", ObservationBatch.from_bytes),
-    "ObservationBatch.partial": ("obs_batch", ObservationBatch.from_bytes_partial),
-    "UploadAck": ("upload_ack", UploadAck.from_bytes),
-    "LogEntry": ("log_entry", LogEntry.from_bytes),
-    "LogQuery": ("log_query", LogQuery.from_bytes),
-    "ObsGroup": ("obs_group", ObsGroup.from_bytes),
-    "AssocGroup": ("assoc_group", AssocGroup.from_bytes),
-    "LandmarkUpdates": ("landmark_updates", LandmarkUpdates.from_bytes),
-    "MapDelta": ("map_delta", MapDelta.from_bytes),
-    "MapSnapshot": ("map_snapshot", MapSnapshot.from_bytes),
-    "ErrorReply": ("error", ErrorReply.from_bytes),
-    "Stats": ("stats", Stats.from_bytes),
+    m.__name__: (m.TYPE, m.from_bytes) for m in MESSAGES
 }
+DECODERS["ObservationBatch.partial"] = ("obs_batch", ObservationBatch.from_bytes_partial)
 
 
 def check_decoder(name: str, decode: Callable[[bytes], Any], case: Case) -> None:

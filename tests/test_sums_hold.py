@@ -133,7 +133,7 @@ def test_pack_unpack_and_merge_keep_passes_held(data):
 
 
 def test_a_pass_is_held_or_not_for_good(data):
-    (hc, hr), _ = data[0][0], None
+    hc, hr = data[0][0]
     s, row = fresh(EstimatorConfig())
     s.accumulate(np.full(hc.size, row[0]), hc, hr)
     with pytest.raises(ValueError, match="held and not"):
@@ -149,7 +149,7 @@ def test_a_pass_is_held_or_not_for_good(data):
 
 def test_version_3_blobs_still_load(data):
     """A v3 blob (before held passes) is a v4 one without the held-pass columns."""
-    (hc, hr), _ = data[0][0], None
+    hc, hr = data[0][0]
     s, row = fresh(EstimatorConfig())
     s.accumulate(np.full(hc.size, row[0]), hc, hr)
     blob = s.pack_rows(row)[0]

@@ -406,8 +406,9 @@ class LandmarkSums:
         self._o_w2[slots] *= f**2
         self._o_j6[slots] = 0.0
         self._o_hold[slots] = 0
-        self._evict(np.unique(rows))
-        return np.unique(rows)
+        rows = np.unique(rows)
+        self._evict(rows)
+        return rows
 
     def drop_held(self, hold: int) -> IntArray:
         """Take ``hold``'s held passes out, as if their rays had never been added. Returns

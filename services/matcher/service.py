@@ -191,7 +191,7 @@ class MatcherService(StageService):
         for v, t in self.state.trust.items():
             self._note_trust(v, t, ref)
 
-    def _note_trust(self, vehicle: str, t, ref: np.ndarray | None) -> None:
+    def _note_trust(self, vehicle: str, t: VehicleTrust, ref: np.ndarray | None) -> None:
         """Keep (weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
         w, c = t.weight(self.config.trust, ref), t.chi2(ref)
         if w < 1.0 or c > self.config.trust.chi2_gate:
@@ -271,10 +271,10 @@ class MatcherService(StageService):
                 trust.add_offset(raw, res.offset_cov, self.config.trust.bias_sigma_m, g.pass_id)
             self._fleet.update(g.vehicle_id, trust)
             self._note_trust(g.vehicle_id, trust, self._fleet_ref())
-            self._settle(g.vehicle_id, trust)
-            gone = np.array([c.id not in self.state.landmarks for c in cands])
-            if gone.any():  # emptied by the settlement: these rays wait like unmatched ones
-                matched = np.where((matched >= 0) & gone[np.maximum(matched, 0)], -1, matched)
+            gone = self._settle(g.vehicle_id, trust)
+            if gone:  # emptied by the settlement: these rays wait like unmatched ones
+                out = np.array([c.id in gone for c in cands])
+                matched = np.where((matched >= 0) & out[np.maximum(matched, 0)], -1, matched)
         hit = matched >= 0
         self.count("received", len(rays))
         self.count("associated", int(hit.sum()))
@@ -433,13 +433,13 @@ class MatcherService(StageService):
             self._adopt(area, [self.state.landmarks[i] for i in sorted(created)])
         return created
 
-    def _settle(self, vehicle: str, t: VehicleTrust) -> None:
+    def _settle(self, vehicle: str, t: VehicleTrust) -> set[int]:
         """A vehicle leaves probation: its held passes count in full (promoted) or go
         (caught), here and, through the assoc output of every home tile it has held passes
-        in, in the solvers."""
+        in, in the solvers. Returns the landmarks that went with them."""
         status = t.settle(self.config.trust, self._fleet_ref())
         if status is None:
-            return
+            return set()
         ref = self._fleet_ref()
         log.info(
             "vehicle %s %s after %d passes (offset chi2 %.2f, mean offset %s m)",
@@ -450,11 +450,10 @@ class MatcherService(StageService):
             np.round(t.mean_offset(ref), 2).tolist(),
         )
         if status == CAUGHT:
-            self._let_go(vehicle, t, DROP, 0.0)
             self.count("vehicles_caught")
-        else:
-            self._let_go(vehicle, t, RELEASE, t.weight(self.config.trust, ref))
-            self.count("vehicles_promoted")
+            return self._let_go(vehicle, t, DROP, 0.0)
+        self.count("vehicles_promoted")
+        return self._let_go(vehicle, t, RELEASE, t.weight(self.config.trust, ref))
 
     def _freeze_stale(self, now: float) -> None:
         """Vehicles on probation that stopped driving before they could be settled (none for
@@ -472,10 +471,11 @@ class MatcherService(StageService):
 
     def _let_go(
         self, vehicle: str, t: VehicleTrust, action: int, weight: float, local: float | None = None
-    ) -> None:
+    ) -> set[int]:
         """Settle ``vehicle``'s held passes here (released at ``local``, default ``weight``)
         and, through the assoc output of every home tile it has held passes in, in the
-        solvers (released at ``weight``)."""
+        solvers (released at ``weight``). Returns the landmarks retired for having no rays
+        left."""
         key = hold_key(vehicle)
         if action == DROP:
             rows = self.sums.drop_held(key)
@@ -485,15 +485,19 @@ class MatcherService(StageService):
             out = self._out[home]
             out.trust.append((out.vehicle_index(vehicle), action, weight))
         t.held_homes.clear()
-        if rows.size:
-            by_row = {lm.row: lm for lm in self.state.landmarks.values()}
-            lms = [by_row[r] for r in rows.tolist() if r in by_row]
-            empty = self.sums.n_obs([lm.row for lm in lms]) == 0
-            for lm in (lm for lm, e in zip(lms, empty, strict=True) if e):
+        if not rows.size:
+            return set()
+        by_row = {lm.row: lm for lm in self.state.landmarks.values()}
+        lms = [by_row[r] for r in rows.tolist() if r in by_row]
+        empty = self.sums.n_obs([lm.row for lm in lms]) == 0
+        gone = {lm.id for lm, e in zip(lms, empty, strict=True) if e}
+        for lm in lms:
+            if lm.id in gone:
                 self.state.remove(lm)  # only the caught vehicle saw it
                 self._out[lm.home].ended.append(lm.id)
                 self.count("emptied")
-            self._refresh(sorted(lm.id for lm, e in zip(lms, empty, strict=True) if not e))
+        self._refresh(sorted(lm.id for lm in lms if lm.id not in gone))
+        return gone
 
     def _create(self, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray) -> Landmark:
         lid = self.state.next_id(home)

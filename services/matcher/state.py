@@ -60,6 +60,11 @@ def landmark_id(home_tile: str, counter: int) -> int:
     return (tile_id(home_tile) << COUNTER_BITS) | counter
 
 
+def _pair(a: int, b: int) -> tuple[int, int]:
+    """Key of an unordered pair of landmark ids."""
+    return (a, b) if a < b else (b, a)
+
+
 def _key63(text: str) -> int:
     h = hashlib.blake2b(text.encode(), digest_size=8).digest()
     return int.from_bytes(h, "little") & ((1 << 63) - 1) or 1
@@ -186,43 +191,42 @@ class MatcherState:
         self._dirty.add(lm.id)
 
     def add_covis(self, a: int, b: int, n: int = 1) -> None:
-        k = (a, b) if a < b else (b, a)
+        k = _pair(a, b)
         self.covis[k] = self.covis.get(k, 0) + n
         self._covis_of[a].add(b)
         self._covis_of[b].add(a)
         self._covis_dirty.add(k)
 
     def covis_count(self, a: int, b: int) -> int:
-        return self.covis.get((a, b) if a < b else (b, a), 0)
+        return self.covis.get(_pair(a, b), 0)
 
     def merge(self, keep: Landmark, drop: Landmark) -> None:
         """``drop`` becomes part of ``keep``: its view and co-visibility counts move over,
         its record is deleted (the caller merges the sums rows)."""
         keep.view = keep.view + drop.view
-        for other in sorted(self._covis_of.pop(drop.id, set())):
-            k = (drop.id, other) if drop.id < other else (other, drop.id)
-            n = self.covis.pop(k)
-            self._covis_dirty.add(k)
-            self._covis_of[other].discard(drop.id)
+        for other, n in self._unlist(drop).items():
             if other != keep.id:
                 self.add_covis(keep.id, other, n)
-        self._unlist(drop)
         self.put(keep)
 
     def remove(self, lm: Landmark) -> None:
         """``lm`` ends without a successor (every ray it had was taken out)."""
-        for other in sorted(self._covis_of.pop(lm.id, set())):
-            k = (lm.id, other) if lm.id < other else (other, lm.id)
-            self.covis.pop(k, None)
-            self._covis_dirty.add(k)
-            self._covis_of[other].discard(lm.id)
         self._unlist(lm)
 
-    def _unlist(self, lm: Landmark) -> None:
+    def _unlist(self, lm: Landmark) -> dict[int, int]:
+        """Delete ``lm``'s record; returns its co-visibility counts (other id -> images),
+        which are deleted with it."""
+        covis = {}
+        for other in sorted(self._covis_of.pop(lm.id, set())):
+            k = _pair(lm.id, other)
+            covis[other] = self.covis.pop(k)
+            self._covis_dirty.add(k)
+            self._covis_of[other].discard(lm.id)
         self.landmarks.pop(lm.id)
         self.by_tile[self._indexed.pop(lm.id)].discard(lm.id)
         self._dirty.discard(lm.id)
         self._deleted.add(lm.id)
+        return covis
 
     def near(self, tiles: list[str]) -> list[Landmark]:
         ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))

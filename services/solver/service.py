@@ -149,21 +149,7 @@ class SolverService(StageService):
         known = np.array([int(i) in self.state.landmarks for i in ids], bool)
         if (~known).any():
             self.reject("assoc.unknown_landmark", int((~known).sum()))
-        held = g.held if g.held.size else np.zeros(len(g.links), bool)
-        keys_ = np.array(
-            [
-                pass_key(g.vehicles[v], int(p), bool(h))
-                for v, p, h in zip(g.links.vehicle, g.links.pass_id, held, strict=True)
-            ],
-            np.int64,
-        )
-        holds = np.array(
-            [
-                hold_key(g.vehicles[v]) if h else 0
-                for v, h in zip(g.links.vehicle, held, strict=True)
-            ],
-            np.int64,
-        )
+        keys_, holds = self._pass_keys(g)
         homes: dict[str, list[int]] = defaultdict(list)
         for k in np.flatnonzero(known):
             homes[self.state.landmarks[int(ids[k])].home].append(int(k))
@@ -188,6 +174,22 @@ class SolverService(StageService):
                 self._source[lid] = max(self._source.get(lid, 0.0), float(g.links.received_at[k]))
         self.count("observations", int(known.sum()))
         return touched | self._settle(g) | self._retire(g)
+
+    @staticmethod
+    def _pass_keys(g: AssocGroup) -> tuple[np.ndarray, np.ndarray]:
+        """Per link, its cluster key (:func:`pass_key`) and hold key (0: not held), hashed
+        once per (vehicle, pass, held) rather than per link."""
+        held = g.held if g.held.size else np.zeros(len(g.links), bool)
+        passes = np.rec.fromarrays([g.links.vehicle, g.links.pass_id, held])
+        uniq, inv = np.unique(passes, return_inverse=True)
+        keys = np.array(
+            [pass_key(g.vehicles[int(v)], int(p), bool(h)) for v, p, h in uniq.tolist()],
+            np.int64,
+        )
+        holds = np.array(
+            [hold_key(g.vehicles[int(v)]) if h else 0 for v, _p, h in uniq.tolist()], np.int64
+        )
+        return keys[inv.reshape(-1)], holds[inv.reshape(-1)]
 
     def _settle(self, g: AssocGroup) -> set[int]:
         """Vehicles leaving probation: their held passes count in full or go."""
