@@ -69,6 +69,9 @@ class GateConfig:
     offset_iterations: int = 2
     min_offset_rays: int = 3
     """Rays needed before a unit's offset is estimated (fewer: the wide gate stays)."""
+    track_link_factor: float = 1.0
+    """A tracked ray links to its track's landmark when its statistic is within this
+    multiple of ``chi2_gate`` (the track, not the ray alone, chose the landmark)."""
 
 
 @dataclass(frozen=True)
@@ -85,12 +88,37 @@ class LocalRays:
     sigma_range_m: Array
     image: IntArray
     sign_class: IntArray
+    track: IntArray | None = None
+    """Per ray its track within the unit (detections of one sign followed from image to
+    image by the vehicle); 0 = not tracked. None = no ray tracked."""
 
     def __len__(self) -> int:
         return int(self.origin.shape[0])
 
     def take(self, idx: NDArray) -> LocalRays:
-        return LocalRays(**{k: getattr(self, k)[idx] for k in self.__dataclass_fields__})
+        return LocalRays(
+            **{
+                k: None if getattr(self, k) is None else getattr(self, k)[idx]
+                for k in self.__dataclass_fields__
+            }
+        )
+
+    @staticmethod
+    def concat(parts: list[LocalRays]) -> LocalRays:
+        """Rows of ``parts`` in order (tracks kept only when every part has them)."""
+        return LocalRays(
+            **{
+                k: None
+                if any(getattr(p, k) is None for p in parts)
+                else np.concatenate([getattr(p, k) for p in parts])
+                for k in LocalRays.__dataclass_fields__
+            }
+        )
+
+    @property
+    def tracks(self) -> IntArray:
+        """``track``, zeros when None."""
+        return np.zeros(len(self), np.int64) if self.track is None else self.track
 
 
 def origin_cov(rays: LocalRays, bias_h: float, bias_v: float) -> Array:
@@ -193,6 +221,94 @@ def assign_per_image(
     return out
 
 
+def assign_tracks(
+    rays: LocalRays, ri: IntArray, li: IntArray, cost: Array, gate: float, link_gate: float
+) -> tuple[IntArray, NDArray[np.bool_]]:
+    """Best landmark per ray (-1 = none), tracks kept whole; and the rays of tracks that
+    got a landmark but do not link to it.
+
+    A track (rays with one ``track`` > 0: one sign followed through the images) takes the
+    landmark that its rays gate to with the largest summed margin ``sum (gate - chi2)``,
+    tracks seen together never the same landmark (:func:`_greedy_tracks`); its rays with
+    ``chi2 <= link_gate`` against that landmark link to it, none to another. Untracked rays
+    are assigned per image (:func:`assign_per_image`) among the landmarks no track holds in
+    their image.
+
+    >>> r = LocalRays(*np.zeros((2, 4, 3)), *np.ones((6, 4)), image=np.array([0, 1, 2, 1]),
+    ...               sign_class=np.ones(4, np.int64), track=np.array([1, 1, 1, 2]))
+    >>> ri, li = np.array([0, 1, 2, 2, 3]), np.array([0, 0, 0, 1, 0])
+    >>> best, unlinked = assign_tracks(r, ri, li, np.array([1.0, 2.0, 20.0, 3.0, 0.5]), 10, 10)
+    >>> best.tolist(), unlinked.tolist()
+    ([0, 0, -1, -1], [False, False, True, False])
+    """
+    n, track = len(rays), rays.tracks
+    tracked = track[ri] > 0
+    best = np.full(n, -1, np.int64)
+    unlinked = np.zeros(n, bool)
+    keep = tracked & (cost <= gate)
+    used = np.array([], np.int64)
+    if keep.any():
+        r, lm, c = ri[keep], li[keep], cost[keep]
+        ut, tinv = np.unique(track[r], return_inverse=True)
+        ul, linv = np.unique(lm, return_inverse=True)
+        margin = np.zeros((ut.size, ul.size))
+        np.add.at(margin, (tinv, linv), gate - c)
+        chosen = _greedy_tracks(margin, _spans(rays, ut), ul)
+        # every ray of an assigned track, against its track's landmark (ids are arbitrary
+        # u32 from the vehicle: looked up, not indexed)
+        pos = np.minimum(np.searchsorted(ut, track), ut.size - 1)
+        ray_lm = np.where(ut[pos] == track, chosen[pos], -1)
+        mine = tracked & (ray_lm[ri] == li)
+        link = mine & (cost <= link_gate)
+        best[ri[link]] = li[link]
+        unlinked = (track > 0) & (ray_lm >= 0) & (best < 0)
+        m = int(li.max()) + 1
+        used = np.unique(rays.image[ri[link]] * m + li[link])
+        free = ~tracked & ~np.isin(rays.image[ri] * m + li, used)
+    else:
+        free = ~tracked
+    rest = assign_per_image(n, rays.image, ri[free], li[free], cost[free], gate)
+    loose = track == 0
+    best[loose] = rest[loose]
+    return best, unlinked
+
+
+def _spans(rays: LocalRays, tracks: IntArray) -> IntArray:
+    """(k, 2) first and last image of each of ``tracks`` in the unit."""
+    t = rays.tracks
+    pos = np.searchsorted(tracks, t)
+    mine = (pos < tracks.size) & (tracks[np.minimum(pos, tracks.size - 1)] == t)
+    lo = np.full(tracks.size, np.iinfo(np.int64).max)
+    hi = np.full(tracks.size, np.iinfo(np.int64).min)
+    np.minimum.at(lo, pos[mine], rays.image[mine])
+    np.maximum.at(hi, pos[mine], rays.image[mine])
+    return np.column_stack([lo, hi])
+
+
+def _greedy_tracks(margin: Array, span: IntArray, landmarks: IntArray) -> IntArray:
+    """Landmark per track (-1 = none), largest margins first; two tracks whose image spans
+    overlap (two signs in view together) never share a landmark, two that follow each
+    other (a track broken by a gap, or the sign passed again) may.
+
+    >>> m = np.array([[5.0, 1.0], [4.0, 0.0], [3.0, 0.0]])
+    >>> _greedy_tracks(m, np.array([[0, 9], [5, 12], [20, 30]]), np.array([7, 8])).tolist()
+    [7, -1, 7]
+    """
+    chosen = np.full(margin.shape[0], -1, np.int64)
+    holders: dict[int, list[int]] = {}
+    ti, li = np.nonzero(margin > 0)
+    for k in np.lexsort((li, ti, -margin[ti, li])).tolist():
+        t, j = int(ti[k]), int(li[k])
+        if chosen[t] >= 0:
+            continue
+        others = holders.setdefault(j, [])
+        if any(span[t, 0] <= span[o, 1] and span[o, 0] <= span[t, 1] for o in others):
+            continue
+        chosen[t] = landmarks[j]
+        others.append(t)
+    return chosen
+
+
 def estimate_offset(
     rays: LocalRays, assigned: IntArray, x: Array, bias_h: float, bias_v: float
 ) -> tuple[Array, Array]:
@@ -225,6 +341,14 @@ class Association:
     chi2: Array
     offset: Array
     offset_cov: Array
+    unlinked: NDArray[np.bool_] | None = None
+    """Rays of tracks that went to a landmark without them (see :func:`assign_tracks`)."""
+
+
+def _assign(rays: LocalRays, ri: IntArray, li: IntArray, cost: Array, cfg: GateConfig):
+    if rays.track is None or not (rays.track > 0).any():
+        return assign_per_image(len(rays), rays.image, ri, li, cost, cfg.chi2_gate), None
+    return assign_tracks(rays, ri, li, cost, cfg.chi2_gate, cfg.chi2_gate * cfg.track_link_factor)
 
 
 def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateConfig) -> Association:
@@ -240,7 +364,7 @@ def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateCon
     wide = origin_cov(rays, bias_h, bias_v)
     chi2, ok = pair_chi2(rays, ri, x[li], cov[li], wide, cfg)
     cost = np.where(ok, chi2, np.inf)
-    best = assign_per_image(n, rays.image, ri, li, cost, cfg.chi2_gate)
+    best, unlinked = _assign(rays, ri, li, cost, cfg)
     offset, offset_cov = np.zeros(3), np.diag([bias_h**2, bias_h**2, bias_v**2])
     for _ in range(cfg.offset_iterations):
         if int((best >= 0).sum()) < cfg.min_offset_rays:
@@ -249,8 +373,8 @@ def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateCon
         narrow = origin_cov(rays, 0.0, 0.0) + offset_cov[None]
         chi2, ok = pair_chi2(rays, ri, x[li], cov[li], narrow, cfg, offset)
         cost = np.where(ok, chi2, np.inf)
-        best = assign_per_image(n, rays.image, ri, li, cost, cfg.chi2_gate)
+        best, unlinked = _assign(rays, ri, li, cost, cfg)
     out_chi2 = np.full(n, np.inf)
     sel = best[ri] == li
     out_chi2[ri[sel]] = cost[sel]
-    return Association(best, out_chi2, offset, offset_cov)
+    return Association(best, out_chi2, offset, offset_cov, unlinked)

@@ -46,6 +46,8 @@ class InitConfig:
     """Spread of bearings a candidate needs unless >= 2 of its rays carry a range."""
     min_ranged: int = 2
     max_cond: float = 1e8
+    by_track: bool = True
+    """A candidate's rays come from one track (untracked rays: from the untracked ones)."""
 
 
 @dataclass(frozen=True)
@@ -127,11 +129,13 @@ def _best_per_image(idx: NDArray[np.int64], chi2: Array, images: NDArray) -> NDA
 
 
 def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidate]:
-    """Candidates from the rays of ONE pass and ONE class (greedy, deterministic)."""
+    """Candidates from the rays of ONE pass and ONE class (greedy, deterministic); with
+    tracks, each candidate from the rays of one track."""
     n = len(rays)
     if n < cfg.min_rays:
         return []
     used = np.zeros(n, bool)
+    track = rays.tracks
     white = origin_cov(rays, 0.0, 0.0)
     out: list[Candidate] = []
     seeds = np.flatnonzero(rays.range_m > 0)
@@ -147,8 +151,9 @@ def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidat
         d = rays.direction[s]
         cov = s_across**2 * (np.eye(3) - np.outer(d, d)) + s_along**2 * np.outer(d, d)
         members = np.array([], np.int64)
+        pool = ~used & (track == track[s]) if cfg.by_track else ~used
         for _ in range(3):
-            free = np.flatnonzero(~used)
+            free = np.flatnonzero(pool)
             chi2, ok = pair_chi2(
                 rays,
                 free,

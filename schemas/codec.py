@@ -190,6 +190,9 @@ class Col:
     """Rows are unit vectors (norm within ``UNIT_TOL`` of 1)."""
     unit_label: str = ""
     doc: str = ""
+    optional: bool = False
+    """A column added in a later release: absent on the wire (an older sender) reads as
+    zeros, and a constructor may leave it out (zeros)."""
 
     @property
     def is_float(self) -> bool:
@@ -201,8 +204,11 @@ UNIT_TOL = 1e-6
 
 
 def col(dtype: str, width: int = 1, **kw: Any) -> Any:
-    """Declare a dataclass field as a table column."""
-    return field(metadata={"col": Col(dtype, width, **kw)})
+    """Declare a dataclass field as a table column (``optional=True``: defaults to zeros)."""
+    c = Col(dtype, width, **kw)
+    if c.optional:
+        return field(default=None, metadata={"col": c})
+    return field(metadata={"col": c})
 
 
 T = TypeVar("T")
@@ -241,6 +247,9 @@ class TableCodec:
         for name, c in self.cols:
             fname = f"{path}.{name}" if path else name
             raw = m.get(name)
+            if c.optional and name not in m:
+                arrays[name] = np.zeros((n, c.width) if c.width > 1 else n, dtype=c.dtype)
+                continue
             if raw is None:
                 raise DecodeError(fname, "missing column")
             if not isinstance(raw, bytes):
@@ -325,6 +334,17 @@ class TableCodec:
             ]
         )
 
+    @property
+    def base_record_dtype(self) -> np.dtype:
+        """:attr:`record_dtype` without the optional columns (rows stored before them)."""
+        return np.dtype(
+            [
+                (n, np.dtype(c.dtype).newbyteorder("<"), (c.width,) if c.width > 1 else ())
+                for n, c in self.cols
+                if not c.optional
+            ]
+        )
+
     def to_records(self, obj: Any) -> np.ndarray:
         rec = np.empty(len(getattr(obj, self.cols[0][0])), dtype=self.record_dtype)
         for name, _ in self.cols:
@@ -332,10 +352,13 @@ class TableCodec:
         return rec
 
     def from_records(self, rec: np.ndarray) -> Any:
+        """Rows of :attr:`record_dtype` (or an older dtype without optional columns)."""
+        have = rec.dtype.names or ()
         return self.cls(
             **{
                 name: np.ascontiguousarray(rec[name]).astype(np.dtype(c.dtype), copy=True)
                 for name, c in self.cols
+                if name in have
             }
         )
 
@@ -365,6 +388,13 @@ class Table:
     """Base of table dataclasses; :func:`table` attaches the codec built once per class."""
 
     CODEC: ClassVar[TableCodec]
+
+    def __post_init__(self) -> None:
+        for name, c in self.CODEC.cols:
+            if c.optional and getattr(self, name) is None:
+                n = len(self)
+                zeros = np.zeros((n, c.width) if c.width > 1 else n, dtype=c.dtype)
+                object.__setattr__(self, name, zeros)
 
     def __len__(self) -> int:
         first = dataclasses.fields(self)[0].name  # type: ignore[arg-type]

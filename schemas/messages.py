@@ -72,6 +72,11 @@ class Observations(Table):
     range_m: np.ndarray = col("f8", lo=0.0, hi=10000.0, unit_label="m", doc="0 = no estimate")
     sigma_range_m: np.ndarray = col("f8", lo=0.0, hi=10000.0, unit_label="m")
     score: np.ndarray = col("f4", lo=0.0, hi=1.0)
+    track: np.ndarray = col(
+        "u4",
+        optional=True,
+        doc="detections of one sign followed from image to image within the pass; 0 = none",
+    )
 
 
 @table

@@ -139,12 +139,7 @@ def _pair_scene(sep: np.ndarray, seed: int):
             )
         )
         truth += [k] * int(ahead.sum())
-    rays = LocalRays(
-        **{
-            f: np.concatenate([getattr(p, f) for p in parts])
-            for f in LocalRays.__dataclass_fields__
-        }
-    )
+    rays = LocalRays.concat(parts)
     x = np.array([a, b, other])
     cov = np.repeat(np.diag([0.3, 0.3, 0.5])[None] ** 2, 3, axis=0)
     res = associate(rays, x, cov, np.array([4, 4, 7]), GateConfig())

@@ -47,12 +47,7 @@ def test_one_pass_two_signs_of_the_same_class_make_two_candidates():
         )
     from hdmap.association import LocalRays
 
-    rays = LocalRays(
-        **{
-            f: np.concatenate([getattr(p, f) for p in parts])
-            for f in LocalRays.__dataclass_fields__
-        }
-    )
+    rays = LocalRays.concat(parts)
     cands = propose(rays, GateConfig(), InitConfig())
     xs = sorted((c.x for c in cands), key=lambda v: v[1])
     assert len(xs) == 2, [c.x for c in cands]

@@ -20,14 +20,18 @@ from hdmap.geoloc import (
     fix_outliers,
     geolocate,
 )
+from hdmap.tracking import TrackConfig, smoothed_rays, track_rays
 from schemas import Observations
 from vehicle.uploader import Uploader, UploadResult
 
 DEFAULT_FIX_CHECK = FixCheck()
+DEFAULT_TRACKING = TrackConfig()
 
 
-def to_observations(lines: ProjectionLines, obs_id: np.ndarray) -> Observations:
-    """Projection lines -> the wire table (ids assigned by the vehicle)."""
+def to_observations(
+    lines: ProjectionLines, obs_id: np.ndarray, track: np.ndarray | None = None
+) -> Observations:
+    """Projection lines -> the wire table (ids assigned by the vehicle; tracks optional)."""
     return Observations(
         obs_id=np.asarray(obs_id, np.uint64),
         t=lines.t,
@@ -44,6 +48,7 @@ def to_observations(lines: ProjectionLines, obs_id: np.ndarray) -> Observations:
         range_m=lines.range_m,
         sigma_range_m=lines.sigma_range_m,
         score=lines.score.astype(np.float32),
+        track=None if track is None else np.asarray(track, np.uint32),
     )
 
 
@@ -57,11 +62,14 @@ class VehicleAgent:
         queue_dir: str | Path,
         batch_size: int = 500,
         fix_check: FixCheck | None = DEFAULT_FIX_CHECK,
+        tracking: TrackConfig | None = DEFAULT_TRACKING,
     ):
         self.vehicle_id = vehicle_id
         self.model = model
         self.fix_check = fix_check
         """Drop detections of fixes that jump off the track (None: keep every one)."""
+        self.tracking = tracking
+        """Label detections of one sign followed through the images (None: untracked)."""
         self.uploader = Uploader(vehicle_id, Path(queue_dir) / f"{vehicle_id}.sqlite", batch_size)
         self.last_kept = np.zeros(0, bool)
         """Per detection of the last :meth:`record`, whether it was queued."""
@@ -73,12 +81,17 @@ class VehicleAgent:
         detections of suspect fixes (:func:`fix_outliers`) are dropped."""
         lines = geolocate(fixes, det, self.model)
         keep = np.ones(len(lines), bool)
+        bad_fix = None
         if self.fix_check is not None and len(lines):
-            keep = ~fix_outliers(fixes, self.fix_check)[np.asarray(det.image, np.int64)]
+            bad_fix = fix_outliers(fixes, self.fix_check)
+            keep = ~bad_fix[np.asarray(det.image, np.int64)]
             lines = lines.take(keep)
         self.last_kept = keep
         self.dropped += int((~keep).sum())
-        obs = to_observations(lines, self.uploader.next_obs_ids(len(lines)))
+        track = None
+        if self.tracking is not None and len(lines):
+            track = track_rays(smoothed_rays(fixes, lines, self.tracking, bad_fix), self.tracking)
+        obs = to_observations(lines, self.uploader.next_obs_ids(len(lines)), track)
         self.uploader.enqueue(pass_id, obs)
         return obs
 

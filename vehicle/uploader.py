@@ -12,6 +12,7 @@ queued; ``flush`` is retried with backoff by the caller's loop. An ack with
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from schemas import DecodeError, ObservationBatch, Observations, Rejection, Uplo
 log = logging.getLogger(__name__)
 
 _REC = Observations.CODEC.record_dtype
+_REC_V1 = Observations.CODEC.base_record_dtype
 
 
 @dataclass
@@ -118,8 +120,13 @@ class Uploader:
             "SELECT rec FROM outbox WHERE pass_id=? ORDER BY obs_id LIMIT ?",
             (pass_id, self.batch_size),
         ).fetchall()
-        arr = np.frombuffer(b"".join(r[0] for r in recs), dtype=_REC)
-        return pass_id, Observations.CODEC.from_records(arr)
+        parts = []
+        for old, rows in itertools.groupby(
+            (r[0] for r in recs), key=lambda b: len(b) != _REC.itemsize
+        ):
+            dt = _REC_V1 if old else _REC  # rows queued before the optional columns
+            parts.append(Observations.CODEC.from_records(np.frombuffer(b"".join(rows), dtype=dt)))
+        return pass_id, Observations.concat(parts)
 
     def flush(
         self, session: zenoh.Session, timeout: float = 5.0, max_batches: int = 1000

@@ -81,6 +81,9 @@ class MatcherConfig:
     triangulation (origins moved by the unit's offset) against the landmark, chi-square
     (3 dof) under both covariances and the offset's. Rays of a neighbouring sign of the
     class pass the per-ray gate one by one, but they meet at their own sign."""
+    track_drop_unlinked: bool = True
+    """Rays of a track that went to a landmark without them (outside the gate) are dropped
+    rather than left to start another landmark of the same sign."""
     group_chi2: float = 16.27
     group_min_rays: int = 2
     merge: bool = True
@@ -129,6 +132,7 @@ def to_local(frame, obs: Observations) -> LocalRays:
         sigma_range_m=obs.sigma_range_m,
         image=obs.image.astype(np.int64),
         sign_class=obs.sign_class.astype(np.int64),
+        track=obs.track.astype(np.int64) if obs.track.any() else None,
     )
 
 
@@ -258,12 +262,16 @@ class MatcherService(StageService):
         area = self._area(tile)
         cands = self.state.near(area)
         matched = np.full(len(rays), -1, np.int64)
+        drop = np.zeros(len(rays), bool)
         if cands:
             x = frame.from_ecef(np.array([c.x for c in cands]))
             cov = np.array([c.cov for c in cands])
             cls = np.array([c.cls for c in cands], np.int64)
             res: Association = associate(rays, x, cov, cls, self.config.gate)
             matched = self._group_check(rays, res, x, cov)
+            if res.unlinked is not None and self.config.track_drop_unlinked:
+                drop = res.unlinked & (matched < 0)
+                self.count("track_discarded", int(drop.sum()))
             n_hit = int((matched >= 0).sum())
             trust.add_gate(int(np.isin(rays.sign_class, cls).sum()), n_hit)
             if n_hit >= self.config.gate.min_offset_rays:
@@ -288,10 +296,11 @@ class MatcherService(StageService):
             g.pass_id,
             g.received_at,
         )
+        wait = ~hit & ~drop
         self.state.add_pending(
-            tile, obs.take(~hit), g.vehicle_id, g.pass_id, time.time(), g.received_at
+            tile, obs.take(wait), g.vehicle_id, g.pass_id, time.time(), g.received_at
         )
-        new_classes = np.unique(obs.sign_class[~hit])
+        new_classes = np.unique(obs.sign_class[wait])
         touched |= self._initiate(tile, area, g.vehicle_id, g.pass_id, new_classes)
         self._refresh(sorted(touched))
         self._merge_touched(sorted(touched))

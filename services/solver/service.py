@@ -54,13 +54,15 @@ class SolverConfig:
     """Prior standard deviation (E, N, U) of the position error one pass shares by all its
     rays (GNSS bias): a candidate's covariance is at least this squared over its passes,
     since the between-pass spread of so few passes cannot measure it."""
-    systematic_sigma_m: tuple[float, float, float] = (0.2, 0.2, 0.2)
+    systematic_sigma_m: tuple[float, float, float] = (0.1, 0.1, 0.1)
     """Standard deviation (E, N, U) of the error more passes do not average away, added to
     the published covariance: association mistakes (a neighbour's rays; a sign's rays that
     failed the gate against an estimate they would have moved) and the fleet's shared
     calibration. The fleet evaluation measures it: re-solving from the rays the matcher
     linked vs from every true ray of the sign, 0.87 vs 0.61 m mean error at 50+ passes,
-    about 0.3-0.5 m per axis of extra error (docs/estimator.md, section 12)."""
+    about 0.3-0.5 m per axis of extra error before onboard tracks; with them 0.1 m keeps the
+    coverage from 30 passes at 0.93-0.97 (0.2 m gave 0.97-1.00; docs/estimator.md,
+    sections 12 and 15)."""
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,192 @@
+"""Onboard detection tracking: the detections of one sign, followed from image to image.
+
+A vehicle sees a sign in tens of consecutive images. Which detections belong together is
+easy onboard, where the images come in order 0.2 s apart, and hard on the server, where
+a street of same-class signs 8 m apart gives rays that each fit several landmarks. The
+vehicle therefore labels each detection with a track (``Observations.track``); the
+matcher keeps a track's rays together (:func:`hdmap.association.assign_tracks`).
+
+Tracking runs in a local ENU frame at the pass's first fix, on a smoothed trajectory:
+consecutive GNSS fixes carry independent white noise (about a metre) that would move a sign
+by more than the gap to its neighbour between two images, while the pass's bias is common
+to all of them and cancels. Positions are smoothed by a local quadratic fit
+(Savitzky-Golay) over ``window`` fixes; each ray keeps its direction from the smoothed
+origin. The heading is not smoothed: at a corner of the path a fit over two seconds is
+wrong by tenths of a radian (measured: it doubled the rays' scatter; docs/estimator.md
+section 15).
+
+A track's position is the triangulation of its rays (bearing terms and the range from the
+box size, :func:`hdmap.initiation.triangulate`). Each image's detections are assigned to
+the open tracks of their class by a linear assignment on the gating statistic of
+:func:`hdmap.association.pair_chi2` (angles and range), with the origin uncertainty
+``rel_pos_sigma_m`` of the smoothed trajectory over a track's life; a detection no track
+takes starts one; a track not extended for ``max_gap_images`` images is closed.
+
+>>> import numpy as np
+>>> (smooth_track(np.arange(11.0) * 2.0, 5).round(6) + 0.0).tolist()[:3]
+[0.0, 2.0, 4.0]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.signal import savgol_filter
+
+from hdmap.association import GateConfig, LocalRays, pair_chi2
+from hdmap.geodesy import GEODESY, EnuFrame, Geodesy
+from hdmap.geoloc import GnssFixes, ProjectionLines
+from hdmap.initiation import DEFAULT_RANGE_M, triangulate
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """How detections are chained into tracks (``VehicleAgent`` runs it per pass)."""
+
+    window: int = 11
+    """Fixes in the trajectory smoother's window (odd; 11 = 2 s at 5 Hz)."""
+    rel_pos_sigma_m: float = 0.6
+    """Per-axis error of the smoothed origin relative to the track's other origins."""
+    chi2_gate: float = 16.27
+    """Largest statistic (angles and range) of a detection against its track's position."""
+    max_gap_images: int = 8
+    """A track not extended for this many images is closed."""
+    range_k: float = 4.0
+    """A detection's range must agree with its track's distance within this many sigma."""
+
+
+def smooth_track(values: Array, window: int) -> Array:
+    """Local quadratic fit over ``window`` samples (fewer samples: returned unchanged).
+
+    >>> smooth_track(np.array([0.0, 1.0, 0.0]), 5).tolist()
+    [0.0, 1.0, 0.0]
+    """
+    v = np.asarray(values, float)
+    w = min(window, v.shape[0] - (1 - v.shape[0] % 2))
+    if w < 5:
+        return v.copy()
+    return savgol_filter(v, w, 2, axis=0, mode="interp")
+
+
+def smoothed_rays(
+    fixes: GnssFixes,
+    lines: ProjectionLines,
+    cfg: TrackConfig,
+    bad_fix: NDArray[np.bool_] | None = None,
+    geodesy: Geodesy = GEODESY,
+) -> LocalRays:
+    """The pass's rays in an ENU frame at its first fix, on the smoothed trajectory.
+
+    ``bad_fix`` marks fixes left out of the smoothing (multipath); they take the smoothed
+    trajectory interpolated over their neighbours.
+    """
+    n = len(fixes.t)
+    lat, lon = np.asarray(fixes.lat, float), np.asarray(fixes.lon, float)
+    frame = EnuFrame(float(lat[0]), float(lon[0]), float(fixes.h[0]), geodesy)
+    xyz = frame.from_geodetic(lat, lon, np.asarray(fixes.h, float))
+    good = np.ones(n, bool) if bad_fix is None else ~np.asarray(bad_fix, bool)
+    t = np.asarray(fixes.t, float)
+    if good.sum() >= 2 and not good.all():
+        xyz = np.column_stack([np.interp(t, t[good], xyz[good, k]) for k in range(3)])
+    d_xyz = smooth_track(xyz, cfg.window) - xyz
+    img = np.asarray(lines.image, np.int64)
+    return LocalRays(
+        origin=frame.from_geodetic(lines.lat, lines.lon, lines.h) + d_xyz[img],
+        direction=frame.vectors_from_enu_at(lines.direction, lines.lat, lines.lon),
+        sigma_az=np.asarray(lines.sigma_az, float),
+        sigma_el=np.asarray(lines.sigma_el, float),
+        sigma_pos_h=np.full(len(lines), cfg.rel_pos_sigma_m),
+        sigma_pos_v=np.full(len(lines), cfg.rel_pos_sigma_m),
+        range_m=np.asarray(lines.range_m, float),
+        sigma_range_m=np.asarray(lines.sigma_range_m, float),
+        image=img,
+        sign_class=np.asarray(lines.sign_class, np.int64),
+    )
+
+
+def _position(rays: LocalRays) -> tuple[Array, Array]:
+    """A track's position and covariance: its triangulation, or for one ray without a
+    usable intersection, a point at its range (default range) with a wide along-ray sigma."""
+    if len(rays) >= 2 or rays.range_m[0] > 0:
+        x, cov = triangulate(rays)
+        if np.isfinite(x).all() and np.isfinite(cov).all():
+            return x, cov
+    r = rays.range_m[-1] if rays.range_m[-1] > 0 else DEFAULT_RANGE_M
+    d = rays.direction[-1]
+    s_along = rays.sigma_range_m[-1] if rays.range_m[-1] > 0 else r
+    s_across = r * max(rays.sigma_az[-1], rays.sigma_el[-1]) + rays.sigma_pos_h[-1]
+    cov = s_across**2 * (np.eye(3) - np.outer(d, d)) + s_along**2 * np.outer(d, d)
+    return rays.origin[-1] + r * d, cov
+
+
+def track_rays(rays: LocalRays, cfg: TrackConfig) -> IntArray:
+    """Track id (1, 2, ... in order of first detection) per ray of one pass.
+
+    >>> d = np.array([[0.0, 1.0, 0.0]] * 3)
+    >>> a = np.array([[-5.0, 0.0, 0.0], [-5.0, 2.0, 0.0], [5.0, 4.0, 0.0]])
+    >>> r = LocalRays(a, d / 1.0, *np.full((4, 3), 0.01), np.array([20.0, 18.0, 16.0]),
+    ...               np.full(3, 0.5), np.arange(3), np.ones(3, np.int64))
+    >>> track_rays(r, TrackConfig()).tolist()  # the third ray sees another sign
+    [1, 1, 2]
+    """
+    n = len(rays)
+    out = np.zeros(n, np.int64)
+    if n == 0:
+        return out
+    gate = GateConfig(
+        chi2_gate=cfg.chi2_gate, range_k=cfg.range_k, angle_floor_rad=0.0, min_range_m=0.5
+    )
+    a_cov = np.zeros((n, 3, 3))
+    a_cov[:, 0, 0] = a_cov[:, 1, 1] = rays.sigma_pos_h**2
+    a_cov[:, 2, 2] = rays.sigma_pos_v**2
+    members: list[list[int]] = []
+    cls: list[int] = []
+    last: list[int] = []
+    pos: list[tuple[Array, Array]] = []
+    order = np.argsort(rays.image, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(rays.image[order]) != 0])
+    for s, e in zip(starts, np.r_[starts[1:], n], strict=True):
+        here = order[s:e]
+        image = int(rays.image[here[0]])
+        open_ = [k for k in range(len(members)) if image - last[k] <= cfg.max_gap_images]
+        ri_l, ti_l = [], []
+        for k in open_:
+            same = here[rays.sign_class[here] == cls[k]]
+            ri_l += same.tolist()
+            ti_l += [k] * same.size
+        taken: dict[int, int] = {}
+        if ri_l:
+            ri, ti = np.array(ri_l, np.int64), np.array(ti_l, np.int64)
+            x = np.array([pos[k][0] for k in ti])
+            cov = np.array([pos[k][1] for k in ti])
+            chi2, ok = pair_chi2(rays, ri, x, cov, a_cov, gate)
+            cost = np.where(ok & (chi2 <= cfg.chi2_gate), chi2, np.inf)
+            if np.isfinite(cost).any():
+                ur, rinv = np.unique(ri, return_inverse=True)
+                ut, tinv = np.unique(ti, return_inverse=True)
+                m = np.full((ur.size, ut.size), 1e12)
+                m[rinv, tinv] = np.minimum(m[rinv, tinv], np.where(np.isfinite(cost), cost, 1e12))
+                rows, cols = linear_sum_assignment(m)
+                for r_, c_ in zip(rows.tolist(), cols.tolist(), strict=True):
+                    if m[r_, c_] < 1e12:
+                        taken[int(ur[r_])] = int(ut[c_])
+        for j in here.tolist():
+            k = taken.get(j)
+            if k is None:
+                members.append([j])
+                cls.append(int(rays.sign_class[j]))
+                last.append(image)
+                pos.append(_position(rays.take(np.array([j]))))
+            else:
+                members[k].append(j)
+                last[k] = image
+                pos[k] = _position(rays.take(np.array(members[k])))
+    for k, js in enumerate(members):
+        out[js] = k + 1
+    return out
