@@ -47,7 +47,10 @@ class InitConfig:
     min_ranged: int = 2
     max_cond: float = 1e8
     by_track: bool = True
-    """A candidate's rays come from one track (untracked rays: from the untracked ones)."""
+    """A candidate never joins rays of two tracks in view together (two signs): its rays
+    come from the seed's track and tracks that do not overlap it in images (the same sign
+    after a broken track, or another one the gate tells apart); untracked rays from the
+    untracked ones."""
 
 
 @dataclass(frozen=True)
@@ -128,14 +131,32 @@ def _best_per_image(idx: NDArray[np.int64], chi2: Array, images: NDArray) -> NDA
     return np.sort(idx[first])
 
 
+def _track_spans(track: NDArray[np.int64], image: NDArray) -> tuple[NDArray, NDArray]:
+    """Per ray, the first and last image of its track (its own image when untracked).
+
+    >>> f, l = _track_spans(np.array([3, 0, 3, 5]), np.array([4, 6, 9, 1]))
+    >>> f.tolist(), l.tolist()
+    ([4, 6, 4, 1], [9, 6, 9, 1])
+    """
+    img = np.asarray(image, np.int64)
+    u, inv = np.unique(track, return_inverse=True)
+    lo = np.full(u.size, np.iinfo(np.int64).max)
+    hi = np.full(u.size, np.iinfo(np.int64).min)
+    np.minimum.at(lo, inv, img)
+    np.maximum.at(hi, inv, img)
+    tracked = track > 0
+    return np.where(tracked, lo[inv], img), np.where(tracked, hi[inv], img)
+
+
 def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidate]:
     """Candidates from the rays of ONE pass and ONE class (greedy, deterministic); with
-    tracks, each candidate from the rays of one track."""
+    tracks, never from two tracks in view together (``InitConfig.by_track``)."""
     n = len(rays)
     if n < cfg.min_rays:
         return []
     used = np.zeros(n, bool)
     track = rays.tracks
+    first, last = _track_spans(track, rays.image)
     white = origin_cov(rays, 0.0, 0.0)
     out: list[Candidate] = []
     seeds = np.flatnonzero(rays.range_m > 0)
@@ -151,7 +172,10 @@ def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidat
         d = rays.direction[s]
         cov = s_across**2 * (np.eye(3) - np.outer(d, d)) + s_along**2 * np.outer(d, d)
         members = np.array([], np.int64)
-        pool = ~used & (track == track[s]) if cfg.by_track else ~used
+        pool = ~used
+        if cfg.by_track:
+            apart = (first > last[s]) | (last < first[s])
+            pool &= (track == track[s]) | ((track > 0) & (track[s] > 0) & apart)
         for _ in range(3):
             free = np.flatnonzero(pool)
             chi2, ok = pair_chi2(
