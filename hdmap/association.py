@@ -253,7 +253,7 @@ def assign_tracks(
         ul, linv = np.unique(lm, return_inverse=True)
         margin = np.zeros((ut.size, ul.size))
         np.add.at(margin, (tinv, linv), gate - c)
-        chosen = _greedy_tracks(margin, _spans(rays, ut), ul)
+        chosen = _greedy_tracks(margin, track_spans(track, rays.image, ut), ul)
         # every ray of an assigned track, against its track's landmark (ids are arbitrary
         # u32 from the vehicle: looked up, not indexed)
         pos = np.minimum(np.searchsorted(ut, track), ut.size - 1)
@@ -273,15 +273,18 @@ def assign_tracks(
     return best, unlinked
 
 
-def _spans(rays: LocalRays, tracks: IntArray) -> IntArray:
-    """(k, 2) first and last image of each of ``tracks`` in the unit."""
-    t = rays.tracks
-    pos = np.searchsorted(tracks, t)
-    mine = (pos < tracks.size) & (tracks[np.minimum(pos, tracks.size - 1)] == t)
+def track_spans(track: IntArray, image: IntArray, tracks: IntArray) -> IntArray:
+    """(k, 2) first and last image of each of ``tracks`` (sorted ids) among the rays.
+
+    >>> track_spans(np.array([3, 0, 3, 5]), np.array([4, 6, 9, 1]), np.array([3, 5])).tolist()
+    [[4, 9], [1, 1]]
+    """
+    pos = np.searchsorted(tracks, track)
+    mine = (pos < tracks.size) & (tracks[np.minimum(pos, tracks.size - 1)] == track)
     lo = np.full(tracks.size, np.iinfo(np.int64).max)
     hi = np.full(tracks.size, np.iinfo(np.int64).min)
-    np.minimum.at(lo, pos[mine], rays.image[mine])
-    np.maximum.at(hi, pos[mine], rays.image[mine])
+    np.minimum.at(lo, pos[mine], np.asarray(image, np.int64)[mine])
+    np.maximum.at(hi, pos[mine], np.asarray(image, np.int64)[mine])
     return np.column_stack([lo, hi])
 
 

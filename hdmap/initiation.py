@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from hdmap.association import GateConfig, LocalRays, origin_cov, pair_chi2
+from hdmap.association import GateConfig, LocalRays, origin_cov, pair_chi2, track_spans
 
 Array = NDArray[np.float64]
 
@@ -75,28 +75,36 @@ def triangulate(rays: LocalRays, ranges: bool = True) -> tuple[Array, Array]:
     return x[0], cov[0]
 
 
-def triangulate_groups(
-    rays: LocalRays, groups: NDArray[np.int64], k: int, ranges: bool = True
-) -> tuple[Array, Array]:
-    """:func:`triangulate` of the rays of each group ``0..k-1`` at once: points (k, 3) and
-    covariances (k, 3, 3), NaN where a group fixes no point (or has no rays)."""
+def normal_terms(rays: LocalRays, ranges: bool = True) -> tuple[Array, Array]:
+    """Each ray's terms of the triangulation's normal equations: (n, 3, 3) and (n, 3)
+    (module docstring: ``w_j P_j + v_j d_j d_j^T`` and the matching right-hand side)."""
     d, a = rays.direction, rays.origin
-    g = np.asarray(groups, np.int64)
     r_hat = np.where(rays.range_m > 0, rays.range_m, DEFAULT_RANGE_M)
     s_ang2 = np.maximum((rays.sigma_az**2 + rays.sigma_el**2) / 2.0, MIN_SIGMA_ANGLE_RAD**2)
     w = 1.0 / (r_hat**2 * s_ang2 + np.maximum(rays.sigma_pos_h, MIN_SIGMA_POS_M) ** 2)
     dd = d[:, :, None] * d[:, None, :]
     wp = w[:, None, None] * (np.eye(3)[None] - dd)
-    big_a = np.zeros((k, 3, 3))
-    b = np.zeros((k, 3))
-    np.add.at(big_a, g, wp)
-    np.add.at(b, g, np.einsum("nij,nj->ni", wp, a))
+    terms_a, terms_b = wp.copy(), np.einsum("nij,nj->ni", wp, a)
     if ranges:
         has = (rays.range_m > 0) & (rays.sigma_range_m > 0)
         s_r = np.maximum(np.where(has, rays.sigma_range_m, 1.0), MIN_SIGMA_RANGE_M)
         v = np.where(has, 1.0 / s_r**2, 0.0)
-        np.add.at(big_a, g, v[:, None, None] * dd)
-        np.add.at(b, g, (v * (np.einsum("ki,ki->k", d, a) + rays.range_m))[:, None] * d)
+        terms_a += v[:, None, None] * dd
+        terms_b += (v * (np.einsum("ki,ki->k", d, a) + rays.range_m))[:, None] * d
+    return terms_a, terms_b
+
+
+def triangulate_groups(
+    rays: LocalRays, groups: NDArray[np.int64], k: int, ranges: bool = True
+) -> tuple[Array, Array]:
+    """:func:`triangulate` of the rays of each group ``0..k-1`` at once: points (k, 3) and
+    covariances (k, 3, 3), NaN where a group fixes no point (or has no rays)."""
+    g = np.asarray(groups, np.int64)
+    terms_a, terms_b = normal_terms(rays, ranges)
+    big_a = np.zeros((k, 3, 3))
+    b = np.zeros((k, 3))
+    np.add.at(big_a, g, terms_a)
+    np.add.at(b, g, terms_b)
     good = np.isfinite(big_a).all(axis=(1, 2)) & np.isfinite(b).all(axis=1)
     good &= np.bincount(g, minlength=k)[:k] > 0
     cov = np.full((k, 3, 3), np.nan)
@@ -104,6 +112,25 @@ def triangulate_groups(
         cov[good] = np.linalg.pinv(big_a[good])
     x = np.einsum("kij,kj->ki", cov, b)
     return x, cov
+
+
+def ray_point(rays: LocalRays, j: int) -> tuple[Array, Array]:
+    """One ray's point: at its range (the default range without one), with its angular and
+    origin sigma across the ray and its range sigma (the range itself without one) along.
+
+    >>> r = LocalRays(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), *np.full((4, 1), 0.01),
+    ...               np.array([20.0]), np.array([2.0]), np.zeros(1), np.ones(1))
+    >>> x, cov = ray_point(r, 0)
+    >>> x.tolist(), np.sqrt(np.diag(cov)).round(2).tolist()
+    ([0.0, 20.0, 0.0], [0.21, 2.0, 0.21])
+    """
+    ranged = rays.range_m[j] > 0
+    r = rays.range_m[j] if ranged else DEFAULT_RANGE_M
+    d = rays.direction[j]
+    s_along = rays.sigma_range_m[j] if ranged else r
+    s_across = r * max(rays.sigma_az[j], rays.sigma_el[j]) + rays.sigma_pos_h[j]
+    cov = s_across**2 * (np.eye(3) - np.outer(d, d)) + s_along**2 * np.outer(d, d)
+    return rays.origin[j] + r * d, cov
 
 
 def bearing_spread(rays: LocalRays, x: Array) -> float:
@@ -131,23 +158,6 @@ def _best_per_image(idx: NDArray[np.int64], chi2: Array, images: NDArray) -> NDA
     return np.sort(idx[first])
 
 
-def _track_spans(track: NDArray[np.int64], image: NDArray) -> tuple[NDArray, NDArray]:
-    """Per ray, the first and last image of its track (its own image when untracked).
-
-    >>> f, l = _track_spans(np.array([3, 0, 3, 5]), np.array([4, 6, 9, 1]))
-    >>> f.tolist(), l.tolist()
-    ([4, 6, 4, 1], [9, 6, 9, 1])
-    """
-    img = np.asarray(image, np.int64)
-    u, inv = np.unique(track, return_inverse=True)
-    lo = np.full(u.size, np.iinfo(np.int64).max)
-    hi = np.full(u.size, np.iinfo(np.int64).min)
-    np.minimum.at(lo, inv, img)
-    np.maximum.at(hi, inv, img)
-    tracked = track > 0
-    return np.where(tracked, lo[inv], img), np.where(tracked, hi[inv], img)
-
-
 def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidate]:
     """Candidates from the rays of ONE pass and ONE class (greedy, deterministic); with
     tracks, never from two tracks in view together (``InitConfig.by_track``)."""
@@ -156,7 +166,10 @@ def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidat
         return []
     used = np.zeros(n, bool)
     track = rays.tracks
-    first, last = _track_spans(track, rays.image)
+    u, inv = np.unique(track, return_inverse=True)
+    span = track_spans(track, rays.image, u)[inv]
+    first = np.where(track > 0, span[:, 0], rays.image)
+    last = np.where(track > 0, span[:, 1], rays.image)
     white = origin_cov(rays, 0.0, 0.0)
     out: list[Candidate] = []
     seeds = np.flatnonzero(rays.range_m > 0)
@@ -165,12 +178,7 @@ def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidat
     for s in seeds:
         if used[s]:
             continue
-        r = rays.range_m[s] if rays.range_m[s] > 0 else DEFAULT_RANGE_M
-        x = rays.origin[s] + r * rays.direction[s]
-        s_along = rays.sigma_range_m[s] if rays.range_m[s] > 0 else r
-        s_across = r * max(rays.sigma_az[s], rays.sigma_el[s]) + rays.sigma_pos_h[s]
-        d = rays.direction[s]
-        cov = s_across**2 * (np.eye(3) - np.outer(d, d)) + s_along**2 * np.outer(d, d)
+        x, cov = ray_point(rays, int(s))
         members = np.array([], np.int64)
         pool = ~used
         if cfg.by_track:

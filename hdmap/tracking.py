@@ -39,7 +39,7 @@ from scipy.signal import savgol_filter
 from hdmap.association import GateConfig, LocalRays, pair_chi2
 from hdmap.geodesy import GEODESY, EnuFrame, Geodesy
 from hdmap.geoloc import GnssFixes, ProjectionLines
-from hdmap.initiation import DEFAULT_RANGE_M, triangulate
+from hdmap.initiation import normal_terms, ray_point
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -110,19 +110,19 @@ def smoothed_rays(
     )
 
 
-def _position(rays: LocalRays) -> tuple[Array, Array]:
-    """A track's position and covariance: its triangulation, or for one ray without a
-    usable intersection, a point at its range (default range) with a wide along-ray sigma."""
-    if len(rays) >= 2 or rays.range_m[0] > 0:
-        x, cov = triangulate(rays)
+def _position(rays: LocalRays, last: int, n: int, big_a: Array, b: Array) -> tuple[Array, Array]:
+    """A track's position and covariance from its summed normal equations (``n`` rays, the
+    latest ``last``): their solution (:func:`hdmap.initiation.triangulate`), or for one
+    ray without a range, :func:`hdmap.initiation.ray_point`."""
+    if n >= 2 or rays.range_m[last] > 0:
+        try:
+            cov = np.linalg.inv(big_a)
+        except np.linalg.LinAlgError:
+            cov = np.linalg.pinv(big_a)
+        x = cov @ b
         if np.isfinite(x).all() and np.isfinite(cov).all():
             return x, cov
-    r = rays.range_m[-1] if rays.range_m[-1] > 0 else DEFAULT_RANGE_M
-    d = rays.direction[-1]
-    s_along = rays.sigma_range_m[-1] if rays.range_m[-1] > 0 else r
-    s_across = r * max(rays.sigma_az[-1], rays.sigma_el[-1]) + rays.sigma_pos_h[-1]
-    cov = s_across**2 * (np.eye(3) - np.outer(d, d)) + s_along**2 * np.outer(d, d)
-    return rays.origin[-1] + r * d, cov
+    return ray_point(rays, last)
 
 
 def track_rays(rays: LocalRays, cfg: TrackConfig) -> IntArray:
@@ -145,7 +145,9 @@ def track_rays(rays: LocalRays, cfg: TrackConfig) -> IntArray:
     a_cov = np.zeros((n, 3, 3))
     a_cov[:, 0, 0] = a_cov[:, 1, 1] = rays.sigma_pos_h**2
     a_cov[:, 2, 2] = rays.sigma_pos_v**2
+    terms_a, terms_b = normal_terms(rays)
     members: list[list[int]] = []
+    sums: list[tuple[Array, Array]] = []
     cls: list[int] = []
     last: list[int] = []
     pos: list[tuple[Array, Array]] = []
@@ -179,14 +181,16 @@ def track_rays(rays: LocalRays, cfg: TrackConfig) -> IntArray:
         for j in here.tolist():
             k = taken.get(j)
             if k is None:
-                members.append([j])
+                k = len(members)
+                members.append([])
+                sums.append((np.zeros((3, 3)), np.zeros(3)))
                 cls.append(int(rays.sign_class[j]))
                 last.append(image)
-                pos.append(_position(rays.take(np.array([j]))))
-            else:
-                members[k].append(j)
-                last[k] = image
-                pos[k] = _position(rays.take(np.array(members[k])))
+                pos.append((np.zeros(3), np.eye(3)))
+            members[k].append(j)
+            last[k] = image
+            sums[k] = (sums[k][0] + terms_a[j], sums[k][1] + terms_b[j])
+            pos[k] = _position(rays, j, len(members[k]), *sums[k])
     for k, js in enumerate(members):
         out[js] = k + 1
     return out
