@@ -98,8 +98,10 @@ class MatcherConfig:
     (a false positive of the same class can put both in one image now and then)."""
     merge_min_view_cos: float = 0.5
     """Smallest cosine between the two landmarks' mean viewing directions."""
-    merge_min_passes: int = 5
-    """Both landmarks need this many passes (younger estimates are too rough to merge on).
+    merge_min_passes: int = 2
+    """Both landmarks need this many passes (a one-pass estimate carries its pass's whole
+    bias). 5 before onboard tracks; with them co-visibility tells two signs apart reliably
+    and 2 cut the young map's duplicates at 3-4 passes from 13-48 to 0-5 (four seeds).
     A landmark looks for a partner at each of its passes up to twice this, then at every
     third (the search is most of a unit's cost otherwise)."""
     provisional_passes: int = 0
