@@ -38,7 +38,9 @@ from hdmap import keys
 from hdmap.bus import query
 from hdmap.geoloc import geolocate
 from hdmap.tiles import neighbours, quadkeys_of
+from hdmap.tracking import smoothed_rays, track_rays
 from schemas import DecodeError, MapDelta, ObservationBatch, Observations, UploadAck
+from vehicle.agent import DEFAULT_TRACKING as TRACKING
 from vehicle.agent import to_observations
 from vehicle.config import load_vehicle_model
 
@@ -117,7 +119,8 @@ def build_pool(cfg: LoadConfig) -> tuple[World, list[list[Observations]]]:
         p = fleet.drive(0, k)
         lines = geolocate(p.fixes, p.detections, model)
         if len(lines):
-            obs = to_observations(lines, np.zeros(len(lines), np.uint64))
+            track = track_rays(smoothed_rays(p.fixes, lines, TRACKING), TRACKING)
+            obs = to_observations(lines, np.zeros(len(lines), np.uint64), track)
             pool.append(
                 [
                     obs.take(np.arange(s, min(s + cfg.batch, len(obs))))
