@@ -246,7 +246,6 @@ def assign_tracks(
     best = np.full(n, -1, np.int64)
     unlinked = np.zeros(n, bool)
     keep = tracked & (cost <= gate)
-    used = np.array([], np.int64)
     if keep.any():
         r, lm, c = ri[keep], li[keep], cost[keep]
         ut, tinv = np.unique(track[r], return_inverse=True)

@@ -17,7 +17,8 @@ section 15).
 
 A track's position is the triangulation of its rays (bearing terms and the range from the
 box size, :func:`hdmap.initiation.triangulate`). Each image's detections are assigned to
-the open tracks of their class by a linear assignment on the gating statistic of
+the open tracks of their class by the association's per-image assignment
+(:func:`hdmap.association.assign_per_image`) on the gating statistic of
 :func:`hdmap.association.pair_chi2` (angles and range), with the origin uncertainty
 ``rel_pos_sigma_m`` of the smoothed trajectory over a track's life; a detection no track
 takes starts one; a track not extended for ``max_gap_images`` images is closed.
@@ -33,10 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 from scipy.signal import savgol_filter
 
-from hdmap.association import GateConfig, LocalRays, pair_chi2
+from hdmap.association import GateConfig, LocalRays, assign_per_image, origin_cov, pair_chi2
 from hdmap.geodesy import GEODESY, EnuFrame, Geodesy
 from hdmap.geoloc import GnssFixes, ProjectionLines
 from hdmap.initiation import normal_terms, ray_point
@@ -142,55 +142,46 @@ def track_rays(rays: LocalRays, cfg: TrackConfig) -> IntArray:
     gate = GateConfig(
         chi2_gate=cfg.chi2_gate, range_k=cfg.range_k, angle_floor_rad=0.0, min_range_m=0.5
     )
-    a_cov = np.zeros((n, 3, 3))
-    a_cov[:, 0, 0] = a_cov[:, 1, 1] = rays.sigma_pos_h**2
-    a_cov[:, 2, 2] = rays.sigma_pos_v**2
+    a_cov = origin_cov(rays, 0.0, 0.0)
     terms_a, terms_b = normal_terms(rays)
-    members: list[list[int]] = []
-    sums: list[tuple[Array, Array]] = []
+    # per track: class, last image, ray count, summed normal equations, position
     cls: list[int] = []
     last: list[int] = []
+    count: list[int] = []
+    sums: list[tuple[Array, Array]] = []
     pos: list[tuple[Array, Array]] = []
+    live: list[int] = []  # tracks not yet closed (images only increase: closed for good)
     order = np.argsort(rays.image, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(rays.image[order]) != 0])
     for s, e in zip(starts, np.r_[starts[1:], n], strict=True):
         here = order[s:e]
         image = int(rays.image[here[0]])
-        open_ = [k for k in range(len(members)) if image - last[k] <= cfg.max_gap_images]
-        ri_l, ti_l = [], []
-        for k in open_:
-            same = here[rays.sign_class[here] == cls[k]]
-            ri_l += same.tolist()
-            ti_l += [k] * same.size
-        taken: dict[int, int] = {}
-        if ri_l:
-            ri, ti = np.array(ri_l, np.int64), np.array(ti_l, np.int64)
-            x = np.array([pos[k][0] for k in ti])
-            cov = np.array([pos[k][1] for k in ti])
-            chi2, ok = pair_chi2(rays, ri, x, cov, a_cov, gate)
-            cost = np.where(ok & (chi2 <= cfg.chi2_gate), chi2, np.inf)
-            if np.isfinite(cost).any():
-                ur, rinv = np.unique(ri, return_inverse=True)
-                ut, tinv = np.unique(ti, return_inverse=True)
-                m = np.full((ur.size, ut.size), 1e12)
-                m[rinv, tinv] = np.minimum(m[rinv, tinv], np.where(np.isfinite(cost), cost, 1e12))
-                rows, cols = linear_sum_assignment(m)
-                for r_, c_ in zip(rows.tolist(), cols.tolist(), strict=True):
-                    if m[r_, c_] < 1e12:
-                        taken[int(ur[r_])] = int(ut[c_])
-        for j in here.tolist():
-            k = taken.get(j)
-            if k is None:
-                k = len(members)
-                members.append([])
-                sums.append((np.zeros((3, 3)), np.zeros(3)))
+        live = [k for k in live if image - last[k] <= cfg.max_gap_images]
+        best = np.full(here.size, -1, np.int64)  # per ray of this image: its track
+        if live:
+            opened = np.array(live, np.int64)
+            hi, ti = np.nonzero(rays.sign_class[here][:, None] == np.array(cls)[opened][None, :])
+            if hi.size:
+                ri, tk = here[hi], opened[ti]
+                x = np.array([pos[k][0] for k in tk])
+                cov = np.array([pos[k][1] for k in tk])
+                chi2, ok = pair_chi2(rays, ri, x, cov, a_cov, gate)
+                cost = np.where(ok, chi2, np.inf)
+                # one detection per track and image: the association's per-image assignment
+                best = assign_per_image(here.size, np.zeros(here.size, np.int64), hi, tk, cost,
+                                        cfg.chi2_gate)  # fmt: skip
+        for j, k in zip(here.tolist(), best.tolist(), strict=True):
+            if k < 0:
+                k = len(cls)
                 cls.append(int(rays.sign_class[j]))
                 last.append(image)
+                count.append(0)
+                sums.append((np.zeros((3, 3)), np.zeros(3)))
                 pos.append((np.zeros(3), np.eye(3)))
-            members[k].append(j)
+                live.append(k)
+            out[j] = k + 1
             last[k] = image
+            count[k] += 1
             sums[k] = (sums[k][0] + terms_a[j], sums[k][1] + terms_b[j])
-            pos[k] = _position(rays, j, len(members[k]), *sums[k])
-    for k, js in enumerate(members):
-        out[js] = k + 1
+            pos[k] = _position(rays, j, count[k], *sums[k])
     return out

@@ -7,6 +7,7 @@ tracker's quality, checked within ranges.
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +16,8 @@ from fleetsim.fleet import Fleet, FleetConfig
 from fleetsim.noise import FLEET
 from fleetsim.osm_town import helsinki_town
 from fleetsim.pipeline import model_for
-from hdmap.association import GateConfig, LocalRays, assign_tracks, associate
-from hdmap.geoloc import fix_outliers, geolocate
+from hdmap.association import GateConfig, LocalRays, angles, assign_tracks, associate
+from hdmap.geoloc import direction_from_angles, fix_outliers, geolocate
 from hdmap.tracking import TrackConfig, smooth_track, smoothed_rays, track_rays
 from schemas import ObservationBatch, Observations
 from tests.test_association import rays_to
@@ -76,7 +77,10 @@ def _fleet_passes(n: int):
 
 def test_tracker_quality_on_fleet_passes() -> None:
     """FLEET noise (1 m white GNSS per fix, 0.01 rad heading, 3 px): few rays in a track of
-    another sign, few tracks broken within a short gap (measured: 0.8 % and 0.13)."""
+    another sign, few tracks broken within a short gap. Measured on these 5 passes (3,015
+    rays): 0.3 % and 0.03 per sign and pass; on 20 passes of the evaluation fleets (seeds
+    0 and 1): 0.8-1.4 % and 0.13-0.19; on seed 0's with the heading smoothed as well (a
+    mistake found while building it): 1.3 % and 0.71."""
     model, passes = _fleet_passes(5)
     cfg = TrackConfig()
     n_rays = impure = breaks = sign_passes = 0
@@ -97,8 +101,8 @@ def test_tracker_quality_on_fleet_passes() -> None:
             breaks += int(((np.diff(track[m]) != 0) & (gap <= cfg.max_gap_images)).sum())
             sign_passes += 1
     assert n_rays > 2000
-    assert impure / n_rays < 0.03
-    assert breaks / sign_passes < 0.35
+    assert impure / n_rays < 0.02
+    assert breaks / sign_passes < 0.25
 
 
 def test_a_track_keeps_its_rays_together() -> None:
@@ -123,27 +127,34 @@ def test_a_track_keeps_its_rays_together() -> None:
 
 
 def test_associate_with_tracks_keeps_a_street_of_same_class_signs_apart() -> None:
-    """Same street as above, landmarks at the true signs with 1 m sigma, a pass with a
-    2 m bias and noisy rays: every tracked ray goes to its own sign."""
+    """Same street as above, landmarks at the true signs with 2 m sigma, rays without a
+    range and with 0.02 rad of angular noise (seed 8): per image, two of sign A's rays fit
+    B's landmark better and go there; with the tracks every ray goes to its own sign."""
     rays, truth = _street()
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(8)
+    az, el = angles(rays.direction)
     noisy = LocalRays(
         **{
             **rays.__dict__,
-            "origin": rays.origin + np.array([1.5, -1.5, 0.0]) + rng.normal(0, 0.3, (24, 3)),
-            "sigma_pos_h": np.full(24, 0.3),
-            "sigma_pos_v": np.full(24, 0.3),
-            "sigma_az": np.full(24, 0.01),
-            "sigma_el": np.full(24, 0.01),
-            "track": track_rays(rays, TrackConfig()),
+            "origin": rays.origin + rng.normal(0, 0.3, (24, 3)),
+            "direction": direction_from_angles(
+                az + rng.normal(0, 0.02, 24), el + rng.normal(0, 0.02, 24)
+            ),
+            "sigma_az": np.full(24, 0.02),
+            "sigma_el": np.full(24, 0.02),
+            "range_m": np.zeros(24),
+            "sigma_range_m": np.zeros(24),
         }
     )
     x = np.array([[4.0, 30.0, 2.5], [4.0, 39.0, 2.5]])
-    cov = np.repeat(np.eye(3)[None], 2, axis=0)
-    res = associate(noisy, x, cov, np.array([4, 4]), GateConfig())
-    hit = res.landmark >= 0
-    assert hit.sum() >= 20
-    assert (res.landmark[hit] == truth[hit]).all()
+    cov = np.repeat(4.0 * np.eye(3)[None], 2, axis=0)
+    wrong = []
+    for track in (None, track_rays(rays, TrackConfig())):
+        res = associate(replace(noisy, track=track), x, cov, np.array([4, 4]), GateConfig())
+        hit = res.landmark >= 0
+        assert hit.sum() >= 20
+        wrong.append(int((res.landmark[hit] != truth[hit]).sum()))
+    assert wrong[0] >= 1 and wrong[1] == 0, wrong
 
 
 def test_agent_uploads_tracks_and_an_older_queue_still_reads(tmp_path: Path) -> None:

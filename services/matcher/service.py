@@ -81,11 +81,11 @@ class MatcherConfig:
     triangulation (origins moved by the unit's offset) against the landmark, chi-square
     (3 dof) under both covariances and the offset's. Rays of a neighbouring sign of the
     class pass the per-ray gate one by one, but they meet at their own sign."""
+    group_chi2: float = 16.27
+    group_min_rays: int = 2
     track_drop_unlinked: bool = True
     """Rays of a track that went to a landmark without them (outside the gate) are dropped
     rather than left to start another landmark of the same sign."""
-    group_chi2: float = 16.27
-    group_min_rays: int = 2
     merge: bool = True
     """Merge landmarks found to be one sign (step 5 of the module doc)."""
     merge_chi2: float = 16.27
@@ -448,10 +448,10 @@ class MatcherService(StageService):
         """A vehicle leaves probation: its held passes count in full (promoted) or go
         (caught), here and, through the assoc output of every home tile it has held passes
         in, in the solvers. Returns the landmarks that went with them."""
-        status = t.settle(self.config.trust, self._fleet_ref())
+        ref = self._fleet_ref()
+        status = t.settle(self.config.trust, ref)
         if status is None:
             return set()
-        ref = self._fleet_ref()
         log.info(
             "vehicle %s %s after %d passes (offset chi2 %.2f, mean offset %s m)",
             vehicle,
