@@ -16,6 +16,7 @@ import pytest
 
 from fleetsim.world import straight_road
 from hdmap.evaluation.fleet_eval import EvalState, ObsKeys, SignRecord, bin_table, targets
+from hdmap.evaluation.fleet_seeds import format_seed_table, seed_row, summarise_seeds
 
 pytestmark = pytest.mark.integration
 
@@ -105,3 +106,65 @@ def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():
     # of the sign's two observations one went to its landmark (7), one elsewhere (8)
     assert table[1]["assoc_right"] == 0.5 and table[1]["assoc_unpaired_landmark"] == 0.5
     assert targets(table) == {"evaluated": False}
+
+
+def _result(assoc: float, dup: int, young_dup: int) -> dict:
+    """A hand-made fleet.json with one bin at 50+ passes and a young bin."""
+    hi = {
+        "passes_lo": 50,
+        "signs": 10,
+        "found": 10,
+        "inside95": 9,
+        "recall": 1.0,
+        "precision": 1.0,
+        "duplicated": dup,
+        "mean_err_m": 0.7,
+        "p95_err_m": 1.5,
+        "coverage95": 0.9,
+        "assoc_right": assoc,
+    }
+    young = {**hi, "passes_lo": 3, "precision": 0.8, "duplicated": young_dup}
+    rounds = [{"recall": 0.95, "mean_err_m": 0.8, "coverage95": 0.93, "landmarks": 12}]
+    return {
+        "targets_at_50_passes": targets([young, hi]),
+        "by_passes": [young, hi],
+        "rounds": rounds,
+    }
+
+
+def test_seed_summary_counts_targets_per_seed_and_spreads():
+    rows = {0: seed_row(_result(0.975, 0, 2)), 3: seed_row(_result(0.965, 1, 0))}
+    assert rows[0]["assoc_right"] == 0.975 and rows[0]["young_duplicated"] == 2
+    s = summarise_seeds(rows)
+    assert s["seeds"] == [0, 3] and s["evaluated_seeds"] == 2
+    assert s["summary"]["assoc_right"] == pytest.approx(
+        {"mean": 0.97, "min": 0.965, "max": 0.975, "n": 2}
+    )
+    assert s["summary"]["duplicated"]["max"] == 1.0
+    assert s["targets_passed"]["assoc_right>=0.97"] == 1
+    assert s["targets_passed"]["no_duplicates"] == 1
+    assert s["targets_passed"]["mean_err_m<=1.0"] == 2
+    assert not s["all_targets_all_seeds"]
+    both = summarise_seeds({0: rows[0], 1: seed_row(_result(0.99, 0, 0))})
+    assert both["all_targets_all_seeds"]
+    table = format_seed_table(s)
+    assert table.splitlines()[2].split()[:2] == ["0", "0.70"] and "assoc_right>=0.97 1/2" in table
+
+
+def test_quick_seeds_run_writes_a_summary(tmp_path):
+    cmd = [sys.executable, "-m", "hdmap.cli", "eval", "fleet", "--quick", "--seeds", "0,1"]
+    proc = subprocess.run(
+        [*cmd, "--out", str(tmp_path)], capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    d = json.loads((tmp_path / "fleet_seeds.json").read_text())
+    assert d["seeds"] == [0, 1] and set(d["per_seed"]) == {"0", "1"}
+    for s in (0, 1):
+        one = json.loads((tmp_path / f"seed-{s}" / "fleet.json").read_text())
+        assert one["meta"]["seed"] == s
+        assert d["per_seed"][str(s)]["final_recall"] == one["rounds"][-1]["recall"]
+    assert d["summary"]["final_recall"]["n"] == 2
+    assert (tmp_path / "fleet_seeds.png").stat().st_size > 10_000
+    assert "targets met over 0 evaluated seed(s)" in proc.stderr  # quick: no sign at 50 passes
+    bad = subprocess.run([*cmd[:-1], "0,x", "--out", str(tmp_path)], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--seeds" in bad.stderr

@@ -131,26 +131,72 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--passes", type=int, default=None, help="passes in all (default 160)")
     p.add_argument("--rounds", type=int, default=None, help="scoring rounds (default 8)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seeds",
+        type=_seed_list,
+        default=None,
+        metavar="S,S,...",
+        help="instead of --seed: run each seed into DIR/seed-<s>/ and summarise them "
+        "(DIR/fleet_seeds.json)",
+    )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
 
 
+def _seed_list(text: str) -> list[int]:
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()]
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of ints: {text!r}") from exc
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"need distinct seeds, got {text!r}")
+    return seeds
+
+
 def run_fleet_command(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if not args.seeds:
+        _run_fleet_once(args, out, args.seed)
+        return 0
+    from hdmap.evaluation.fleet_plots import write_seed_figure
+    from hdmap.evaluation.fleet_seeds import format_seed_table, seed_row, summarise_seeds
+
+    rows = {}
+    for k, seed in enumerate(args.seeds, start=1):
+        print(f"fleet: seed {seed} ({k}/{len(args.seeds)})", file=sys.stderr, flush=True)
+        rows[seed] = seed_row(_run_fleet_once(args, out / f"seed-{seed}", seed))
+    summary = summarise_seeds(rows)
+    opts = [f"--out {args.out}", f"--seeds {','.join(map(str, args.seeds))}"]
+    opts += [f"--passes {args.passes}"] if args.passes else []
+    opts += [f"--rounds {args.rounds}"] if args.rounds else []
+    opts += ["--quick"] if args.quick else []
+    summary["meta"] = {
+        "command": "hdmap eval fleet " + " ".join(opts),
+        "figures": [write_seed_figure(summary, out).name],
+    }
+    path = out / "fleet_seeds.json"
+    path.write_text(json.dumps(_clean(summary), indent=1, default=_json_default))
+    print(format_seed_table(summary), file=sys.stderr)
+    print(f"fleet: wrote {path}", file=sys.stderr, flush=True)
+    return 0
+
+
+def _run_fleet_once(args: argparse.Namespace, out: Path, seed: int) -> dict:
     from dataclasses import replace
 
     from hdmap.evaluation.fleet_eval import FleetEvalConfig, run_fleet_eval
     from hdmap.evaluation.fleet_plots import write_fleet_figures
 
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = FleetEvalConfig.quick(out) if args.quick else FleetEvalConfig(out)
     if args.passes:
         cfg = replace(cfg, passes=args.passes)
     if args.rounds:
         cfg = replace(cfg, rounds=args.rounds)
-    cfg = replace(cfg, seed=args.seed)
+    cfg = replace(cfg, seed=seed)
     result, state, final = run_fleet_eval(cfg)
     result["meta"]["command"] = "hdmap eval fleet " + " ".join(
-        [f"--out {args.out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
+        [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
         + [f"--seed {cfg.seed}"]
         + (["--quick"] if args.quick else [])
     )
@@ -160,7 +206,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     path.write_text(json.dumps(_clean(result), indent=1, default=_json_default))
     print(format_fleet_table(result), file=sys.stderr)
     print(f"fleet: wrote {path} and {len(figures)} figures", file=sys.stderr, flush=True)
-    return 0
+    return result
 
 
 def format_fleet_table(result: dict) -> str:

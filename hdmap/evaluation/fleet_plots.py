@@ -49,3 +49,46 @@ def write_fleet_figures(result: dict, world: World, final: Landmarks, out: Path)
     p2 = out / "fleet_map.png"
     plot_map(world, final, p2, title=f"Helsinki after {result['meta']['passes']} passes")
     return [p1, p2]
+
+
+def write_seed_figure(summary: dict, out: Path) -> Path:
+    """``fleet_seeds.png``: per seed the figures nearest the targets, with the targets."""
+    seeds = summary["seeds"]
+    rows = [summary["per_seed"][str(s)] for s in seeds]
+    x = list(range(len(seeds)))
+
+    def series(key: str) -> list[float]:
+        return [r[key] if isinstance(r.get(key), int | float) else float("nan") for r in rows]
+
+    fig = Figure(figsize=(13, 3.6), dpi=110)
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(1, 4, k) for k in (1, 2, 3, 4)]
+    panels = [
+        ([("mean_err_m", "mean"), ("p95_err_m", "p95")], "horizontal error (m)", [1.0, 2.5]),
+        ([("coverage95_from_30", "coverage from 30")], "truth inside 95% ellipse", [0.9, 0.98]),
+        (
+            [("recall", "recall"), ("precision", "precision"), ("assoc_right", "assoc right")],
+            "share at 50+ passes",
+            [0.95, 0.97],
+        ),
+        (
+            [("duplicated", "duplicates 50+"), ("young_duplicated", "duplicates 3-4")],
+            "landmarks",
+            [0.0],
+        ),
+    ]
+    for ax, (keys, label, lines) in zip(axes, panels, strict=True):
+        for k, name in keys:
+            ax.plot(x, series(k), "o", label=name)
+        for v in lines:
+            ax.axhline(v, color="0.5", ls=":", lw=0.8)
+        ax.set_xticks(x, [str(s) for s in seeds])
+        ax.set_xlabel("seed")
+        ax.set_ylabel(label)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    fig.suptitle("Fleet evaluation per seed (targets dotted)", fontsize=9)
+    fig.tight_layout()
+    path = out / "fleet_seeds.png"
+    fig.savefig(path)
+    return path
