@@ -15,7 +15,14 @@ import numpy as np
 import pytest
 
 from fleetsim.world import straight_road
-from hdmap.evaluation.fleet_eval import EvalState, ObsKeys, SignRecord, bin_table, targets
+from hdmap.evaluation.fleet_eval import (
+    EvalState,
+    ObsKeys,
+    SignRecord,
+    assoc_shares,
+    bin_table,
+    targets,
+)
 from hdmap.evaluation.fleet_seeds import format_seed_table, seed_row, summarise_seeds
 
 pytestmark = pytest.mark.integration
@@ -106,6 +113,11 @@ def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():
     # of the sign's two observations one went to its landmark (7), one elsewhere (8)
     assert table[1]["assoc_right"] == 0.5 and table[1]["assoc_unpaired_landmark"] == 0.5
     assert targets(table) == {"evaluated": False}
+    # per observation, each once: of the sign's two, one right; none made at its 2nd pass
+    assert assoc_shares(state, links, lo=2) == {
+        "assoc_right_obs_pooled": 0.5,
+        "assoc_right_obs_from_50": None,
+    }
 
 
 def _result(assoc: float, dup: int, young_dup: int) -> dict:

@@ -17,6 +17,12 @@ Per *number of passes past a sign* (``n``: passes that detected it so far), over
 - ``assoc_right``: of the sign's observations, the share the matcher linked to the
   landmark paired with that sign (from the matcher's association log, replayed at the end).
 
+``targets_at_50_passes`` averages the bins from 50 passes weighted by their signs (a sign
+counts in every bin it passed through, with all its observations each time); beside that
+``assoc_right``, two per-observation readings (:func:`assoc_shares`, reported, not judged):
+``assoc_right_obs_pooled`` (all observations of the signs that reached 50 passes, each once)
+and ``assoc_right_obs_from_50`` (only those made from the sign's 50th pass on).
+
 Metrics here compare with the issue's targets after 50 passes: mean <= 1.0 m, p95 <= 2.5 m,
 coverage 0.90-0.98 from 30 passes on, recall and precision >= 0.95, no duplicates, >= 97 %
 of observations associated with the right landmark. Coverage "from 30 passes on" is the
@@ -269,6 +275,45 @@ def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=
     return rows
 
 
+def assoc_shares(state: EvalState, links: list[ObsKeys], lo: int = 50) -> dict:
+    """Two per-observation readings of "observations associated with the right landmark
+    after ``lo`` passes" (final pairing; each observation counted once), beside the bin
+    average of :func:`targets`:
+
+    - ``assoc_right_obs_pooled``: all observations of the signs that reached ``lo`` passes;
+    - ``assoc_right_obs_from_50``: only those made from the sign's ``lo``-th pass on.
+
+    >>> from fleetsim.world import straight_road
+    >>> rec = SignRecord(*np.array([[2], [1], [0.5], [1]]), np.array([7], np.uint64))
+    >>> truth = [ObsKeys("v", np.array([1, 2]), np.array([0, 0])),
+    ...          ObsKeys("v", np.array([3]), np.array([0]))]
+    >>> st = EvalState(straight_road(), records=[rec], truth=truth)
+    >>> assoc_shares(st, [ObsKeys("v", np.array([1, 2, 3]), np.array([8, 7, 7]))], lo=2)
+    {'assoc_right_obs_pooled': 0.6666666666666666, 'assoc_right_obs_from_50': 1.0}
+    """
+    if not state.truth or not state.records:
+        return {"assoc_right_obs_pooled": None, "assoc_right_obs_from_50": None}
+    sign_lm = state.records[-1].landmark.astype(np.int64)
+    got = lookup(state.truth, links)
+    seen = np.zeros(sign_lm.size, np.int64)
+    count = []  # per observation: passes past its sign including its own
+    for t in state.truth:
+        s = t.value[t.value >= 0]
+        seen[np.unique(s)] += 1
+        count.append(np.where(t.value >= 0, seen[np.maximum(t.value, 0)], 0))
+    row = np.concatenate([t.value for t in state.truth])
+    n_at = np.concatenate(count)
+    real = row >= 0
+    right = real & (got != 0) & (got == sign_lm[np.maximum(row, 0)])
+    mature = real & (state.records[-1].n[np.maximum(row, 0)] >= lo)
+    late = mature & (n_at >= lo)
+
+    def share(m: np.ndarray) -> float | None:
+        return float(right[m].mean()) if m.any() else None
+
+    return {"assoc_right_obs_pooled": share(mature), "assoc_right_obs_from_50": share(late)}
+
+
 def landmark_rows(state: EvalState, lms: list[Landmarks], match_m: float, bins=BINS) -> list[dict]:
     """Landmark precision/duplicates per bin, each landmark once per bin (last state)."""
     per_bin: dict[float, dict[int, tuple[bool, bool]]] = {lo: {} for lo in bins}
@@ -392,6 +437,8 @@ def run_fleet_eval(
         "services": services,
         "targets_at_50_passes": targets(table),
     }
+    if result["targets_at_50_passes"]["evaluated"]:
+        result["targets_at_50_passes"].update(assoc_shares(state, links))
     return result, state, lms[-1]
 
 

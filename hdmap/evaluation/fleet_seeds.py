@@ -31,6 +31,8 @@ TARGET_KEYS = (
     "precision",
     "duplicated",
     "assoc_right",
+    "assoc_right_obs_pooled",
+    "assoc_right_obs_from_50",
 )
 """Figures of ``targets_at_50_passes`` carried per seed."""
 
@@ -101,6 +103,8 @@ def format_seed_table(summary: dict) -> str:
         ("precision", "prec", ".3f"),
         ("duplicated", "dup", "d"),
         ("assoc_right", "assoc", ".3f"),
+        ("assoc_right_obs_pooled", "a.obs", ".3f"),
+        ("assoc_right_obs_from_50", "a.late", ".3f"),
         ("final_mean_err_m", "fin.m", ".2f"),
         ("final_recall", "fin.rec", ".3f"),
         ("young_precision", "y.prec", ".3f"),
