@@ -9,6 +9,7 @@ on timing.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -325,3 +326,40 @@ def test_gap_while_the_publisher_is_down_is_refetched_when_it_is_back(town):
             client.close()
             if not st.procs["publisher-all"].alive:
                 st.start_service("publisher")
+
+
+def test_update_position_from_several_threads_keeps_one_subscription_per_tile(town):
+    """A GPS thread and an application thread may both move the client: concurrent calls
+    leave exactly the tiles of the last position followed, each with one subscription
+    (subscribed - dropped = tiles held), each tile at the publisher's version after its
+    fetch. Without the serialisation: 174 subscribed, 150 dropped, 9 tiles held."""
+    lat0, lon0 = town.world.lat0, town.world.lon0
+    spots = [(lat0, lon0), (lat0 + 0.004, lon0), (lat0, lon0 + 0.006), (lat0 - 0.003, lon0)]
+    with open_session(town.stack.bus) as s:
+        client = MapClient(s, radius_m=300.0)
+        errors: list[BaseException] = []
+
+        def drive(k: int) -> None:
+            try:
+                for i in range(12):
+                    client.update_position(*spots[(i + k) % len(spots)])
+            except BaseException as exc:  # noqa: BLE001 - reported by the main thread
+                errors.append(exc)
+
+        threads = [threading.Thread(target=drive, args=(k,)) for k in range(4)]
+        try:
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(timeout=60.0)
+            assert not any(t.is_alive() for t in threads)
+            assert not errors, errors
+            here = client.update_position(lat0, lon0)
+            assert set(client.versions()) == set(here)
+            assert client.stats.subscribed - client.stats.dropped == len(here)
+            assert client.wait_idle(20.0)
+            for tile, version in client.versions().items():  # each at the publisher's
+                assert version == snapshot_version(s, tile), tile
+            assert ids(client.near(lat0, lon0, 100.0)) <= ids(town.reference)
+        finally:
+            client.close()

@@ -10,6 +10,9 @@ before publishing it, so it is none of its history; a real gap shows again on th
 next delta). At most one fetch per tile is queued; a failed one (no publisher
 answered) is retried on the next delta. Zenoh callbacks only queue; the
 client's own thread applies, so ``near()`` reads a consistent map.
+``update_position``, ``follow`` and ``unfollow`` may be called from several threads
+(a GPS thread and the application): subscription changes are serialised, so each
+followed tile has exactly one subscription.
 """
 
 from __future__ import annotations
@@ -74,6 +77,9 @@ class MapClient:
         self._tiles: dict[str, TileCopy] = {}
         self._subs: dict[str, zenoh.Subscriber] = {}
         self._lock = threading.Lock()
+        """Guards the tile copies (the worker applies, callers read)."""
+        self._subs_lock = threading.RLock()
+        """Serialises subscription changes (``_subs`` and the subscribe/drop counts)."""
         self._inbox: queue.Queue[tuple[str, str, bytes | threading.Event] | None] = queue.Queue()
         self.stats = ClientStats()
         self._thread = threading.Thread(target=self._run, name="mapclient", daemon=True)
@@ -92,38 +98,42 @@ class MapClient:
     def update_position(self, lat: float, lon: float) -> list[str]:
         """Follow the vehicle: subscribe to near tiles, drop far ones; the near tiles."""
         want = set(tiles_around(lat, lon, self.radius_m, self.zoom))
-        for tile in sorted(want - set(self._subs)):
-            self.follow(tile)
-        for tile in sorted(set(self._subs) - want):
-            self.unfollow(tile)
+        with self._subs_lock:
+            for tile in sorted(want - set(self._subs)):
+                self.follow(tile)
+            for tile in sorted(set(self._subs) - want):
+                self.unfollow(tile)
         return sorted(want)
 
     def follow(self, tile: str) -> None:
-        if tile in self._subs:
-            return
-        with self._lock:
-            self._tiles[tile] = TileCopy(fetching=True)
+        with self._subs_lock:
+            if tile in self._subs:
+                return
+            with self._lock:
+                self._tiles[tile] = TileCopy(fetching=True)
 
-        def cb(sample: zenoh.Sample, tile: str = tile) -> None:
-            self._inbox.put(("delta", tile, sample.payload.to_bytes()))
+            def cb(sample: zenoh.Sample, tile: str = tile) -> None:
+                self._inbox.put(("delta", tile, sample.payload.to_bytes()))
 
-        self._subs[tile] = self._session.declare_subscriber(keys.map_delta(tile), cb)
-        self.stats.subscribed += 1
-        self._inbox.put(("fetch", tile, b""))
+            self._subs[tile] = self._session.declare_subscriber(keys.map_delta(tile), cb)
+            self.stats.subscribed += 1
+            self._inbox.put(("fetch", tile, b""))
 
     def unfollow(self, tile: str) -> None:
-        sub = self._subs.pop(tile, None)
-        if sub is not None:
+        with self._subs_lock:
+            sub = self._subs.pop(tile, None)
+            if sub is None:
+                return
             sub.undeclare()
-        with self._lock:
-            self._tiles.pop(tile, None)
-        self.stats.dropped += 1
+            with self._lock:
+                self._tiles.pop(tile, None)
+            self.stats.dropped += 1
 
     def close(self) -> None:
         self._alive.undeclare()
-        for tile in list(self._subs):
-            sub = self._subs.pop(tile)
-            sub.undeclare()
+        with self._subs_lock:
+            for tile in list(self._subs):
+                self._subs.pop(tile).undeclare()
         self._inbox.put(None)
         self._thread.join(timeout=5)
 
