@@ -10,6 +10,8 @@ import argparse
 import importlib
 import sys
 
+from hdmap.orphan import watch_parent
+
 # name -> (module, help). Modules are imported lazily so `hdmap --help` stays fast.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("hdmap.commands.demo", "run the main job on embedded defaults"),
@@ -40,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     only = argv[0] if argv and argv[0] in SUBCOMMANDS else None
     args = build_parser(only).parse_args(argv)
+    watch_parent()  # a stack's child ends with its starter (hdmap.orphan)
     try:
         return int(args._run(args) or 0)
     except BrokenPipeError:  # `hdmap ... | head`: the reader left, not an error of ours

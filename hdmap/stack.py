@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 from hdmap import keys
 from hdmap.bus import BusConfig, open_session
+from hdmap.orphan import PARENT_ENV
 from hdmap.tiles import region_label
 
 if TYPE_CHECKING:
@@ -96,6 +97,7 @@ class Stack:
     def _spawn(self, proc: Proc) -> Proc:
         log = open(proc.log_path, "ab")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env[PARENT_ENV] = str(os.getpid())  # the child ends if this process dies
         proc.popen = subprocess.Popen(
             proc.argv, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
         )

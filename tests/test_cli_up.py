@@ -285,3 +285,32 @@ def test_stack_stop_all_sends_sigterm_once(tmp_path):
             if p.popen is not None and p.popen.poll() is None:
                 p.popen.kill()
                 p.popen.wait(10)
+
+
+def test_up_killed_outright_leaves_no_process(tmp_path):
+    """SIGKILL gives ``hdmap up`` no chance to stop its router and services: they notice
+    they were orphaned (hdmap.orphan) and stop themselves, releasing the port."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    log = tmp_path / "up.log"
+    with running(hdmap("up", "--listen", ep, "--data-dir", str(tmp_path / "var")), log) as up:
+        roles: dict[str, psutil.Process] = {}
+
+        def all_started() -> bool:
+            nonlocal roles
+            assert up.poll() is None, log.read_text()
+            roles = children_by_role(up.pid)
+            return listening(ep) and set(SERVICE_NAMES) | {"router"} <= set(roles)
+
+        assert wait_until(all_started, 90.0, 0.5), (sorted(roles), log.read_text())
+        up.kill()
+        up.wait(10)
+
+        def gone(p: psutil.Process) -> bool:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                return p.status() == psutil.STATUS_ZOMBIE
+            return True
+
+        assert wait_until(lambda: all(gone(p) for p in roles.values()), 60.0, 0.5), {
+            r: p.pid for r, p in roles.items() if not gone(p)
+        }
+        assert wait_until(lambda: not listening(ep), 30.0, 0.5)
