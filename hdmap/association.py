@@ -37,7 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
 from hdmap.estimator.gating import angle_jacobian, wrap
@@ -270,6 +270,26 @@ def assign_tracks(
     loose = track == 0
     best[loose] = rest[loose]
     return best, unlinked
+
+
+def valid_tracks(track: ArrayLike, image: ArrayLike) -> IntArray:
+    """``track`` with every track that holds two rays of one image set to 0 (untracked).
+
+    One sign is detected at most once per image, so such a track is not one sign (a
+    vehicle's tracker fault or a forged upload); it is not trusted to keep its rays
+    together, and its rays are assigned per image like an older vehicle's.
+
+    >>> valid_tracks([1, 1, 2, 2, 0, 0], [0, 1, 0, 0, 3, 3]).tolist()
+    [1, 1, 0, 0, 0, 0]
+    """
+    t = np.asarray(track, np.int64)
+    on = t > 0
+    if not on.any():
+        return t
+    pairs, count = np.unique(
+        np.stack([t[on], np.asarray(image, np.int64)[on]], axis=1), axis=0, return_counts=True
+    )
+    return np.where(np.isin(t, pairs[count > 1, 0]), 0, t)
 
 
 def track_spans(track: IntArray, image: IntArray, tracks: IntArray) -> IntArray:

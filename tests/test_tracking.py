@@ -16,10 +16,20 @@ from fleetsim.fleet import Fleet, FleetConfig
 from fleetsim.noise import FLEET
 from fleetsim.osm_town import helsinki_town
 from fleetsim.pipeline import model_for
-from hdmap.association import GateConfig, LocalRays, angles, assign_tracks, associate
+from hdmap.association import (
+    GateConfig,
+    LocalRays,
+    angles,
+    assign_tracks,
+    associate,
+    valid_tracks,
+)
+from hdmap.geodesy import EnuFrame
 from hdmap.geoloc import direction_from_angles, fix_outliers, geolocate
 from hdmap.tracking import TrackConfig, smooth_track, smoothed_rays, track_rays
 from schemas import ObservationBatch, Observations
+from services.matcher.service import to_local
+from tests.conftest import make_observations
 from tests.test_association import rays_to
 from vehicle.agent import VehicleAgent
 from vehicle.config import load_vehicle_model
@@ -124,6 +134,28 @@ def test_a_track_keeps_its_rays_together() -> None:
     assert not unlinked.any()
     best, unlinked = assign_tracks(rays, ri, li, cost, 13.82, 5.0)
     assert best.tolist() == [0, 0, 0, -1, 0, 1] and unlinked.tolist() == [0, 0, 0, 1, 0, 0]
+
+
+def test_a_track_with_two_rays_in_one_image_is_not_trusted() -> None:
+    """A vehicle that labels all its rays one track (two signs in every image) would have
+    one landmark take them all (here all 24 go to B's: 12 wrong links); such a track is not
+    one sign, so the matcher drops its label and assigns the rays per image."""
+    rays, truth = _street()
+    x = np.array([[4.0, 30.0, 2.5], [4.0, 39.0, 2.5]])
+    cov = np.repeat(np.eye(3)[None], 2, axis=0)
+    bogus = np.ones(len(rays), np.int64)
+    res = associate(replace(rays, track=bogus), x, cov, np.array([4, 4]), GateConfig())
+    assert np.unique(res.landmark).size == 1 and int((res.landmark != truth).sum()) == 12
+    fixed = valid_tracks(bogus, rays.image)
+    assert not fixed.any()
+    res = associate(replace(rays, track=fixed), x, cov, np.array([4, 4]), GateConfig())
+    assert (res.landmark == truth).all()
+    # the matcher's wire -> rays step applies it (two rays per image here)
+    obs = make_observations(8)
+    frame = EnuFrame(60.17, 24.94, 20.0)
+    assert to_local(frame, replace(obs, track=np.ones(8, np.uint32))).track.tolist() == [0] * 8
+    alternating = (np.arange(8) % 2 + 1).astype(np.uint32)
+    assert to_local(frame, replace(obs, track=alternating)).track.tolist() == [1, 2] * 4
 
 
 def test_associate_with_tracks_keeps_a_street_of_same_class_signs_apart() -> None:

@@ -35,6 +35,7 @@ from hdmap.association import (
     associate,
     origin_cov,
     pair_chi2,
+    valid_tracks,
 )
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import prior_covariance, usable
@@ -138,7 +139,7 @@ def to_local(frame, obs: Observations) -> LocalRays:
         sigma_range_m=obs.sigma_range_m,
         image=obs.image.astype(np.int64),
         sign_class=obs.sign_class.astype(np.int64),
-        track=obs.track.astype(np.int64) if obs.track.any() else None,
+        track=valid_tracks(obs.track, obs.image) if obs.track.any() else None,
     )
 
 
@@ -265,6 +266,8 @@ class MatcherService(StageService):
             obs = shift_origins(frame, obs, applied)
             self.count("shift_corrected", len(obs))
         rays = to_local(frame, obs)
+        if rays.track is not None:
+            self.count("track_invalid", int(((obs.track > 0) & (rays.track == 0)).sum()))
         area = self._area(tile)
         cands = self.state.near(area)
         matched = np.full(len(rays), -1, np.int64)
