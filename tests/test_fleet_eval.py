@@ -164,7 +164,9 @@ def test_seed_summary_counts_targets_per_seed_and_spreads():
 
 
 def test_quick_seeds_run_writes_a_summary(tmp_path):
-    cmd = [sys.executable, "-m", "hdmap.cli", "eval", "fleet", "--quick", "--seeds", "0,1"]
+    """Two seeds side by side (``--jobs 2``: each its own process and stack)."""
+    cmd = [sys.executable, "-m", "hdmap.cli", "eval", "fleet", "--quick", "--jobs", "2"]
+    cmd += ["--seeds", "0,1"]
     proc = subprocess.run(
         [*cmd, "--out", str(tmp_path)], capture_output=True, text=True, timeout=600
     )
@@ -178,5 +180,10 @@ def test_quick_seeds_run_writes_a_summary(tmp_path):
     assert d["summary"]["final_recall"]["n"] == 2
     assert (tmp_path / "fleet_seeds.png").stat().st_size > 10_000
     assert "targets met over 0 evaluated seed(s)" in proc.stderr  # quick: no sign at 50 passes
+    assert "passes signs recall" in (tmp_path / "seed-1.log").read_text()  # the run's table
+    assert d["meta"]["command"].endswith("--jobs 2 --quick")
     bad = subprocess.run([*cmd[:-1], "0,x", "--out", str(tmp_path)], capture_output=True, text=True)
     assert bad.returncode == 2 and "--seeds" in bad.stderr
+    cmd[cmd.index("--jobs") + 1] = "0"
+    bad = subprocess.run([*cmd, "--out", str(tmp_path)], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--jobs" in bad.stderr

@@ -139,7 +139,25 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         help="instead of --seed: run each seed into DIR/seed-<s>/ and summarise them "
         "(DIR/fleet_seeds.json)",
     )
+    p.add_argument(
+        "--jobs",
+        type=_positive,
+        default=1,
+        metavar="N",
+        help="with --seeds: runs at once, each its own process with a router and four "
+        "services (2 suits a 2-core machine; default 1)",
+    )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
+
+
+def _positive(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"need a whole number >= 1, got {text!r}")
+    return n
 
 
 def _seed_list(text: str) -> list[int]:
@@ -162,13 +180,21 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     from hdmap.evaluation.fleet_seeds import format_seed_table, seed_row, summarise_seeds
 
     rows = {}
+    if args.jobs > 1:
+        try:
+            rows = _run_seeds_apart(args, out)
+        except RuntimeError as exc:
+            print(f"fleet: {exc}", file=sys.stderr, flush=True)
+            return 1
     for k, seed in enumerate(args.seeds, start=1):
-        print(f"fleet: seed {seed} ({k}/{len(args.seeds)})", file=sys.stderr, flush=True)
-        rows[seed] = seed_row(_run_fleet_once(args, out / f"seed-{seed}", seed))
+        if seed not in rows:
+            print(f"fleet: seed {seed} ({k}/{len(args.seeds)})", file=sys.stderr, flush=True)
+            rows[seed] = seed_row(_run_fleet_once(args, out / f"seed-{seed}", seed))
     summary = summarise_seeds(rows)
     opts = [f"--out {args.out}", f"--seeds {','.join(map(str, args.seeds))}"]
     opts += [f"--passes {args.passes}"] if args.passes else []
     opts += [f"--rounds {args.rounds}"] if args.rounds else []
+    opts += [f"--jobs {args.jobs}"] if args.jobs > 1 else []
     opts += ["--quick"] if args.quick else []
     summary["meta"] = {
         "command": "hdmap eval fleet " + " ".join(opts),
@@ -179,6 +205,65 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     print(format_seed_table(summary), file=sys.stderr)
     print(f"fleet: wrote {path}", file=sys.stderr, flush=True)
     return 0
+
+
+SEED_RUN_TIMEOUT_S = 1800.0
+"""A seed's run that has not finished after this is stopped (and the command fails)."""
+
+
+def _run_seeds_apart(args: argparse.Namespace, out: Path) -> dict[int, dict]:
+    """Each seed as its own ``hdmap eval fleet`` process, at most ``args.jobs`` at once,
+    its stderr in ``DIR/seed-<s>.log``; their summary rows. A failed or overdue run stops
+    the others (RuntimeError naming it). The runs watch this process (hdmap.orphan)."""
+    import os
+    import subprocess
+    from typing import IO
+
+    from hdmap.evaluation.fleet_seeds import seed_row
+    from hdmap.orphan import PARENT_ENV
+
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **{PARENT_ENV: str(os.getpid())})
+    extra = [f"--passes={args.passes}"] if args.passes else []
+    extra += [f"--rounds={args.rounds}"] if args.rounds else []
+    extra += ["--quick"] if args.quick else []
+    todo = list(args.seeds)
+    running: dict[int, tuple[subprocess.Popen, IO[bytes], float]] = {}
+    rows: dict[int, dict] = {}
+    try:
+        while todo or running:
+            while todo and len(running) < args.jobs:
+                seed = todo.pop(0)
+                argv = [sys.executable, "-m", "hdmap.cli", "eval", "fleet"]
+                argv += ["--out", str(out / f"seed-{seed}"), "--seed", str(seed), *extra]
+                log = open(out / f"seed-{seed}.log", "wb")  # closed when the run ends
+                proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env)
+                running[seed] = (proc, log, time.monotonic())
+                print(f"fleet: seed {seed} started ({out / f'seed-{seed}.log'})", file=sys.stderr)
+            for seed, (proc, log, t0) in list(running.items()):
+                rc = proc.poll()
+                if rc is None:
+                    if time.monotonic() - t0 > SEED_RUN_TIMEOUT_S:
+                        raise RuntimeError(f"seed {seed}: no result after {SEED_RUN_TIMEOUT_S} s")
+                    continue
+                del running[seed]
+                log.close()
+                if rc != 0:
+                    tail = (out / f"seed-{seed}.log").read_text(errors="replace")[-2000:]
+                    raise RuntimeError(f"seed {seed}: exit status {rc}\n{tail}")
+                result = json.loads((out / f"seed-{seed}" / "fleet.json").read_text())
+                rows[seed] = seed_row(result)
+                print(f"fleet: seed {seed} done", file=sys.stderr, flush=True)
+            time.sleep(0.5)
+    finally:
+        for proc, log, _ in running.values():
+            proc.terminate()
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+            log.close()
+    return rows
 
 
 def _run_fleet_once(args: argparse.Namespace, out: Path, seed: int) -> dict:
