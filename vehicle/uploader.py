@@ -37,7 +37,10 @@ _REC_V1 = Observations.CODEC.base_record_dtype
 class UploadResult:
     sent: int = 0
     accepted: int = 0
+    """Observations ingest holds durably after this flush, duplicates included (as in
+    :class:`schemas.UploadAck`): all of them leave the queue."""
     duplicates: int = 0
+    """Of ``accepted``, those an earlier upload had already recorded (a retried batch)."""
     rejected: int = 0
     failed_batches: int = 0
     """Batches with no usable answer (timeout, transport, retry-later); still queued."""
