@@ -253,10 +253,9 @@ def assign_tracks(
         margin = np.zeros((ut.size, ul.size))
         np.add.at(margin, (tinv, linv), gate - c)
         chosen = _greedy_tracks(margin, track_spans(track, rays.image, ut), ul)
-        # every ray of an assigned track, against its track's landmark (ids are arbitrary
-        # u32 from the vehicle: looked up, not indexed)
-        pos = np.minimum(np.searchsorted(ut, track), ut.size - 1)
-        ray_lm = np.where(ut[pos] == track, chosen[pos], -1)
+        # every ray of an assigned track, against its track's landmark
+        pos, hit = _find(ut, track)
+        ray_lm = np.where(hit, chosen[pos], -1)
         mine = tracked & (ray_lm[ri] == li)
         link = mine & (cost <= link_gate)
         best[ri[link]] = li[link]
@@ -286,10 +285,10 @@ def valid_tracks(track: ArrayLike, image: ArrayLike) -> IntArray:
     on = t > 0
     if not on.any():
         return t
-    pairs, count = np.unique(
-        np.stack([t[on], np.asarray(image, np.int64)[on]], axis=1), axis=0, return_counts=True
-    )
-    return np.where(np.isin(t, pairs[count > 1, 0]), 0, t)
+    img = np.asarray(image, np.int64)[on]
+    stride = int(img.max()) + 1  # one key per (track, image)
+    key, count = np.unique(t[on] * stride + img, return_counts=True)
+    return np.where(np.isin(t, key[count > 1] // stride), 0, t)
 
 
 def track_spans(track: IntArray, image: IntArray, tracks: IntArray) -> IntArray:
@@ -298,13 +297,23 @@ def track_spans(track: IntArray, image: IntArray, tracks: IntArray) -> IntArray:
     >>> track_spans(np.array([3, 0, 3, 5]), np.array([4, 6, 9, 1]), np.array([3, 5])).tolist()
     [[4, 9], [1, 1]]
     """
-    pos = np.searchsorted(tracks, track)
-    mine = (pos < tracks.size) & (tracks[np.minimum(pos, tracks.size - 1)] == track)
+    pos, mine = _find(tracks, track)
     lo = np.full(tracks.size, np.iinfo(np.int64).max)
     hi = np.full(tracks.size, np.iinfo(np.int64).min)
     np.minimum.at(lo, pos[mine], np.asarray(image, np.int64)[mine])
     np.maximum.at(hi, pos[mine], np.asarray(image, np.int64)[mine])
     return np.column_stack([lo, hi])
+
+
+def _find(ids: IntArray, values: IntArray) -> tuple[IntArray, NDArray[np.bool_]]:
+    """Position of each value in the sorted ``ids`` (clipped into range) and whether it is
+    there (track ids are arbitrary u32 from the vehicle: looked up, not indexed).
+
+    >>> [a.tolist() for a in _find(np.array([3, 5]), np.array([5, 0, 9]))]
+    [[1, 0, 1], [True, False, False]]
+    """
+    pos = np.minimum(np.searchsorted(ids, values), ids.size - 1)
+    return pos, ids[pos] == values
 
 
 def _greedy_tracks(margin: Array, span: IntArray, landmarks: IntArray) -> IntArray:

@@ -15,6 +15,7 @@ import logging
 import os
 import signal
 import threading
+import time
 
 log = logging.getLogger(__name__)
 
@@ -39,12 +40,10 @@ def watch_parent(poll_s: float = 1.0) -> threading.Thread | None:
     except ValueError:
         log.warning("ignoring %s=%r (not a process id)", PARENT_ENV, raw)
         return None
-    stop = threading.Event()
 
     def watch() -> None:
         while os.getppid() == starter:
-            if stop.wait(poll_s):
-                return
+            time.sleep(poll_s)
         log.warning("starter process %d is gone: stopping", starter)
         os.kill(os.getpid(), signal.SIGTERM)
 

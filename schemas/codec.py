@@ -198,6 +198,10 @@ class Col:
     def is_float(self) -> bool:
         return np.dtype(self.dtype).kind == "f"
 
+    def zeros(self, n: int) -> np.ndarray:
+        """``n`` rows of zeros (what an absent optional column reads as)."""
+        return np.zeros((n, self.width) if self.width > 1 else n, dtype=self.dtype)
+
 
 UNIT_TOL = 1e-6
 """Allowed |norm - 1| of unit-vector columns (checked as |norm^2 - 1| <= 2 UNIT_TOL)."""
@@ -248,7 +252,7 @@ class TableCodec:
             fname = f"{path}.{name}" if path else name
             raw = m.get(name)
             if c.optional and name not in m:
-                arrays[name] = np.zeros((n, c.width) if c.width > 1 else n, dtype=c.dtype)
+                arrays[name] = c.zeros(n)
                 continue
             if raw is None:
                 raise DecodeError(fname, "missing column")
@@ -327,21 +331,19 @@ class TableCodec:
     @property
     def record_dtype(self) -> np.dtype:
         """A packed numpy structured dtype with one field per column (for row storage)."""
-        return np.dtype(
-            [
-                (n, np.dtype(c.dtype).newbyteorder("<"), (c.width,) if c.width > 1 else ())
-                for n, c in self.cols
-            ]
-        )
+        return self._records(optional=True)
 
     @property
     def base_record_dtype(self) -> np.dtype:
         """:attr:`record_dtype` without the optional columns (rows stored before them)."""
+        return self._records(optional=False)
+
+    def _records(self, optional: bool) -> np.dtype:
         return np.dtype(
             [
                 (n, np.dtype(c.dtype).newbyteorder("<"), (c.width,) if c.width > 1 else ())
                 for n, c in self.cols
-                if not c.optional
+                if optional or not c.optional
             ]
         )
 
@@ -392,9 +394,7 @@ class Table:
     def __post_init__(self) -> None:
         for name, c in self.CODEC.cols:
             if c.optional and getattr(self, name) is None:
-                n = len(self)
-                zeros = np.zeros((n, c.width) if c.width > 1 else n, dtype=c.dtype)
-                object.__setattr__(self, name, zeros)
+                object.__setattr__(self, name, c.zeros(len(self)))
 
     def __len__(self) -> int:
         first = dataclasses.fields(self)[0].name  # type: ignore[arg-type]

@@ -6,7 +6,8 @@ tracker's quality, checked within ranges.
 
 from __future__ import annotations
 
-from collections import Counter
+import time
+from collections import Counter, defaultdict
 from dataclasses import replace
 from pathlib import Path
 
@@ -24,13 +25,14 @@ from hdmap.association import (
     associate,
     valid_tracks,
 )
-from hdmap.geodesy import EnuFrame
 from hdmap.geoloc import direction_from_angles, fix_outliers, geolocate
+from hdmap.tiles import quadkeys_of
 from hdmap.tracking import TrackConfig, smooth_track, smoothed_rays, track_rays
-from schemas import ObservationBatch, Observations
-from services.matcher.service import to_local
+from schemas import ObservationBatch, Observations, ObsGroup
+from services.matcher.service import _Out
 from tests.conftest import make_observations
 from tests.test_association import rays_to
+from tests.test_merge import matcher
 from vehicle.agent import VehicleAgent
 from vehicle.config import load_vehicle_model
 
@@ -136,7 +138,7 @@ def test_a_track_keeps_its_rays_together() -> None:
     assert best.tolist() == [0, 0, 0, -1, 0, 1] and unlinked.tolist() == [0, 0, 0, 1, 0, 0]
 
 
-def test_a_track_with_two_rays_in_one_image_is_not_trusted() -> None:
+def test_a_track_with_two_rays_in_one_image_is_not_trusted(tmp_path: Path) -> None:
     """A vehicle that labels all its rays one track (two signs in every image) would have
     one landmark take them all (here all 24 go to B's: 12 wrong links); such a track is not
     one sign, so the matcher drops its label and assigns the rays per image."""
@@ -150,12 +152,18 @@ def test_a_track_with_two_rays_in_one_image_is_not_trusted() -> None:
     assert not fixed.any()
     res = associate(replace(rays, track=fixed), x, cov, np.array([4, 4]), GateConfig())
     assert (res.landmark == truth).all()
-    # the matcher's wire -> rays step applies it (two rays per image here)
+    # the matcher checks a unit's labels as it comes in (two rays per image here): what it
+    # keeps (pending, no landmark yet) has the bogus track's label dropped, the other kept
+    svc = matcher(tmp_path)
+    svc._out = defaultdict(_Out)
+    tile = str(quadkeys_of(np.array([60.17]), np.array([24.94]), svc.opts.zoom)[0])
     obs = make_observations(8)
-    frame = EnuFrame(60.17, 24.94, 20.0)
-    assert to_local(frame, replace(obs, track=np.ones(8, np.uint32))).track.tolist() == [0] * 8
     alternating = (np.arange(8) % 2 + 1).astype(np.uint32)
-    assert to_local(frame, replace(obs, track=alternating)).track.tolist() == [1, 2] * 4
+    for p, track in enumerate((np.ones(8, np.uint32), alternating)):
+        unit = replace(obs, obs_id=obs.obs_id + 100 * p, track=track)
+        svc._unit(tile, ObsGroup("veh-1", p, p, time.time(), unit))
+    assert svc.state.pending[tile].obs.track.tolist() == [0] * 8 + [1, 2] * 4
+    assert svc.counters["track_invalid"] == 8
 
 
 def test_associate_with_tracks_keeps_a_street_of_same_class_signs_apart() -> None:

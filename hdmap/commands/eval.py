@@ -192,12 +192,9 @@ def run_fleet_command(args: argparse.Namespace) -> int:
             rows[seed] = seed_row(_run_fleet_once(args, out / f"seed-{seed}", seed))
     summary = summarise_seeds(rows)
     opts = [f"--out {args.out}", f"--seeds {','.join(map(str, args.seeds))}"]
-    opts += [f"--passes {args.passes}"] if args.passes else []
-    opts += [f"--rounds {args.rounds}"] if args.rounds else []
     opts += [f"--jobs {args.jobs}"] if args.jobs > 1 else []
-    opts += ["--quick"] if args.quick else []
     summary["meta"] = {
-        "command": "hdmap eval fleet " + " ".join(opts),
+        "command": "hdmap eval fleet " + " ".join(opts + _run_options(args)),
         "figures": [write_seed_figure(summary, out).name],
     }
     path = out / "fleet_seeds.json"
@@ -209,6 +206,13 @@ def run_fleet_command(args: argparse.Namespace) -> int:
 
 SEED_RUN_TIMEOUT_S = 1800.0
 """A seed's run that has not finished after this is stopped (and the command fails)."""
+
+
+def _run_options(args: argparse.Namespace) -> list[str]:
+    """The options every seed's run shares (``--passes``, ``--rounds``, ``--quick``)."""
+    opts = [f"--passes {args.passes}"] if args.passes else []
+    opts += [f"--rounds {args.rounds}"] if args.rounds else []
+    return opts + (["--quick"] if args.quick else [])
 
 
 def _run_seeds_apart(args: argparse.Namespace, out: Path) -> dict[int, dict]:
@@ -223,9 +227,7 @@ def _run_seeds_apart(args: argparse.Namespace, out: Path) -> dict[int, dict]:
     from hdmap.orphan import PARENT_ENV
 
     env = dict(os.environ, PYTHONUNBUFFERED="1", **{PARENT_ENV: str(os.getpid())})
-    extra = [f"--passes={args.passes}"] if args.passes else []
-    extra += [f"--rounds={args.rounds}"] if args.rounds else []
-    extra += ["--quick"] if args.quick else []
+    extra = [word for opt in _run_options(args) for word in opt.split()]
     todo = list(args.seeds)
     running: dict[int, tuple[subprocess.Popen, IO[bytes], float]] = {}
     rows: dict[int, dict] = {}

@@ -212,18 +212,26 @@ def replay_links(session) -> list[ObsKeys]:
     return out
 
 
+def _linked(state: EvalState, links: list[ObsKeys]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per observation (truth order): its true sign row (-1: false positive), the landmark
+    it was linked to (0: none) and whether that is its sign's landmark (final pairing)."""
+    row = np.concatenate([t.value for t in state.truth]) if state.truth else np.zeros(0, int)
+    got = lookup(state.truth, links)
+    sign_lm = state.records[-1].landmark.astype(np.int64)
+    right = (row >= 0) & (got != 0) & (got == sign_lm[np.maximum(row, 0)])
+    return row, got, right
+
+
 def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=BINS) -> list[dict]:
     """One row per pass-count bin (see the module doc)."""
     edges = [*bins, np.inf]
     final = state.records[-1]
     sign_lm = final.landmark.astype(np.int64)
     # association correctness per sign (final pairing); landmark id 0 = not linked
-    row = np.concatenate([t.value for t in state.truth]) if state.truth else np.zeros(0, int)
-    got = lookup(state.truth, links)
+    row, got, right = _linked(state, links)
     real = row >= 0
-    row, got = row[real], got[real]
+    row, got, right = row[real], got[real], right[real]
     linked = got != 0
-    right = linked & (sign_lm[row] != 0) & (got == sign_lm[row])
     other = linked & ~right & np.isin(got, sign_lm[sign_lm != 0])
     unpaired = linked & ~right & ~other
     k = len(final.n)
@@ -293,19 +301,14 @@ def assoc_shares(state: EvalState, links: list[ObsKeys], lo: int = 50) -> dict:
     """
     if not state.truth or not state.records:
         return {"assoc_right_obs_pooled": None, "assoc_right_obs_from_50": None}
-    sign_lm = state.records[-1].landmark.astype(np.int64)
-    got = lookup(state.truth, links)
-    seen = np.zeros(sign_lm.size, np.int64)
+    row, _got, right = _linked(state, links)
+    seen = np.zeros(state.records[-1].landmark.size, np.int64)
     count = []  # per observation: passes past its sign including its own
     for t in state.truth:
-        s = t.value[t.value >= 0]
-        seen[np.unique(s)] += 1
+        seen[np.unique(t.value[t.value >= 0])] += 1
         count.append(np.where(t.value >= 0, seen[np.maximum(t.value, 0)], 0))
-    row = np.concatenate([t.value for t in state.truth])
     n_at = np.concatenate(count)
-    real = row >= 0
-    right = real & (got != 0) & (got == sign_lm[np.maximum(row, 0)])
-    mature = real & (state.records[-1].n[np.maximum(row, 0)] >= lo)
+    mature = (row >= 0) & (state.records[-1].n[np.maximum(row, 0)] >= lo)
     late = mature & (n_at >= lo)
 
     def share(m: np.ndarray) -> float | None:

@@ -113,7 +113,7 @@ def format_seed_table(summary: dict) -> str:
 
     def cell(v: object, fmt: str) -> str:
         if isinstance(v, int | float) and not isinstance(v, bool):
-            return format(int(v) if fmt == "d" else v, fmt if fmt != "d" else "d")
+            return format(int(v), "d") if fmt == "d" else format(v, fmt)
         return "-"
 
     head = f"{'seed':>6} " + " ".join(f"{h:>7}" for _, h, _ in cols)

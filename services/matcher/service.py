@@ -106,7 +106,8 @@ class MatcherConfig:
     merge_min_passes: int = 2
     """Both landmarks need this many passes (a one-pass estimate carries its pass's whole
     bias). 5 before onboard tracks; with them co-visibility tells two signs apart reliably
-    and 2 cut the young map's duplicates at 3-4 passes from 13-48 to 0-5 (four seeds).
+    and 2 cut the young map's duplicates at 3-4 passes from 13-48 to 0-5 (four seeds, with
+    ``merge_max_covis`` 0.1; with 0.2: 2 / 0 / 9 / 3).
     A landmark looks for a partner at each of its passes up to twice this, then at every
     third (the search is most of a unit's cost otherwise)."""
     provisional_passes: int = 0
@@ -139,7 +140,7 @@ def to_local(frame, obs: Observations) -> LocalRays:
         sigma_range_m=obs.sigma_range_m,
         image=obs.image.astype(np.int64),
         sign_class=obs.sign_class.astype(np.int64),
-        track=valid_tracks(obs.track, obs.image) if obs.track.any() else None,
+        track=obs.track.astype(np.int64) if obs.track.any() else None,
     )
 
 
@@ -265,9 +266,11 @@ class MatcherService(StageService):
             applied = trust.mean_offset(ref)
             obs = shift_origins(frame, obs, applied)
             self.count("shift_corrected", len(obs))
+        if obs.track.any():  # the vehicle's labels are checked once, as they come in
+            track = valid_tracks(obs.track, obs.image).astype(np.uint32)
+            self.count("track_invalid", int((obs.track != track).sum()))
+            obs = replace(obs, track=track)
         rays = to_local(frame, obs)
-        if rays.track is not None:
-            self.count("track_invalid", int(((obs.track > 0) & (rays.track == 0)).sum()))
         area = self._area(tile)
         cands = self.state.near(area)
         matched = np.full(len(rays), -1, np.int64)
