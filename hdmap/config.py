@@ -29,8 +29,12 @@ class ConfigError(ValueError):
     """A config file or mapping that does not fit its dataclass; names the key."""
 
 
-def from_mapping(cls: type[T], data: Mapping[str, Any], path: str = "") -> T:
-    """Build dataclass ``cls`` from a mapping, checking keys and scalar types."""
+def from_mapping(cls: type[T], data: Mapping[str, Any], path: str = "", base: T | None = None) -> T:
+    """Build dataclass ``cls`` from a mapping, checking keys and scalar types.
+
+    Keys override ``base`` (default: the class defaults); a nested table overrides the
+    field's own default, so a section that sets one knob keeps the others its owner chose.
+    """
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path or cls.__name__}: expected a table")
     hints = typing.get_type_hints(cls)
@@ -44,8 +48,18 @@ def from_mapping(cls: type[T], data: Mapping[str, Any], path: str = "") -> T:
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
         key = f"{path}.{name}" if path else name
-        kwargs[name] = _coerce(hints[name], value, key)
-    return cls(**kwargs)
+        default = _field_default(fields[name]) if base is None else getattr(base, name)
+        if dataclasses.is_dataclass(default) and isinstance(value, Mapping):
+            kwargs[name] = from_mapping(type(default), value, key, base=default)
+        else:
+            kwargs[name] = _coerce(hints[name], value, key)
+    return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
+
+
+def _field_default(f: dataclasses.Field) -> Any:
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None if f.default is dataclasses.MISSING else f.default
 
 
 def _coerce(tp: Any, value: Any, key: str) -> Any:

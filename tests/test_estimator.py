@@ -155,13 +155,15 @@ def test_accumulate_mixed_unsorted_equals_per_row_sums_and_grows():
     assert np.array_equal(sol.n_clusters, [np.unique(clusters[rows == k]).size for k in range(7)])
 
 
-def test_sandwich_equals_brute_force_per_pass_computation():
+@pytest.mark.parametrize("integrated", [False, True])
+def test_sandwich_equals_brute_force_per_pass_computation(integrated):
     rng = np.random.default_rng(6)
     rows, clusters, r, _ = random_batch(rng, n_rows=3, n=600)
     sigma = np.array([2.5, 2.0, 3.0])  # the per-pass random-effects weighting, by hand
     s = LandmarkSums(
         EstimatorConfig(
             second_order_variance=False,
+            integrated_meat=integrated,
             small_sample=False,
             model_floor=False,
             max_open_passes=16,
@@ -196,6 +198,9 @@ def test_sandwich_equals_brute_force_per_pass_computation():
         kinv = np.linalg.inv(w_sum)
         gcount = np.unique(clusters[m]).size
         expect = kinv @ meat @ kinv * gcount / (gcount - 1)
+        if integrated:  # the meat averaged over x ~ N(x^, V): + sum_p W_p V W_p
+            spread = sum(w_p @ expect @ w_p for w_p, _ in terms)
+            expect = kinv @ (meat + spread) @ kinv * gcount / (gcount - 1)
         np.testing.assert_allclose(sol.cov_sandwich[k], expect, rtol=1e-9, atol=1e-12)
 
 

@@ -135,10 +135,21 @@ def pass_tensor(saa: Array) -> Array:
     return s6[:, idx][:, :, idx].reshape(-1, 3, 3, 3, 3)
 
 
+def pass_contraction(saa: Array, v: Array) -> Array:
+    """``sum_p A_p V A_p`` (m, 3, 3) from the packed ``S_AA``: also the expected change of
+    the meat ``sum_p g_p g_p^T`` when ``x`` moves by a zero-mean step of covariance ``V``.
+
+    >>> saa = np.zeros((1, 21)); saa[0, 0] = 4.0  # one pass with A_p = diag(2, 0, 0)
+    >>> pass_contraction(saa, np.eye(3)[None])[0].diagonal().tolist()
+    [4.0, 0.0, 0.0]
+    """
+    return np.einsum("tijkl,tjk->til", pass_tensor(saa), v)
+
+
 def second_order_term(v: Array, amat: Array, k: Array, saa: Array, g: Array) -> Array:
     """``A^-1 (sum_p A_p V A_p - A V A / G) A^-1``: the variance the noise of ``A`` adds to
     ``A^-1 b`` at second order (``sum_p A_p V A_p`` from ``S_AA``), symmetrised, >= 0."""
-    t = np.einsum("tijkl,tjk->til", pass_tensor(saa), v)
+    t = pass_contraction(saa, v)
     gg = np.maximum(np.asarray(g, float), 1.0)[:, None, None]
     w = k @ (t - amat @ v @ amat / gg) @ k
     w = 0.5 * (w + np.swapaxes(w, -1, -2))
@@ -216,6 +227,14 @@ def solve_sums(
     cov = v_s
     if cfg.second_order_variance:
         cov = v_s + second_order_term(v_s, amat, k, saa, g)
+    if cfg.integrated_meat:
+        # the meat at x ~ N(x^, cov) on average, not at x^ (EstimatorConfig.integrated_meat)
+        meat_i = meat + pass_contraction(saa, cov)
+        v_s = cr1[:, None, None] * (k @ meat_i @ k)
+        v_s = 0.5 * (v_s + np.swapaxes(v_s, -1, -2))
+        cov = v_s
+        if cfg.second_order_variance:
+            cov = v_s + second_order_term(v_s, amat, k, saa, g)
     cov = kappa[:, None, None] * cov
     if cfg.model_floor and cfg.weighting == "inverse_variance":
         fs = np.ones(m) if floor_scale is None else np.asarray(floor_scale, float)
@@ -227,7 +246,8 @@ def solve_sums(
         # estimate by more than one reported standard deviation (Mahalanobis)
         with np.errstate(all="ignore"):
             d2 = np.einsum("ti,tij,tj->t", bias, np.linalg.pinv(cov), bias)
-            bias = bias * np.where(d2 > 1.0, 1.0 / np.sqrt(d2), 1.0)[:, None]
+            cap = cfg.bias_correction_cap
+            bias = bias * np.where(d2 > cap**2, cap / np.sqrt(d2), 1.0)[:, None]
         bias = np.where(np.isfinite(bias), bias, 0.0)
     x = x_raw - bias
     s6 = tri_to_mat6(saa)
