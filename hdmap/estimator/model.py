@@ -214,8 +214,6 @@ class EstimatorConfig:
     """Subtract the O(1/G) bias of the ratio ``A^-1 b`` (estimated from the pass sums, capped
     at one reported standard deviation). Off by default: in the paper simulation it removed
     the bias at large G but over-corrected at small G (coverage 0.88 at 30-50 passes)."""
-    bias_correction_cap: float = 1.0
-    """Largest bias correction, in reported standard deviations (Mahalanobis)."""
     second_order_variance: bool = True
     """Add the delta-method term of the noise of ``A`` itself:
     ``A^-1 (sum_p A_p V A_p - A V A / G) A^-1`` (``V`` the sandwich), about ``V / s^2`` in a

@@ -246,8 +246,7 @@ def solve_sums(
         # estimate by more than one reported standard deviation (Mahalanobis)
         with np.errstate(all="ignore"):
             d2 = np.einsum("ti,tij,tj->t", bias, np.linalg.pinv(cov), bias)
-            cap = cfg.bias_correction_cap
-            bias = bias * np.where(d2 > cap**2, cap / np.sqrt(d2), 1.0)[:, None]
+            bias = bias * np.where(d2 > 1.0, 1.0 / np.sqrt(d2), 1.0)[:, None]
         bias = np.where(np.isfinite(bias), bias, 0.0)
     x = x_raw - bias
     s6 = tri_to_mat6(saa)
