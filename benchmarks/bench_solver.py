@@ -41,7 +41,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -350,6 +350,9 @@ def bench_case(
         "observations": n_obs,
     }
     t_inc, all_inc, x_inc = timed(lambda: run_incremental(f, cfg), repeat)
+    # the same kernel with the plug-in meat (EstimatorConfig.integrated_meat off): its cost
+    plug = replace(cfg, integrated_meat=False)
+    t_pm, all_pm, _ = timed(lambda: run_incremental(f, plug), repeat)
     # the loop's cost per ray does not grow with the rounds: run it on the first rounds
     # only (at most loop_max_obs rays), checked against the kernel on the same rounds
     per_round = landmarks * per_pass
@@ -373,6 +376,7 @@ def bench_case(
     err_p = np.linalg.norm(np.asarray(x_pb)[:, :2] - f.x_true[:, :2], axis=1)
     res["methods"] = {
         "incremental": {"seconds": t_inc, "runs": all_inc, "obs_per_s": n_obs / t_inc},
+        "incremental_plugin_meat": {"seconds": t_pm, "runs": all_pm, "obs_per_s": n_obs / t_pm},
         "per_ray_loop": {
             "seconds": t_loop,
             "runs": all_loop,
@@ -393,6 +397,7 @@ def bench_case(
     inc = n_obs / t_inc
     res["ratios"] = {
         "incremental_over_per_ray_loop": inc / (n_loop / t_loop),
+        "incremental_over_plugin_meat": inc / (n_obs / t_pm),
         "incremental_over_rebuild_ours": inc / (n_obs / t_rb),
         "incremental_over_paper_batch": inc / (n_obs / t_pb),
         "incremental_over_paper_lsq": inc / (n_sub / t_lsq),
@@ -457,6 +462,20 @@ def table(report: dict) -> str:
             f"| {r['incremental_over_rebuild_ours']:.1f}x "
             f"| {r['incremental_over_paper_batch']:.1f}x "
             f"| {r['incremental_over_paper_lsq']:.1f}x |"
+        )
+    lines += [
+        "",
+        "integrated meat (default) against the plug-in meat, same rays, same run:",
+        "",
+        "| obs/landmark | incremental obs/s: integrated / plug-in |",
+        "|---:|---:|",
+    ]
+    for c in report["cases"]:
+        m, r = c["methods"], c["ratios"]
+        lines.append(
+            f"| {c['obs_per_landmark']:,} | {m['incremental']['obs_per_s']:,.0f} / "
+            f"{m['incremental_plugin_meat']['obs_per_s']:,.0f} "
+            f"({r['incremental_over_plugin_meat']:.2f}x) |"
         )
     if report.get("compare_sums"):
         lines += [
