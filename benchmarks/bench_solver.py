@@ -439,6 +439,21 @@ def bench_case(
     return res
 
 
+def _versus(
+    report: dict, title: str, header: str, cols: list[tuple[str, str, str, int]]
+) -> list[str]:
+    """A side-by-side table: per case, ``this / other (ratio)`` for each column."""
+    lines = ["", title, "", f"| obs/landmark | {header} |", "|---:" * (len(cols) + 1) + "|"]
+    for c in report["cases"]:
+        m, r = c["methods"], c["ratios"]
+        cells = [
+            f"{m[a]['obs_per_s']:,.0f} / {m[b]['obs_per_s']:,.0f} ({r[k]:.{d}f}x)"
+            for a, b, k, d in cols
+        ]
+        lines.append(f"| {c['obs_per_landmark']:,} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def table(report: dict) -> str:
     lines = [
         machine_line(report["machine"]),
@@ -463,38 +478,22 @@ def table(report: dict) -> str:
             f"| {r['incremental_over_paper_batch']:.1f}x "
             f"| {r['incremental_over_paper_lsq']:.1f}x |"
         )
-    lines += [
-        "",
+    lines += _versus(
+        report,
         "integrated meat (default) against the plug-in meat, same rays, same run:",
-        "",
-        "| obs/landmark | incremental obs/s: integrated / plug-in |",
-        "|---:|---:|",
-    ]
-    for c in report["cases"]:
-        m, r = c["methods"], c["ratios"]
-        lines.append(
-            f"| {c['obs_per_landmark']:,} | {m['incremental']['obs_per_s']:,.0f} / "
-            f"{m['incremental_plugin_meat']['obs_per_s']:,.0f} "
-            f"({r['incremental_over_plugin_meat']:.2f}x) |"
-        )
+        "incremental obs/s: integrated / plug-in",
+        [("incremental", "incremental_plugin_meat", "incremental_over_plugin_meat", 2)],
+    )
     if report.get("compare_sums"):
-        lines += [
-            "",
+        lines += _versus(
+            report,
             f"compared with {report['compare_sums']} (same rays, same run):",
-            "",
-            "| obs/landmark | incremental obs/s: this / other | per-ray loop: this / other |",
-            "|---:|---:|---:|",
-        ]
-        for c in report["cases"]:
-            m, r = c["methods"], c["ratios"]
-            lines.append(
-                f"| {c['obs_per_landmark']:,} | {m['incremental']['obs_per_s']:,.0f} / "
-                f"{m['incremental_compare']['obs_per_s']:,.0f} "
-                f"({r['incremental_over_compare']:.1f}x) "
-                f"| {m['per_ray_loop']['obs_per_s']:,.0f} / "
-                f"{m['per_ray_loop_compare']['obs_per_s']:,.0f} "
-                f"({r['per_ray_loop_over_compare']:.1f}x) |"
-            )
+            "incremental obs/s: this / other | per-ray loop: this / other",
+            [
+                ("incremental", "incremental_compare", "incremental_over_compare", 1),
+                ("per_ray_loop", "per_ray_loop_compare", "per_ray_loop_over_compare", 1),
+            ],
+        )
     return "\n".join(lines)
 
 
