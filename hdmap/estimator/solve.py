@@ -22,6 +22,9 @@ Per landmark, with ``A = sum_p A_p`` and ``b = sum_p b_p`` summed over passes ``
   ``beta = A^-1 sum_p A_p A^-1 g_p(x^)``, and ``x = x^ - beta`` is reported;
 - second-order variance: the noise of ``A`` adds ``A^-1 (sum_p A_p V A_p - A V A/G) A^-1``
   (delta method; ``sum_p A_p V A_p`` contracts ``S_AA`` with ``V``);
+- integrated meat: the meat averaged over ``x ~ N(x^, V)`` rather than taken at ``x^``,
+  ``sum_p g_p g_p^T + sum_p A_p V A_p``, then the sandwich and the second-order term again
+  (``EstimatorConfig.integrated_meat``);
 - conditioning: ``A`` positive definite with condition number ``<= max_cond``; every
   eigenvalue ``lambda_k`` (eigenvector ``u_k``) of the *predicted* information ``J`` at
   least ``min_significance`` times the between-pass standard error of ``A`` in that
