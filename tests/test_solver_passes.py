@@ -1,0 +1,90 @@
+"""The solver closes passes quiet for ``close_passes_after_s`` (in the log's time): the
+published estimate and covariance are those of the open passes, the stored state shrinks.
+In-process solver on real SQLite, through its transactions (scene of tests/test_merge.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from hdmap.service import ServiceOptions
+from schemas import Links, NewLandmarks, Observations
+from services.solver.service import SolverConfig, SolverService
+from tests.test_merge import CLS, SIGN, Sink, assoc_entry, matcher, sign_rays, tile_of, updates
+
+T0 = 1.7e9
+
+
+def solver(path: Path, close: bool) -> SolverService:
+    cfg = SolverConfig(close_passes_after_s=7200.0 if close else 0.0)
+    svc = SolverService(ServiceOptions(data_dir=path), cfg)
+    svc.pubs = Sink()  # type: ignore[assignment]
+    return svc
+
+
+def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
+    tile = tile_of(ServiceOptions().zoom)
+    m = matcher(tmp_path / "m")  # for an id and the frame only
+    frame = m.frames(tile)
+    rng = np.random.default_rng(11)
+    lid = m.state.next_id(tile)
+    lat, lon, h = frame.to_geodetic((SIGN + np.array([0.5, 0.5, 0.0]))[None])
+    created = NewLandmarks(
+        np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h
+    )  # fmt: skip
+    # two vehicles, 12 passes each; every pass uploaded in two groups (its halves), one
+    # group every 10 minutes: group seq at t0 + 600 seq
+    groups = []
+    for p in range(12):
+        for v in ("veh-a", "veh-b"):
+            o = sign_rays(frame, p, rng)
+            for half in (slice(0, 5), slice(5, 10)):
+                sel = np.arange(10)[half]
+                obs = o.take(sel)
+                obs = replace(obs, obs_id=obs.obs_id + (0 if v == "veh-a" else 500_000))
+                groups.append((v, p, obs))
+    # three hours later a third vehicle passes: every earlier pass has been quiet 2 h
+    late = sign_rays(frame, 12, rng)
+    groups.append(("veh-c", 0, replace(late, obs_id=late.obs_id + 900_000)))
+
+    def entry(seq: int, v: str, p: int, obs: Observations):
+        n = len(obs)
+        links = Links(
+            np.full(n, lid, np.uint64),
+            np.zeros(n, np.uint32),
+            np.full(n, p, np.uint64),
+            np.full(n, T0 + 600.0 * seq + (3 * 3600.0 if v == "veh-c" else 0.0)),
+            np.ones(n, np.float32),
+        )
+        kw = {"created": created} if seq == 1 else {}
+        return assoc_entry(seq, tile, vehicles=[v], obs=obs, links=links, **kw)
+
+    svcs = {c: solver(tmp_path / f"s{c}", c) for c in (False, True)}
+    for s in svcs.values():
+        for seq, (v, p, obs) in enumerate(groups, start=1):
+            s._apply_in_transaction([entry(seq, v, p, obs)])
+    last = {c: updates(s)[-1].landmarks for c, s in svcs.items()}
+    kept, closed = last[False], last[True]
+    np.testing.assert_allclose(closed.lat, kept.lat, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(closed.lon, kept.lon, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(closed.cov, kept.cov, rtol=1e-9, atol=1e-15)
+    assert int(closed.n_passes[0]) == int(kept.n_passes[0]) == 25
+    row = {c: s.state.landmarks[lid].row for c, s in svcs.items()}
+    # pass p's groups are seq 4p+1..4p+4 (veh-a's two halves, then veh-b's), 10 min apart;
+    # at seq 48 the passes quiet for 2 hours were closed (17), the 7 of the last two hours
+    # when the late vehicle came; its own pass is open
+    assert svcs[True].sums.n_open_passes == 1
+    assert svcs[False].sums.n_open_passes == 8  # max_open_passes, by eviction
+    assert svcs[True].counters["passes_closed"] == 24
+    blob = {
+        c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
+    }
+    assert blob[False] - blob[True] == 7 * svcs[True].sums.open_pass_bytes
+    # restart: the stored (closed) state gives the same map
+    again = solver(tmp_path / "sTrue", True)
+    sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
+    ref = svcs[True].sums.solve(np.array([row[True]]), update_reference=False)
+    np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
