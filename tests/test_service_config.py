@@ -5,7 +5,9 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-from hdmap.config import from_mapping
+import pytest
+
+from hdmap.config import ConfigError, from_mapping
 from hdmap.estimator import EstimatorConfig
 from services.matcher.service import MatcherConfig
 from services.solver.service import SolverConfig
@@ -30,3 +32,9 @@ def test_deploy_file_gives_the_solver_the_integrated_meat_and_the_matcher_the_pl
     matcher = from_mapping(MatcherConfig, table["matcher"], "matcher")
     assert solver.estimator.integrated_meat and solver.estimator.min_clusters == 5
     assert not matcher.estimator.integrated_meat
+
+
+def test_matcher_refuses_to_close_passes_its_pending_pool_may_still_link() -> None:
+    with pytest.raises(ConfigError, match=r"matcher\.close_passes_after_s: must exceed"):
+        from_mapping(MatcherConfig, {"close_passes_after_s": 600.0}, "matcher")
+    assert from_mapping(MatcherConfig, {"close_passes_after_s": 0.0}, "matcher")

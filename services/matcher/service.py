@@ -37,10 +37,12 @@ from hdmap.association import (
     pair_chi2,
     valid_tracks,
 )
+from hdmap.config import ConfigError
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import prior_covariance, usable
 from hdmap.geodesy import GEODESY
 from hdmap.initiation import InitConfig, propose, triangulate_groups
+from hdmap.quiet import QuietPasses, close_quiet
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
 from schemas import (
@@ -80,6 +82,10 @@ class MatcherConfig:
     solver's, which make the map, get the probation weight."""
     pending_ttl_s: float = 3600.0
     """Unmatched rays older than this are dropped (counted as expired)."""
+    close_passes_after_s: float = 7200.0
+    """Close a pass in the gating sums once no ray of it has been linked for this long
+    (wall-clock seconds, :mod:`hdmap.quiet`; 0: open until evicted). Above
+    ``pending_ttl_s``: a pending ray can still be linked until it expires."""
     trust: TrustConfig = field(default_factory=TrustConfig)
     """Per-vehicle weights from the history of its pass offsets and gate failures."""
     gate_bias_floor: bool = True
@@ -126,6 +132,14 @@ class MatcherConfig:
     uses the initiating pass's triangulation with the full pass bias, which the fleet
     evaluation found far safer (with 2: association right 0.51 vs 0.81 at 20-29 passes,
     many more duplicates; a 2-4 pass sandwich covariance is too small to gate with)."""
+
+    def __post_init__(self) -> None:
+        if 0 < self.close_passes_after_s <= self.pending_ttl_s:
+            raise ConfigError(
+                "matcher.close_passes_after_s: must exceed pending_ttl_s "
+                f"({self.pending_ttl_s}), got {self.close_passes_after_s} (a pending ray of a "
+                "closed pass would start a new cluster); 0 keeps passes open"
+            )
 
 
 def shift_origins(frame, obs: Observations, d_en: np.ndarray) -> Observations:
@@ -194,6 +208,7 @@ class MatcherService(StageService):
         self._areas: dict[str, list[str]] = {}
         self.sums = LandmarkSums(self.config.estimator)
         self.state = MatcherState(self.db)
+        self._quiet = QuietPasses(self.config.close_passes_after_s)
         self._reload()
         self._out: dict[str, _Out] = {}
         self._counts: dict[str, float] = {}
@@ -204,6 +219,7 @@ class MatcherService(StageService):
     def _reload(self) -> None:
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
+        self._quiet.clear()
         self._flagged: dict[str, tuple[float, float]] = {}
         self._fleet = FleetOffsets(self.config.trust)
         for v, t in sorted(self.state.trust.items()):
@@ -262,6 +278,8 @@ class MatcherService(StageService):
         self._freeze_stale(now)
         for home, out in sorted(self._out.items()):
             self.emit(home, self._assoc_body(out))
+        if self.config.close_passes_after_s > 0:
+            self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
         self.state.save(self.sums.pack_rows)
 
     def _unit(self, tile: str, g: ObsGroup) -> None:
@@ -388,6 +406,8 @@ class MatcherService(StageService):
             rows = np.array([lms[k].row for k in idx], np.int64)
             rays = to_rays(local, np.full(len(idx), gating) if gating < 1.0 else None)
             self.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays, hold[sel])
+            if self.config.close_passes_after_s > 0:
+                self._quiet.note(key, {(lms[k].id, lms[k].row) for k in idx})
             out = self._out[home]
             vi = out.vehicle_index(vehicle)
             out.links += [(lms[k].id, vi, pass_id) for k in idx]

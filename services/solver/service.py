@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import OrderedDict, defaultdict
+from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,6 +24,7 @@ import numpy as np
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import usable
 from hdmap.geodesy import enu_rotation
+from hdmap.quiet import QuietPasses, close_quiet
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, quadkeys_of
 from schemas import (
@@ -64,16 +65,16 @@ class SolverConfig:
     coverage from 30 passes at 0.93-0.97 (0.2 m gave 0.97-1.00; docs/estimator.md,
     sections 12 and 15)."""
     close_passes_after_s: float = 7200.0
-    """Close a pass (``LandmarkSums.close_passes``) once this long has passed, in the log's
-    time (``Links.received_at``), since its last ray came in; 0 keeps passes open until
-    evicted (``max_open_passes`` per landmark). The estimate and covariance do not change
-    (an open pass enters the solve exactly as a closed one); the stored state shrinks about
+    """Close a pass (``LandmarkSums.close_passes``) once no ray of it has come for this long
+    (wall-clock seconds, :mod:`hdmap.quiet`); 0 keeps passes open until evicted
+    (``max_open_passes`` per landmark). The estimate and covariance do not change (an open
+    pass enters the solve exactly as a closed one); the stored state shrinks about
     threefold (BENCHMARKS.md "Scale"). Twice the matcher's ``pending_ttl_s``: a ray can be
-    linked long after it was uploaded (it waits in the matcher's pending pool until a
-    landmark is initiated), and a ray of a pass already closed would start a new cluster,
-    which changes the estimate (closing a vehicle's passes as soon as it uploads another
-    did: seed 3 of the fleet evaluation moved, precision 1.000 -> 0.982). The bookkeeping
-    is in memory: after a restart the passes open then stay open until evicted."""
+    linked long after its upload (it waits in the matcher's pending pool until a landmark is
+    initiated), and a ray of a pass already closed would start a new cluster, which changes
+    the estimate (closing a vehicle's passes as soon as it uploads another did: seed 3 of
+    the fleet evaluation moved, precision 1.000 -> 0.982). The bookkeeping is in memory:
+    after a restart the passes open then stay open until evicted."""
 
 
 @dataclass(frozen=True)
@@ -111,8 +112,7 @@ class SolverService(StageService):
         self.config = config or SolverConfig()
         self.frames = TileFrames()
         self.state = SolverState(self.db)
-        self._open: OrderedDict[int, tuple[float, set[tuple[int, int]]]] = OrderedDict()
-        """cluster key -> (log time of its last ray, its (landmark id, row)), oldest first."""
+        self._quiet = QuietPasses(self.config.close_passes_after_s)
         self._reload()
         self._counts: dict[str, float] = {}
         self._snapshot_counts()
@@ -120,7 +120,7 @@ class SolverService(StageService):
     def _reload(self) -> None:
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
-        self._open = OrderedDict()
+        self._quiet.clear()
 
     def on_commit(self) -> None:
         pass
@@ -146,6 +146,8 @@ class SolverService(StageService):
         self._publish(sorted(touched))
         for lid in touched:  # their sums changed, published or not: save them
             self.state.put(self.state.landmarks[lid])
+        if self.config.close_passes_after_s > 0:
+            self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
         self.state.save(self.sums.pack_rows)
 
     def _apply_group(self, g: AssocGroup) -> set[int]:
@@ -190,37 +192,15 @@ class SolverService(StageService):
                 self._source[lid] = max(self._source.get(lid, 0.0), float(g.links.received_at[k]))
         self.count("observations", int(known.sum()))
         if self.config.close_passes_after_s > 0:
-            self._close_old_passes(g, ids, known, keys_)
+            self._note_passes(ids, known, keys_)
         return touched | self._settle(g) | self._retire(g)
 
-    def _close_old_passes(
-        self, g: AssocGroup, ids: np.ndarray, known: np.ndarray, keys_: np.ndarray
-    ) -> None:
-        """Note the passes this group brings (and when); close those quiet for
-        ``close_passes_after_s`` in the log's time."""
+    def _note_passes(self, ids: np.ndarray, known: np.ndarray, keys_: np.ndarray) -> None:
+        """The passes (cluster keys) this group brings rays of, and on which landmarks."""
         k = np.flatnonzero(known)
-        if k.size == 0:
-            return
-        t = g.links.received_at[k]
-        newest = float(t.max())
         for key, lid in np.unique(np.rec.fromarrays([keys_[k], ids[k]])).tolist():
             lm = self.state.landmarks[int(lid)]
-            _, members = self._open.pop(int(key), (0.0, set()))
-            members.add((lm.id, lm.row))
-            self._open[int(key)] = (newest, members)  # to the end: the most recent
-        rows: list[int] = []
-        clusters: list[int] = []
-        cutoff = newest - self.config.close_passes_after_s
-        while self._open and next(iter(self._open.values()))[0] < cutoff:
-            key, (_, members) = self._open.popitem(last=False)
-            for lid, row in members:
-                lm = self.state.landmarks.get(lid)
-                if lm is not None and lm.row == row:  # merged away or retired: not here
-                    rows.append(row)
-                    clusters.append(key)
-                    self.state.put(lm)  # its packed sums change: saved with this entry
-        if rows:
-            self.count("passes_closed", self.sums.close_passes(rows, clusters))
+            self._quiet.note(key, [(lm.id, lm.row)])
 
     @staticmethod
     def _pass_keys(g: AssocGroup) -> tuple[np.ndarray, np.ndarray]:

@@ -1,26 +1,39 @@
-"""The solver closes passes quiet for ``close_passes_after_s`` (in the log's time): the
-published estimate and covariance are those of the open passes, the stored state shrinks.
-In-process solver on real SQLite, through its transactions (scene of tests/test_merge.py).
+"""The solver and the matcher close passes quiet for ``close_passes_after_s`` (wall-clock;
+a stand-in clock here): the estimate and covariance are those of the open passes, the
+stored state shrinks. In-process services on real SQLite, through their transactions
+(scene of tests/test_merge.py).
 """
 
 from __future__ import annotations
 
+import time
+from collections import defaultdict
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from hdmap.quiet import QuietPasses
 from hdmap.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
+from services.matcher.service import MatcherConfig, MatcherService, _Out
+from services.matcher.trust import TrustConfig
 from services.solver.service import SolverConfig, SolverService
 from tests.test_merge import CLS, SIGN, Sink, assoc_entry, matcher, sign_rays, tile_of, updates
 
-T0 = 1.7e9
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
 
 
-def solver(path: Path, close: bool) -> SolverService:
+def solver(path: Path, close: bool, clock: Clock) -> SolverService:
     cfg = SolverConfig(close_passes_after_s=7200.0 if close else 0.0)
     svc = SolverService(ServiceOptions(data_dir=path), cfg)
+    svc._quiet = QuietPasses(cfg.close_passes_after_s, clock)
     svc.pubs = Sink()  # type: ignore[assignment]
     return svc
 
@@ -36,7 +49,7 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
         np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h
     )  # fmt: skip
     # two vehicles, 12 passes each; every pass uploaded in two groups (its halves), one
-    # group every 10 minutes: group seq at t0 + 600 seq
+    # group every 10 minutes: group seq at 600 seq
     groups = []
     for p in range(12):
         for v in ("veh-a", "veh-b"):
@@ -56,15 +69,17 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
             np.full(n, lid, np.uint64),
             np.zeros(n, np.uint32),
             np.full(n, p, np.uint64),
-            np.full(n, T0 + 600.0 * seq + (3 * 3600.0 if v == "veh-c" else 0.0)),
+            np.full(n, time.time()),
             np.ones(n, np.float32),
         )
         kw = {"created": created} if seq == 1 else {}
         return assoc_entry(seq, tile, vehicles=[v], obs=obs, links=links, **kw)
 
-    svcs = {c: solver(tmp_path / f"s{c}", c) for c in (False, True)}
-    for s in svcs.values():
-        for seq, (v, p, obs) in enumerate(groups, start=1):
+    clock = Clock()
+    svcs = {c: solver(tmp_path / f"s{c}", c, clock) for c in (False, True)}
+    for seq, (v, p, obs) in enumerate(groups, start=1):
+        clock.t = 600.0 * seq + (3 * 3600.0 if v == "veh-c" else 0.0)
+        for s in svcs.values():
             s._apply_in_transaction([entry(seq, v, p, obs)])
     last = {c: updates(s)[-1].landmarks for c, s in svcs.items()}
     kept, closed = last[False], last[True]
@@ -84,7 +99,49 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
     }
     assert blob[False] - blob[True] == 7 * svcs[True].sums.open_pass_bytes
     # restart: the stored (closed) state gives the same map
-    again = solver(tmp_path / "sTrue", True)
+    again = solver(tmp_path / "sTrue", True, clock)
     sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
     ref = svcs[True].sums.solve(np.array([row[True]]), update_reference=False)
     np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
+
+
+def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> None:
+    clock = Clock()
+    svcs = {}
+    for close in (False, True):
+        cfg = MatcherConfig(  # no probation: held passes are never closed (nor evicted)
+            close_passes_after_s=7200.0 if close else 0.0,
+            trust=TrustConfig(probation_passes=0),
+        )
+        svc = MatcherService(ServiceOptions(data_dir=tmp_path / f"m{close}"), cfg)
+        svc._quiet = QuietPasses(cfg.close_passes_after_s, clock)
+        svc.pubs = Sink()  # type: ignore[assignment]
+        svcs[close] = svc
+    rng = np.random.default_rng(4)
+    tile = tile_of(ServiceOptions().zoom)
+    frame = svcs[True].frames(tile)
+    passes = [sign_rays(frame, p, rng) for p in range(12)]
+    lms = {}
+    for close, svc in svcs.items():
+        svc._out = defaultdict(_Out)
+        lms[close] = svc._create(tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 4.0)
+    for p, obs in enumerate(passes):  # one pass every 20 minutes
+        clock.t = 1200.0 * p
+        for close, svc in svcs.items():
+            svc._apply_in_transaction([])  # a batch: quiet passes are closed at its end
+            svc._out = defaultdict(_Out)
+            svc._link(obs, [lms[close]] * len(obs), "veh-1", p, time.time())
+            svc._refresh([lms[close].id])  # as a unit does: re-solved, saved with the batch
+    clock.t = 1200.0 * 11 + 7200.0 + 1.0  # two hours after the last pass
+    for svc in svcs.values():
+        svc._apply_in_transaction([])
+    assert svcs[True].sums.n_open_passes == 0
+    assert svcs[False].sums.n_open_passes == 8
+    assert svcs[True].counters["passes_closed"] == 12
+    sol = {c: s.sums.solve([lms[c].row], update_reference=False) for c, s in svcs.items()}
+    np.testing.assert_allclose(sol[True].x, sol[False].x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol[True].cov, sol[False].cov, rtol=1e-9, atol=1e-15)
+    blob = {
+        c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
+    }
+    assert blob[False] - blob[True] == 8 * svcs[True].sums.open_pass_bytes
