@@ -407,7 +407,8 @@ class MatcherService(StageService):
             rays = to_rays(local, np.full(len(idx), gating) if gating < 1.0 else None)
             self.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays, hold[sel])
             if self.config.close_passes_after_s > 0:
-                self._quiet.note(key, {(lms[k].id, lms[k].row) for k in idx})
+                _, first = np.unique(rows, return_index=True)
+                self._quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
             out = self._out[home]
             vi = out.vehicle_index(vehicle)
             out.links += [(lms[k].id, vi, pass_id) for k in idx]
