@@ -18,6 +18,8 @@ its pending pool may still link).
 >>> t[0] = 130.0; q.note(8, [(3, 12)])     # more of pass 8: quiet from 130 on
 >>> t[0] = 200.0; q.due(), len(q)
 ([], 1)
+>>> off = QuietPasses(after_s=0.0); off.note(7, [(1, 10)]); off.due(), len(off)
+([], 0)
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ from hdmap.estimator import LandmarkSums
 
 
 class QuietPasses:
-    """Open passes by when their last ray came; ``due`` hands out the quiet ones."""
+    """Open passes by when their last ray came; ``due`` hands out the quiet ones.
+    ``after_s`` <= 0 turns it off: nothing is noted, nothing is ever due."""
 
     def __init__(self, after_s: float, clock: Callable[[], float] = time.monotonic):
         self.after_s = float(after_s)
@@ -43,6 +46,8 @@ class QuietPasses:
 
     def note(self, key: int, members: Iterable[tuple[int, int]]) -> None:
         """Pass ``key`` got rays now on ``members`` ((landmark id, sums row))."""
+        if self.after_s <= 0:
+            return
         _, mine = self._open.pop(int(key), (0.0, set()))
         mine.update((int(a), int(b)) for a, b in members)
         self._open[int(key)] = (self._clock(), mine)  # to the end: the most recent

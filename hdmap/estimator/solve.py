@@ -138,21 +138,23 @@ def pass_tensor(saa: Array) -> Array:
     return s6[:, idx][:, :, idx].reshape(-1, 3, 3, 3, 3)
 
 
-def pass_contraction(saa: Array, v: Array) -> Array:
-    """``sum_p A_p V A_p`` (m, 3, 3) from the packed ``S_AA``: also the expected change of
-    the meat ``sum_p g_p g_p^T`` when ``x`` moves by a zero-mean step of covariance ``V``.
+def pass_contraction(s4: Array, v: Array) -> Array:
+    """``sum_p A_p V A_p`` (m, 3, 3) from :func:`pass_tensor` ``s4``: also the expected
+    change of the meat ``sum_p g_p g_p^T`` when ``x`` moves by a zero-mean step of
+    covariance ``V``.
 
     >>> saa = np.zeros((1, 21)); saa[0, 0] = 4.0  # one pass with A_p = diag(2, 0, 0)
-    >>> pass_contraction(saa, np.eye(3)[None])[0].diagonal().tolist()
+    >>> pass_contraction(pass_tensor(saa), np.eye(3)[None])[0].diagonal().tolist()
     [4.0, 0.0, 0.0]
     """
-    return np.einsum("tijkl,tjk->til", pass_tensor(saa), v)
+    return np.einsum("tijkl,tjk->til", s4, v)
 
 
-def second_order_term(v: Array, amat: Array, k: Array, saa: Array, g: Array) -> Array:
+def second_order_term(v: Array, amat: Array, k: Array, s4: Array, g: Array) -> Array:
     """``A^-1 (sum_p A_p V A_p - A V A / G) A^-1``: the variance the noise of ``A`` adds to
-    ``A^-1 b`` at second order (``sum_p A_p V A_p`` from ``S_AA``), symmetrised, >= 0."""
-    t = pass_contraction(saa, v)
+    ``A^-1 b`` at second order (``sum_p A_p V A_p`` from :func:`pass_tensor` ``s4``),
+    symmetrised, >= 0."""
+    t = pass_contraction(s4, v)
     gg = np.maximum(np.asarray(g, float), 1.0)[:, None, None]
     w = k @ (t - amat @ v @ amat / gg) @ k
     w = 0.5 * (w + np.swapaxes(w, -1, -2))
@@ -224,20 +226,19 @@ def solve_sums(
     g = np.asarray(n_clusters, float)
     meat = meat_matrix(x_raw, saa, sab, sbb)
     cr1 = np.where(g >= 2, g / np.maximum(g - 1.0, 1.0), 1.0)
-    v_s = cr1[:, None, None] * (k @ meat @ k)
-    v_s = 0.5 * (v_s + np.swapaxes(v_s, -1, -2))
-    kappa = hotelling_inflation(g, cfg.coverage_level) if cfg.small_sample else np.ones(m)
-    cov = v_s
-    if cfg.second_order_variance:
-        cov = v_s + second_order_term(v_s, amat, k, saa, g)
+    s4 = pass_tensor(saa) if cfg.second_order_variance or cfg.integrated_meat else None
+
+    def sandwich(mt: Array) -> tuple[Array, Array]:
+        """CR1 sandwich of meat ``mt``, and it with the second-order term (if configured)."""
+        v = cr1[:, None, None] * (k @ mt @ k)
+        v = 0.5 * (v + np.swapaxes(v, -1, -2))
+        return v, (v + second_order_term(v, amat, k, s4, g) if cfg.second_order_variance else v)
+
+    v_s, cov = sandwich(meat)
     if cfg.integrated_meat:
         # the meat at x ~ N(x^, cov) on average, not at x^ (EstimatorConfig.integrated_meat)
-        meat_i = meat + pass_contraction(saa, cov)
-        v_s = cr1[:, None, None] * (k @ meat_i @ k)
-        v_s = 0.5 * (v_s + np.swapaxes(v_s, -1, -2))
-        cov = v_s
-        if cfg.second_order_variance:
-            cov = v_s + second_order_term(v_s, amat, k, saa, g)
+        v_s, cov = sandwich(meat + pass_contraction(s4, cov))
+    kappa = hotelling_inflation(g, cfg.coverage_level) if cfg.small_sample else np.ones(m)
     cov = kappa[:, None, None] * cov
     if cfg.model_floor and cfg.weighting == "inverse_variance":
         fs = np.ones(m) if floor_scale is None else np.asarray(floor_scale, float)

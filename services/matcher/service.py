@@ -278,8 +278,7 @@ class MatcherService(StageService):
         self._freeze_stale(now)
         for home, out in sorted(self._out.items()):
             self.emit(home, self._assoc_body(out))
-        if self.config.close_passes_after_s > 0:
-            self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
+        self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
         self.state.save(self.sums.pack_rows)
 
     def _unit(self, tile: str, g: ObsGroup) -> None:
@@ -406,9 +405,8 @@ class MatcherService(StageService):
             rows = np.array([lms[k].row for k in idx], np.int64)
             rays = to_rays(local, np.full(len(idx), gating) if gating < 1.0 else None)
             self.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays, hold[sel])
-            if self.config.close_passes_after_s > 0:
-                _, first = np.unique(rows, return_index=True)
-                self._quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
+            _, first = np.unique(rows, return_index=True)
+            self._quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
             out = self._out[home]
             vi = out.vehicle_index(vehicle)
             out.links += [(lms[k].id, vi, pass_id) for k in idx]

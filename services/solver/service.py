@@ -146,8 +146,7 @@ class SolverService(StageService):
         self._publish(sorted(touched))
         for lid in touched:  # their sums changed, published or not: save them
             self.state.put(self.state.landmarks[lid])
-        if self.config.close_passes_after_s > 0:
-            self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
+        self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
         self.state.save(self.sums.pack_rows)
 
     def _apply_group(self, g: AssocGroup) -> set[int]:
@@ -191,8 +190,7 @@ class SolverService(StageService):
                 touched.add(lid)
                 self._source[lid] = max(self._source.get(lid, 0.0), float(g.links.received_at[k]))
         self.count("observations", int(known.sum()))
-        if self.config.close_passes_after_s > 0:
-            self._note_passes(ids, known, keys_)
+        self._note_passes(ids, known, keys_)
         return touched | self._settle(g) | self._retire(g)
 
     def _note_passes(self, ids: np.ndarray, known: np.ndarray, keys_: np.ndarray) -> None:
