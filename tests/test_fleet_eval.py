@@ -46,6 +46,7 @@ def test_quick_run_writes_json_figures_and_a_table(quick):
         "observations",
         "services",
         "targets_at_50_passes",
+        "signs",
     } <= set(d)
     for name in d["meta"]["figures"]:
         assert (out / name).stat().st_size > 10_000
@@ -62,8 +63,27 @@ def test_quick_run_writes_json_figures_and_a_table(quick):
         "coverage95",
         "assoc_right",
         "assoc_unlinked",
+        "mean_err_enu_m",
     }
     assert all(row_keys <= set(r) for r in d["by_passes"])
+
+
+def test_quick_run_sign_table_agrees_with_the_final_round(quick):
+    _out, d, _ = quick
+    signs = d["signs"]
+    assert len(signs) == d["meta"]["signs"]
+    found = [s for s in signs if s["found"]]
+    assert len(found) / len(signs) == pytest.approx(d["rounds"][-1]["recall"])
+    err = np.array([s["err_m"] for s in found])
+    assert err.mean() == pytest.approx(d["rounds"][-1]["mean_err_m"])
+    enu = np.array([s["err_enu_m"] for s in found])
+    assert np.hypot(enu[:, 0], enu[:, 1]) == pytest.approx(err)
+    assert all(min(s["sigma_en_m"]) > 0 for s in found)
+    inside = np.mean([s["inside95"] for s in found])
+    assert inside == pytest.approx(d["rounds"][-1]["coverage95"])
+    assert all(s["err_m"] is None and s["landmark"] == 0 for s in signs if not s["found"])
+    linked = sum(s["observations"] for s in signs)
+    assert linked == d["observations"]["of_true_signs"]
 
 
 def test_quick_run_counts_add_up_and_the_map_is_sane(quick):

@@ -15,7 +15,18 @@ Per *number of passes past a sign* (``n``: passes that detected it so far), over
   count, is in the bin) that pair with a true sign;
 - ``duplicated``: unpaired landmarks within ``match_m`` of a paired sign of their class;
 - ``assoc_right``: of the sign's observations, the share the matcher linked to the
-  landmark paired with that sign (from the matcher's association log, replayed at the end).
+  landmark paired with that sign (from the matcher's association log, replayed at the end);
+- ``mean_err_enu_m``: the mean error *vector* (East, North, Up) of the found signs. Signs
+  seen by the same passes share those passes' GNSS biases, so their errors are correlated:
+  this common offset moves a whole bin in or out of its ellipses together, and a bin's
+  coverage spreads more than a binomial count of independent signs would (docs/estimator.md
+  section 12).
+
+``DIR/fleet.json``: ``meta`` (town, noise, seed, wall time), ``rounds`` (per round: map
+size, recall, mean error, coverage), ``by_passes`` (the bins above), ``observations``
+(uploaded, of true signs, linked), ``services`` (the services' counters at the end),
+``targets_at_50_passes`` (below) and ``signs`` (:func:`sign_table`: per sign its final
+passes, landmark, error vector, reported sigmas, ellipse test and association share).
 
 ``targets_at_50_passes`` averages the bins from 50 passes weighted by their signs (a sign
 counts in every bin it passed through, with all its observations each time); beside that
@@ -50,7 +61,7 @@ from fleetsim.fleet import Fleet, FleetConfig
 from fleetsim.noise import FLEET
 from fleetsim.osm_town import helsinki_town, same_class_pairs
 from fleetsim.pipeline import FleetDriver, model_for
-from fleetsim.score import duplicate_mask, inside_ellipse95
+from fleetsim.score import cov_en, duplicate_mask, inside_ellipse95
 from fleetsim.town_run import follow_town
 from fleetsim.truth import match_landmarks
 from fleetsim.world import World, tile_border_distance
@@ -98,6 +109,10 @@ class SignRecord:
     inside: np.ndarray
     landmark: np.ndarray
     """Landmark id paired with the sign (0: none)."""
+    err_enu: np.ndarray | None = None
+    """(k, 3) landmark minus truth, world ENU m (NaN: not found; None: not recorded)."""
+    sigma_en: np.ndarray | None = None
+    """(k, 2) reported standard deviations East and North, m (NaN: not found)."""
 
 
 @dataclass
@@ -161,12 +176,17 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
     err = np.full(k, np.nan)
     inside = np.zeros(k, bool)
     landmark = np.zeros(k, np.uint64)
+    err_enu = np.full((k, 3), np.nan)
+    sigma_en = np.full((k, 2), np.nan)
     found[m.sign_row] = True
     err[m.sign_row] = m.horizontal_error_m
     if m.landmark.size:
         inside[m.sign_row] = inside_ellipse95(m.error_enu[:, :2], lm.cov[m.landmark])
         landmark[m.sign_row] = lm.id[m.landmark]
-    return SignRecord(n.copy(), found, err, inside, landmark)
+        err_enu[m.sign_row] = m.error_enu
+        c = cov_en(lm.cov[m.landmark])
+        sigma_en[m.sign_row] = np.sqrt(np.maximum(np.stack([c[:, 0, 0], c[:, 1, 1]], -1), 0.0))
+    return SignRecord(n.copy(), found, err, inside, landmark, err_enu, sigma_en)
 
 
 def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> dict:
@@ -251,6 +271,8 @@ def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=
         found = np.array([last[s][0].found[s] for s in signs])
         err = np.array([last[s][0].err[s] for s in signs])
         inside = np.array([last[s][0].inside[s] for s in signs])
+        enu = [last[s][0].err_enu[s] for s in signs if last[s][0].err_enu is not None]
+        enu = [e for e in enu if np.isfinite(e).all()]
         lm_in = [r for r in lm_rows if r["lo"] == lo]
         n_lm = sum(r["n"] for r in lm_in)
         paired = sum(r["paired"] for r in lm_in)
@@ -268,6 +290,7 @@ def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=
                 "mean_err_m": float(good.mean()) if good.size else None,
                 "p95_err_m": float(np.percentile(good, 95)) if good.size else None,
                 "coverage95": float(inside[found].mean()) if good.size else None,
+                "mean_err_enu_m": np.mean(enu, axis=0).tolist() if enu else None,
                 "found": int(found.sum()),
                 "inside95": int(inside[found].sum()),
                 "assoc_right": float(n_right[signs].sum() / max(n_obs[signs].sum(), 1)),
@@ -281,6 +304,47 @@ def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=
             }
         )
     return rows
+
+
+def sign_table(state: EvalState, links: list[ObsKeys]) -> list[dict]:
+    """One row per sign in the final map: what a user checks sign by sign.
+
+    ``err_enu_m`` is landmark minus truth (East, North, Up); ``sigma_en_m`` the reported
+    standard deviations; ``assoc_right`` the share of the sign's observations linked to its
+    landmark (final pairing).
+    """
+    if not state.records:
+        return []
+    final = state.records[-1]
+    row, _got, right = _linked(state, links)
+    real = row >= 0
+    k = final.n.size
+    n_obs = np.bincount(row[real], minlength=k)
+    n_right = np.bincount(row[real & right], minlength=k)
+    world = state.world
+    out = []
+    for s in range(k):
+        found = bool(final.found[s])
+
+        def vec(a: np.ndarray | None, s: int = s, found: bool = found) -> list[float] | None:
+            return a[s].tolist() if found and a is not None else None
+
+        out.append(
+            {
+                "sign": s,
+                "sign_class": int(world.signs.sign_class[s]),
+                "passes": int(final.n[s]),
+                "found": found,
+                "landmark": int(final.landmark[s]),
+                "err_m": float(final.err[s]) if found else None,
+                "err_enu_m": vec(final.err_enu),
+                "sigma_en_m": vec(final.sigma_en),
+                "inside95": bool(final.inside[s]) if found else None,
+                "observations": int(n_obs[s]),
+                "assoc_right": float(n_right[s] / n_obs[s]) if n_obs[s] else None,
+            }
+        )
+    return out
 
 
 def assoc_shares(state: EvalState, links: list[ObsKeys], lo: int = 50) -> dict:
@@ -439,6 +503,7 @@ def run_fleet_eval(
         },
         "services": services,
         "targets_at_50_passes": targets(table),
+        "signs": sign_table(state, links),
     }
     if result["targets_at_50_passes"]["evaluated"]:
         result["targets_at_50_passes"].update(assoc_shares(state, links))
