@@ -73,6 +73,22 @@ class _State(Protocol):
     def put(self, lm: Any) -> None: ...
 
 
+def note_open(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:
+    """After a (re)load: every pass still open in ``sums`` is quiet from now on (its last
+    ray's time is not stored), so it closes ``after_s`` later unless more rays come. Without
+    this, passes open at a restart stayed open until evicted. Returns how many were noted."""
+    if quiet.after_s <= 0:
+        return 0
+    lid_of = {lm.row: lid for lid, lm in state.landmarks.items()}
+    n = 0
+    for row, cluster in sums.open_passes():
+        lid = lid_of.get(row)
+        if lid is not None:
+            quiet.note(cluster, [(lid, row)])
+            n += 1
+    return n
+
+
 def close_quiet(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:
     """Close the passes ``quiet`` says are due on the landmarks still there with the same
     row (a merged or retired one took its sums with it), marking them changed in ``state``.

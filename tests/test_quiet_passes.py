@@ -34,6 +34,7 @@ def solver(path: Path, close: bool, clock: Clock) -> SolverService:
     cfg = SolverConfig(close_passes_after_s=7200.0 if close else 0.0)
     svc = SolverService(ServiceOptions(data_dir=path), cfg)
     svc._quiet = QuietPasses(cfg.close_passes_after_s, clock)
+    svc._reload()  # as at start-up, with the stand-in clock
     svc.pubs = Sink()  # type: ignore[assignment]
     return svc
 
@@ -103,6 +104,14 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
     sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
     ref = svcs[True].sums.solve(np.array([row[True]]), update_reference=False)
     np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
+    # the pass open at the restart is quiet from then on: closed two hours later
+    assert again.sums.n_open_passes == 1 and len(again._quiet) == 1
+    clock.t += 7200.0 + 1.0
+    again._apply_in_transaction([])
+    assert again.sums.n_open_passes == 0
+    sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
+    np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.cov, ref.cov, rtol=1e-9, atol=1e-15)
 
 
 def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> None:
@@ -132,6 +141,16 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
             svc._out = defaultdict(_Out)
             svc._link(obs, [lms[close]] * len(obs), "veh-1", p, time.time())
             svc._refresh([lms[close].id])  # as a unit does: re-solved, saved with the batch
+    # the closing service saves its last pass and restarts: its open passes are quiet from
+    # the restart on
+    svcs[True]._apply_in_transaction([])
+    restarted = MatcherService(ServiceOptions(data_dir=tmp_path / "mTrue"), svcs[True].config)
+    restarted._quiet = QuietPasses(restarted.config.close_passes_after_s, clock)
+    restarted._reload()
+    restarted.pubs = Sink()  # type: ignore[assignment]
+    assert len(restarted._quiet) == restarted.sums.n_open_passes == svcs[True].sums.n_open_passes
+    svcs[True].db.close()
+    svcs[True] = restarted
     clock.t = 1200.0 * 11 + 7200.0 + 1.0  # two hours after the last pass
     for svc in svcs.values():
         svc._apply_in_transaction([])

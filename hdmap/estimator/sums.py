@@ -195,6 +195,15 @@ class LandmarkSums:
     def n_open_passes(self) -> int:
         return len(self._slot)
 
+    def open_passes(self) -> list[tuple[int, int]]:
+        """The open (row, cluster) pairs, sorted.
+
+        >>> s = LandmarkSums(capacity=1)
+        >>> s.open_passes()
+        []
+        """
+        return sorted(self._slot)
+
     def n_obs(self, rows: ArrayLike) -> IntArray:
         """Rays summed into each row."""
         return self._n_obs[np.asarray(rows, np.int64)].copy()

@@ -42,7 +42,7 @@ from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import prior_covariance, usable
 from hdmap.geodesy import GEODESY
 from hdmap.initiation import InitConfig, propose, triangulate_groups
-from hdmap.quiet import QuietPasses, close_quiet
+from hdmap.quiet import QuietPasses, close_quiet, note_open
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
 from schemas import (
@@ -220,6 +220,7 @@ class MatcherService(StageService):
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
         self._quiet.clear()
+        note_open(self._quiet, self.sums, self.state)
         self._flagged: dict[str, tuple[float, float]] = {}
         self._fleet = FleetOffsets(self.config.trust)
         for v, t in sorted(self.state.trust.items()):

@@ -24,7 +24,7 @@ import numpy as np
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import usable
 from hdmap.geodesy import enu_rotation
-from hdmap.quiet import QuietPasses, close_quiet
+from hdmap.quiet import QuietPasses, close_quiet, note_open
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, quadkeys_of
 from schemas import (
@@ -121,6 +121,7 @@ class SolverService(StageService):
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
         self._quiet.clear()
+        note_open(self._quiet, self.sums, self.state)
 
     def on_commit(self) -> None:
         pass
