@@ -17,6 +17,7 @@ import pytest
 from fleetsim.world import straight_road
 from hdmap.evaluation.fleet_eval import (
     EvalState,
+    Linked,
     ObsKeys,
     SignRecord,
     assoc_shares,
@@ -126,7 +127,7 @@ def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():
     state = EvalState(world, records=rec, truth=truth)
     links = [ObsKeys("v", np.array([1, 2, 3]), np.array([7, 8, 7]))]
     lm_rows = [{"lo": lo, "n": 1, "paired": 1, "dup": 0} for lo in (1, 2)]
-    table = bin_table(state, lm_rows, links, bins=(1, 2))
+    table = bin_table(state, lm_rows, Linked.of(state, links), bins=(1, 2))
     assert [r["passes_lo"] for r in table] == [1, 2]
     assert table[0]["mean_err_m"] == 3.0 and table[0]["coverage95"] == 1.0
     assert table[1]["mean_err_m"] == 2.0 and table[1]["coverage95"] == 0.0
@@ -134,7 +135,7 @@ def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():
     assert table[1]["assoc_right"] == 0.5 and table[1]["assoc_unpaired_landmark"] == 0.5
     assert targets(table) == {"evaluated": False}
     # per observation, each once: of the sign's two, one right; none made at its 2nd pass
-    assert assoc_shares(state, links, lo=2) == {
+    assert assoc_shares(state, Linked.of(state, links), lo=2) == {
         "assoc_right_obs_pooled": 0.5,
         "assoc_right_obs_from_50": None,
     }

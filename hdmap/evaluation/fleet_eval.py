@@ -232,23 +232,31 @@ def replay_links(session) -> list[ObsKeys]:
     return out
 
 
-def _linked(state: EvalState, links: list[ObsKeys]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class Linked:
     """Per observation (truth order): its true sign row (-1: false positive), the landmark
     it was linked to (0: none) and whether that is its sign's landmark (final pairing)."""
-    row = np.concatenate([t.value for t in state.truth]) if state.truth else np.zeros(0, int)
-    got = lookup(state.truth, links)
-    sign_lm = state.records[-1].landmark.astype(np.int64)
-    right = (row >= 0) & (got != 0) & (got == sign_lm[np.maximum(row, 0)])
-    return row, got, right
+
+    row: np.ndarray
+    got: np.ndarray
+    right: np.ndarray
+
+    @staticmethod
+    def of(state: EvalState, links: list[ObsKeys]) -> Linked:
+        row = np.concatenate([t.value for t in state.truth]) if state.truth else np.zeros(0, int)
+        got = lookup(state.truth, links)
+        sign_lm = state.records[-1].landmark.astype(np.int64)
+        right = (row >= 0) & (got != 0) & (got == sign_lm[np.maximum(row, 0)])
+        return Linked(row, got, right)
 
 
-def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=BINS) -> list[dict]:
+def bin_table(state: EvalState, lm_rows: list[dict], linked: Linked, bins=BINS) -> list[dict]:
     """One row per pass-count bin (see the module doc)."""
     edges = [*bins, np.inf]
     final = state.records[-1]
     sign_lm = final.landmark.astype(np.int64)
     # association correctness per sign (final pairing); landmark id 0 = not linked
-    row, got, right = _linked(state, links)
+    row, got, right = linked.row, linked.got, linked.right
     real = row >= 0
     row, got, right = row[real], got[real], right[real]
     linked = got != 0
@@ -306,7 +314,7 @@ def bin_table(state: EvalState, lm_rows: list[dict], links: list[ObsKeys], bins=
     return rows
 
 
-def sign_table(state: EvalState, links: list[ObsKeys]) -> list[dict]:
+def sign_table(state: EvalState, linked: Linked) -> list[dict]:
     """One row per sign in the final map: what a user checks sign by sign.
 
     ``err_enu_m`` is landmark minus truth (East, North, Up); ``sigma_en_m`` the reported
@@ -316,7 +324,7 @@ def sign_table(state: EvalState, links: list[ObsKeys]) -> list[dict]:
     if not state.records:
         return []
     final = state.records[-1]
-    row, _got, right = _linked(state, links)
+    row, right = linked.row, linked.right
     real = row >= 0
     k = final.n.size
     n_obs = np.bincount(row[real], minlength=k)
@@ -347,7 +355,7 @@ def sign_table(state: EvalState, links: list[ObsKeys]) -> list[dict]:
     return out
 
 
-def assoc_shares(state: EvalState, links: list[ObsKeys], lo: int = 50) -> dict:
+def assoc_shares(state: EvalState, linked: Linked, lo: int = 50) -> dict:
     """Two per-observation readings of "observations associated with the right landmark
     after ``lo`` passes" (final pairing; each observation counted once), beside the bin
     average of :func:`targets`:
@@ -360,12 +368,13 @@ def assoc_shares(state: EvalState, links: list[ObsKeys], lo: int = 50) -> dict:
     >>> truth = [ObsKeys("v", np.array([1, 2]), np.array([0, 0])),
     ...          ObsKeys("v", np.array([3]), np.array([0]))]
     >>> st = EvalState(straight_road(), records=[rec], truth=truth)
-    >>> assoc_shares(st, [ObsKeys("v", np.array([1, 2, 3]), np.array([8, 7, 7]))], lo=2)
+    >>> links = [ObsKeys("v", np.array([1, 2, 3]), np.array([8, 7, 7]))]
+    >>> assoc_shares(st, Linked.of(st, links), lo=2)
     {'assoc_right_obs_pooled': 0.6666666666666666, 'assoc_right_obs_from_50': 1.0}
     """
     if not state.truth or not state.records:
         return {"assoc_right_obs_pooled": None, "assoc_right_obs_from_50": None}
-    row, _got, right = _linked(state, links)
+    row, right = linked.row, linked.right
     seen = np.zeros(state.records[-1].landmark.size, np.int64)
     count = []  # per observation: passes past its sign including its own
     for t in state.truth:
@@ -472,7 +481,8 @@ def run_fleet_eval(
             finally:
                 client.close()
                 driver.close()
-    table = bin_table(state, landmark_rows(state, lms, cfg.match_m), links)
+    linked = Linked.of(state, links)
+    table = bin_table(state, landmark_rows(state, lms, cfg.match_m), linked)
     n_links = sum(t.obs_id.size for t in links)
     n_true_obs = sum(int((t.value >= 0).sum()) for t in state.truth)
     pairs = same_class_pairs(world)
@@ -503,10 +513,10 @@ def run_fleet_eval(
         },
         "services": services,
         "targets_at_50_passes": targets(table),
-        "signs": sign_table(state, links),
+        "signs": sign_table(state, linked),
     }
     if result["targets_at_50_passes"]["evaluated"]:
-        result["targets_at_50_passes"].update(assoc_shares(state, links))
+        result["targets_at_50_passes"].update(assoc_shares(state, linked))
     return result, state, lms[-1]
 
 
