@@ -8,7 +8,8 @@ camera below ``max_view_angle_deg``), not hidden by a building footprint, and
 its box is at least ``min_box_px`` tall. The box spans the projections of the
 panel's top/bottom and left/right edge points (panel width = panel height).
 Each visible sign is detected with the detector's probability; the box centre
-gets pixel noise (size kept) and is clipped to the image as real detectors do
+gets pixel noise, its width and height ``size_sigma_px`` (0 in the presets: size kept),
+and it is clipped to the image as real detectors do
 (a clipped box gives no range in :func:`hdmap.geoloc.box_range`). An image
 holds one false positive (random class, random plausible box) with the false
 positive rate.
@@ -206,6 +207,9 @@ def simulate_pass(
 
     m = t.size
     fp, fp_cls, fp_box, fp_score = _false_positives(rng_det, m, model, noise, params)
+    if det.size_sigma_px > 0:  # drawn last: without it the stream is what it always was
+        grow = rng_det.normal(0.0, det.size_sigma_px, (k, 2)) / 2.0  # (width, height)
+        noisy = noisy + np.column_stack([-grow[:, 0], -grow[:, 1], grow[:, 0], grow[:, 1]])
 
     all_img = np.concatenate([img[detected], np.flatnonzero(fp)])
     all_box = np.vstack([noisy[detected], fp_box[fp]])

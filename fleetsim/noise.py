@@ -150,7 +150,12 @@ class DetectorNoise:
     """The simulated sign detector."""
 
     pixel_sigma: float = 0.0
-    """Std of the box centre per axis, px (the box size is kept)."""
+    """Std of the box centre per axis, px."""
+    size_sigma_px: float = 0.0
+    """Std of the box's width and of its height, px (the centre keeps ``pixel_sigma``).
+    0 keeps the true size: the box-size range then errs only by the panel's own size.
+    The vehicle model assumes ``sqrt(2) * pixel_sigma`` on the height
+    (:func:`hdmap.geoloc.box_range`)."""
     detection_prob: float = 1.0
     false_positive_rate: float = 0.0
     """Probability that an image holds one false positive."""
@@ -158,8 +163,9 @@ class DetectorNoise:
     false_positive_score_range: tuple[float, float] = (0.3, 0.8)
 
     def __post_init__(self) -> None:
-        if not self.pixel_sigma >= 0.0:
-            raise ValueError("DetectorNoise.pixel_sigma must be >= 0")
+        for name in ("pixel_sigma", "size_sigma_px"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"DetectorNoise.{name} must be >= 0")
         for name in ("detection_prob", "false_positive_rate"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"DetectorNoise.{name} must be in [0, 1]")

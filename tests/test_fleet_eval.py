@@ -208,3 +208,24 @@ def test_quick_seeds_run_writes_a_summary(tmp_path):
     cmd[cmd.index("--jobs") + 1] = "0"
     bad = subprocess.run([*cmd, "--out", str(tmp_path)], capture_output=True, text=True)
     assert bad.returncode == 2 and "--jobs" in bad.stderr
+
+
+def test_box_size_noise_is_an_option_off_by_default(tmp_path):
+    import argparse
+    from pathlib import Path
+
+    from fleetsim.noise import FLEET
+    from hdmap.commands.eval import add_fleet_arguments
+    from hdmap.evaluation.fleet_eval import FleetEvalConfig
+
+    assert FleetEvalConfig(Path(tmp_path)).noise() is FLEET
+    sized = FleetEvalConfig(Path(tmp_path), box_size_sigma_px=4.24).noise()
+    assert sized.detector.size_sigma_px == 4.24 and sized.gnss == FLEET.gnss
+    assert sized.detector.pixel_sigma == FLEET.detector.pixel_sigma
+    p = argparse.ArgumentParser(exit_on_error=False)
+    add_fleet_arguments(p)
+    assert p.parse_args(["--out", "x"]).box_size_sigma == 0.0
+    assert p.parse_args(["--out", "x", "--box-size-sigma", "4.24"]).box_size_sigma == 4.24
+    for bad in ("-1", "nan", "inf", "px"):
+        with pytest.raises(argparse.ArgumentError, match="box-size-sigma"):
+            p.parse_args(["--out", "x", "--box-size-sigma", bad])

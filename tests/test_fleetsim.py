@@ -246,6 +246,31 @@ def test_fleet_detector_statistics(fleet_passes) -> None:
     np.testing.assert_allclose(np.concatenate(px).std(axis=0), [3.0, 3.0], rtol=0.05)
 
 
+def test_box_size_noise_moves_the_edges_and_keeps_the_rest_of_the_stream() -> None:
+    from dataclasses import replace
+
+    sized = replace(FLEET, detector=replace(FLEET.detector, size_sigma_px=4.0))
+    with pytest.raises(ValueError, match="size_sigma_px"):
+        replace(FLEET.detector, size_sigma_px=-1.0)
+    dh, dw = [], []
+    for k in range(4):
+        a = Fleet(TOWN, MODEL, FLEET, seed=5).drive(0, k)
+        b = Fleet(TOWN, MODEL, sized, seed=5).drive(0, k)
+        # the size noise is drawn last: the same detections, centres, fixes and truth
+        np.testing.assert_array_equal(a.detections.image, b.detections.image)
+        np.testing.assert_array_equal(a.fixes.lat, b.fixes.lat)
+        ba, bb = a.detections.box, b.detections.box
+        ok = _unclipped(ba) & _unclipped(bb) & (a.truth.sign_id >= 0)
+        np.testing.assert_allclose((ba[ok, 1] + ba[ok, 3]) / 2, (bb[ok, 1] + bb[ok, 3]) / 2)
+        np.testing.assert_allclose((ba[ok, 0] + ba[ok, 2]) / 2, (bb[ok, 0] + bb[ok, 2]) / 2)
+        dh.append((bb[ok, 3] - bb[ok, 1]) - (ba[ok, 3] - ba[ok, 1]))
+        dw.append((bb[ok, 2] - bb[ok, 0]) - (ba[ok, 2] - ba[ok, 0]))
+    dh, dw = np.concatenate(dh), np.concatenate(dw)
+    assert dh.size > 200
+    assert abs(dh.mean()) < 0.5 and 3.6 < dh.std() < 4.4  # 4 px on the height
+    assert 3.6 < dw.std() < 4.4 and abs(np.corrcoef(dh, dw)[0, 1]) < 0.15
+
+
 def test_paper_preset_is_white_only() -> None:
     world = straight_road(5.0, 2.4)
     errs, heads, px, n_vis, n_det = [], [], [], 0, 0

@@ -147,6 +147,14 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         help="with --seeds: runs at once, each its own process with a router and four "
         "services (2 suits a 2-core machine; default 1)",
     )
+    p.add_argument(
+        "--box-size-sigma",
+        type=_non_negative,
+        default=0.0,
+        metavar="PX",
+        help="noise on the detected boxes' width and height, px (default 0: the issue's "
+        "noise is on the box centre only; 4.24 is what the vehicle model assumes)",
+    )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
 
 
@@ -158,6 +166,16 @@ def _positive(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"need a whole number >= 1, got {text!r}")
     return n
+
+
+def _non_negative(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v >= 0.0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"need a finite number >= 0, got {text!r}")
+    return v
 
 
 def _seed_list(text: str) -> list[int]:
@@ -212,6 +230,7 @@ def _run_options(args: argparse.Namespace) -> list[str]:
     """The options every seed's run shares (``--passes``, ``--rounds``, ``--quick``)."""
     opts = [f"--passes {args.passes}"] if args.passes else []
     opts += [f"--rounds {args.rounds}"] if args.rounds else []
+    opts += [f"--box-size-sigma {args.box_size_sigma:g}"] if args.box_size_sigma else []
     return opts + (["--quick"] if args.quick else [])
 
 
@@ -280,11 +299,12 @@ def _run_fleet_once(args: argparse.Namespace, out: Path, seed: int) -> dict:
         cfg = replace(cfg, passes=args.passes)
     if args.rounds:
         cfg = replace(cfg, rounds=args.rounds)
-    cfg = replace(cfg, seed=seed)
+    cfg = replace(cfg, seed=seed, box_size_sigma_px=args.box_size_sigma)
     result, state, final = run_fleet_eval(cfg)
     result["meta"]["command"] = "hdmap eval fleet " + " ".join(
         [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
         + [f"--seed {cfg.seed}"]
+        + ([f"--box-size-sigma {cfg.box_size_sigma_px:g}"] if cfg.box_size_sigma_px else [])
         + (["--quick"] if args.quick else [])
     )
     figures = write_fleet_figures(result, state.world, final, out)

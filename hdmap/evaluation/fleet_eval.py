@@ -51,14 +51,14 @@ import sqlite3
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import binom
 
 from fleetsim.fleet import Fleet, FleetConfig
-from fleetsim.noise import FLEET
+from fleetsim.noise import FLEET, NoiseModel
 from fleetsim.osm_town import helsinki_town, same_class_pairs
 from fleetsim.pipeline import FleetDriver, model_for
 from fleetsim.score import cov_en, duplicate_mask, inside_ellipse95
@@ -93,6 +93,17 @@ class FleetEvalConfig:
     seed: int = 0
     match_m: float = 5.0
     quiet_timeout_s: float = 600.0
+    box_size_sigma_px: float = 0.0
+    """Noise on the detected boxes' width and height, px (``DetectorNoise.size_sigma_px``).
+    The issue's noise puts 3 px on the box centre only (0 here, the default); the vehicle
+    model assumes ``sqrt(2) * 3`` px on the height (4.24: a sensitivity check)."""
+
+    def noise(self) -> NoiseModel:
+        """The fleet's noise: :data:`fleetsim.noise.FLEET`, with the box-size noise if set."""
+        if self.box_size_sigma_px <= 0:
+            return FLEET
+        det = replace(FLEET.detector, size_sigma_px=self.box_size_sigma_px)
+        return replace(FLEET, name=f"fleet+size{self.box_size_sigma_px:g}px", detector=det)
 
     @staticmethod
     def quick(out: Path) -> FleetEvalConfig:
@@ -417,7 +428,8 @@ def run_fleet_eval(
 ) -> tuple[dict, EvalState, Landmarks]:
     say = progress or (lambda m: print(m, file=sys.stderr, flush=True))
     world = evaluation_world(cfg)
-    model = model_for(FLEET, load_vehicle_model())
+    noise = cfg.noise()
+    model = model_for(noise, load_vehicle_model())
     per_round = max(1, cfg.passes // cfg.rounds)
     total = per_round * cfg.rounds
     start = time.time() - (total + 2) * 30.0 - 600.0
@@ -427,7 +439,7 @@ def run_fleet_eval(
         pass_interval_s=30.0,
         route_length_m=(600.0, 1200.0),
     )
-    fleet = Fleet(world, model, FLEET, fleet_cfg, seed=cfg.seed)
+    fleet = Fleet(world, model, noise, fleet_cfg, seed=cfg.seed)
     state = EvalState(world)
     run_dir = cfg.out / "run"
     if run_dir.exists():
@@ -500,7 +512,8 @@ def run_fleet_eval(
             "rounds": cfg.rounds,
             "vehicles": cfg.vehicles,
             "seed": cfg.seed,
-            "noise": "FLEET (fleetsim/noise.py)",
+            "noise": f"{noise.name} (fleetsim/noise.py)",
+            "box_size_sigma_px": cfg.box_size_sigma_px,
             "match_m": cfg.match_m,
             "wall_s": time.monotonic() - t0,
         },
