@@ -72,7 +72,7 @@ def test_quick_run_writes_json_and_figures(quick):
     for model in ("white", "correlated"):
         block = res["models"][model]
         names = {"ours", "independent", "paper"} | (
-            {"ours_no_floor"} if model == "correlated" else set()
+            {"ours_no_floor", "ours_pull"} if model == "correlated" else set()
         )
         assert set(block["estimators"]) == names
         for est in block["estimators"].values():
@@ -115,6 +115,10 @@ def test_quick_numbers_are_sane(quick):
     assert corr["ours_no_floor"]["bias_north_m"][-1] < -5.0
     # ray-level covariance is over-confident under pass-level errors
     assert corr["independent"]["coverage_ellipse"][-1] < 0.75
+    # the position-bias budget changes the covariance only
+    assert corr["ours_pull"]["mean_error_m"] == corr["ours"]["mean_error_m"]
+    assert corr["ours_pull"]["config"]["extra_sigma_pos_m"] == CORRELATED.pos_bias_m
+    assert corr["ours"]["config"]["extra_sigma_pos_m"] == 0.0
     cal = res["models"]["correlated"]["calibration"]
     assert math.isclose(cal["extra_sigma_az_used"], CORRELATED.heading_bias_rad)
     assert 0.05 < cal["extra_sigma_az_pilot_estimate"] < 0.3

@@ -98,7 +98,7 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
     blob = {
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
-    assert blob[False] - blob[True] == 7 * svcs[True].sums.open_pass_bytes
+    assert blob[False] - blob[True] == 7 * svcs[True].sums.packed_open_pass_bytes
     # restart: the stored (closed) state gives the same map
     again = solver(tmp_path / "sTrue", True, clock)
     sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
@@ -163,4 +163,4 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
     blob = {
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
-    assert blob[False] - blob[True] == 8 * svcs[True].sums.open_pass_bytes
+    assert blob[False] - blob[True] == 8 * svcs[True].sums.packed_open_pass_bytes

@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
-from hdmap.estimator.sums import _OPEN_DTYPE, _OPEN_DTYPE_V3, _ROW_DTYPE
+from hdmap.estimator.sums import (
+    _OPEN_DTYPE,
+    _OPEN_DTYPE_V3,
+    _OPEN_DTYPE_V4,
+    _ROW_DTYPE,
+    _ROW_DTYPE_V4,
+)
 from tests.test_estimator import true_angles
 
 SIGN = np.array([5.0, 0.0, 2.5])
@@ -147,17 +153,32 @@ def test_a_pass_is_held_or_not_for_good(data):
         paper.accumulate(np.zeros(hc.size, int), hc, hr, hold=np.full(hc.size, HOLD))
 
 
-def test_version_3_blobs_still_load(data):
-    """A v3 blob (before held passes) is a v4 one without the held-pass columns."""
+def _downgrade(blob: bytes, version: int, row_dt: np.dtype, open_dt: np.dtype) -> bytes:
+    """An older blob: the current one with only the older version's columns."""
+    now = (_ROW_DTYPE, _OPEN_DTYPE) if blob[0] == 5 else (_ROW_DTYPE_V4, _OPEN_DTYPE_V4)
+    row_now, open_now = now
+    rec = np.frombuffer(blob, row_now, count=1, offset=1)
+    op = np.frombuffer(blob, open_now, offset=1 + row_now.itemsize)
+    r_old, o_old = np.zeros(1, row_dt), np.zeros(op.size, open_dt)
+    for name in row_dt.names:
+        r_old[name] = rec[name]
+    for name in open_dt.names:
+        o_old[name] = op[name]
+    return bytes([version]) + r_old.tobytes() + o_old.tobytes()
+
+
+def test_version_3_and_4_blobs_still_load(data):
+    """A v3 blob (before held passes) is a v4 one without the held-pass columns; a v4 one
+    (before the pull sum) a v5 one without it."""
     hc, hr = data[0][0]
     s, row = fresh(EstimatorConfig())
     s.accumulate(np.full(hc.size, row[0]), hc, hr)
     blob = s.pack_rows(row)[0]
-    rec = blob[1 : 1 + _ROW_DTYPE.itemsize]
-    op = np.frombuffer(blob, _OPEN_DTYPE, offset=1 + _ROW_DTYPE.itemsize)
-    v3 = np.zeros(op.size, _OPEN_DTYPE_V3)
-    for name in _OPEN_DTYPE_V3.names:
-        v3[name] = op[name]
-    old = LandmarkSums(EstimatorConfig())
-    r3 = old.unpack_rows([bytes([3]) + rec + v3.tobytes()])
-    same(old.solve(r3, update_reference=False), s.solve(row, update_reference=False))
+    assert blob[0] == 4  # no pull: written without the pull columns
+    pulled, _ = fresh(EstimatorConfig(extra_sigma_pos_m=2.0))
+    pulled.accumulate(np.full(hc.size, row[0]), hc, hr)
+    assert pulled.pack_rows(row)[0][0] == 5
+    for version, open_dt in ((3, _OPEN_DTYPE_V3), (4, _OPEN_DTYPE_V4)):
+        old = LandmarkSums(EstimatorConfig())
+        r_old = old.unpack_rows([_downgrade(blob, version, _ROW_DTYPE_V4, open_dt)])
+        same(old.solve(r_old, update_reference=False), s.solve(row, update_reference=False))

@@ -179,6 +179,19 @@ class EstimatorConfig:
     bias toward the ray origins. Calibrate it with :func:`excess_angular_variance`."""
     extra_sigma_el: float = 0.0
     """Unreported elevation noise (pitch, mounting), rad, added like ``extra_sigma_az``."""
+    extra_sigma_pos_m: float = 0.0
+    """Unreported origin error shared by a pass (GNSS position bias), m per horizontal axis:
+    the position counterpart of ``extra_sigma_az``. The weights depend on the origin through
+    the range, and the Stein correction (``weight_correction``) removes only the part of
+    that dependence the reported (white) origin noise explains; a shared bias leaves every
+    pass pulled toward the reference position (the previous estimate) by
+    ``kappa = tr C / tr_h A``, ``C = sum_j 2 s_az^2 w_h,j^2 sigma^2 H~_j``
+    (:func:`pull_terms`), which links the passes and which the between-pass sandwich does
+    not see. The reported covariance is divided by ``(1 - kappa)^2``; the estimate is left
+    alone (taking the pull out of it costs accuracy along the road, where it acts as a
+    regulariser). Meant for passes entered unweighted (the paper simulation's noise):
+    with the pass weighting on, ``A`` is pass-weighted and the ratio overstates the pull,
+    so the fleet's solver leaves it at 0. docs/estimator.md section 6."""
     min_range_m: float = 1.0
     """Floor on the ranges used in the weights (bounds the weight of one ray)."""
     weight_correction: bool = True
@@ -454,6 +467,32 @@ def predicted_information(
     m, h = projector_terms(az, el, zero, zero, False)
     w_h, w_v, _, _ = weights(rays, origin_rel, x_ref_rel, cfg)
     return w_v[:, None] * m + (w_h - w_v)[:, None] * h
+
+
+def pull_terms(rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig) -> Array:
+    """Per ray ``tr(C_j) = 2 s_az^2 w_h0^2 c sigma^2`` (n,): the pull toward the reference
+    position that an unreported shared origin error ``sigma = extra_sigma_pos_m`` leaves in
+    the estimating function (``EstimatorConfig.extra_sigma_pos_m``; ``w_h0`` the horizontal
+    weight before the ray's trust weight ``c``, ``C_j = tr(C_j) H~_j``, ``tr H~_j = 1``).
+    Zero without that error, with uniform weights, or inside the range floor. Here
+    ``w_h = 1 / (0.1^2 10^2 + 1) = 0.5``, so ``2 x 0.01 x 0.25 x 4``:
+
+    >>> r = Rays.from_angles([[0.0, 0, 0]], [0.0], [0.0], 0.1, 0.01, 1.0, 2.0)
+    >>> cfg = EstimatorConfig(extra_sigma_pos_m=2.0)
+    >>> round(float(pull_terms(r, r.origin, np.array([[0, 10.0, 0]]), cfg)[0]), 12)
+    0.02
+    """
+    n = len(rays)
+    sx = float(cfg.extra_sigma_pos_m)
+    if sx <= 0 or cfg.weighting != "inverse_variance" or n == 0:
+        return np.zeros(n)
+    s_az, _ = effective_sigmas(rays, cfg)
+    w_h, _, _, _ = weights(rays, origin_rel, x_ref_rel, cfg)
+    c = rays.weights_or_ones()
+    w0 = w_h / np.where(c > 0, c, 1.0)
+    v = x_ref_rel - origin_rel
+    inside = v[:, 0] ** 2 + v[:, 1] ** 2 < cfg.min_range_m**2  # weight not origin-dependent
+    return np.where(inside, 0.0, 2.0 * s_az**2 * w0**2 * c * sx**2)
 
 
 def ray_terms(

@@ -162,6 +162,25 @@ def second_order_term(v: Array, amat: Array, k: Array, s4: Array, g: Array) -> A
     return (u * np.maximum(lam, 0.0)[..., None, :]) @ np.swapaxes(u, -1, -2)
 
 
+MAX_PULL = 0.5
+"""Largest pull ``kappa`` used (a larger one means the weights, not the data, set ``A``)."""
+
+
+def pull_inflation(pull: Array, amat: Array) -> Array:
+    """``1 / (1 - kappa)^2``, ``kappa = pull / (A_EE + A_NN)`` clipped to ``[0, MAX_PULL]``
+    (``EstimatorConfig.extra_sigma_pos_m``): each pass is pulled toward the previous
+    estimate by ``kappa``, so the error carries ``1 / (1 - kappa)`` of each pass's own.
+
+    >>> pull_inflation(np.array([0.0, 2.0]), np.stack([np.eye(3) * 5.0] * 2)).round(6).tolist()
+    [1.0, 1.5625]
+    """
+    tr = amat[:, 0, 0] + amat[:, 1, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = np.where(tr > 0, np.asarray(pull, float) / tr, 0.0)
+    k = np.clip(np.nan_to_num(k), 0.0, MAX_PULL)
+    return 1.0 / (1.0 - k) ** 2
+
+
 def loewner_max(v: Array, floor: Array) -> Array:
     """Smallest-change matrix ``>=`` both ``v`` and the positive definite ``floor``: whiten by
     ``floor``, clip the eigenvalues of ``v`` at 1, colour back.
@@ -207,13 +226,16 @@ def solve_sums(
     cfg: EstimatorConfig,
     j6: Array | None = None,
     floor_scale: Array | None = None,
+    pull: Array | None = None,
 ) -> Solution:
     """Solve every landmark from its sums (all coordinates relative to its anchor).
 
     ``floor_scale`` (per landmark, default 1) multiplies the model floor ``A^-1``: with ray
     weights ``c`` (a vehicle's trust) it is ``sum c^2 / sum c``, the weighted least
     squares variance for equal true variances (weights all 0.05 give the same floor as
-    weights all 1)."""
+    weights all 1). ``pull`` (per landmark, default 0) is ``sum_j tr C_j``
+    (:func:`hdmap.estimator.model.pull_terms`): the covariance is divided by
+    ``(1 - kappa)^2``, ``kappa = pull / (A_EE + A_NN)`` (at most ``MAX_PULL``)."""
     m = a6.shape[0]
     amat = sym_to_mat(a6)
     lam, vec = np.linalg.eigh(amat)
@@ -240,6 +262,8 @@ def solve_sums(
         v_s, cov = sandwich(meat + pass_contraction(s4, cov))
     kappa = hotelling_inflation(g, cfg.coverage_level) if cfg.small_sample else np.ones(m)
     cov = kappa[:, None, None] * cov
+    if pull is not None:
+        cov = cov * pull_inflation(pull, amat)[:, None, None]
     if cfg.model_floor and cfg.weighting == "inverse_variance":
         fs = np.ones(m) if floor_scale is None else np.asarray(floor_scale, float)
         cov = loewner_max(cov, k * fs[:, None, None])

@@ -21,15 +21,18 @@ n_closed   1     closed passes (int64)
 n_open     1     open passes (int64, derived from the open-pass table)
 w1, w2     2     sums of the rays' weights and of their squares (``Rays.weight``: a
                  vehicle's trust; they scale the model floor of the covariance)
+c1         1     sum over closed passes of their pull ``tr C_p`` (the rays'
+                 :func:`~hdmap.estimator.model.pull_terms`, scaled like ``A_p`` by the
+                 pass weighting; 0 unless ``EstimatorConfig.extra_sigma_pos_m`` is set)
 =========  ====  =============================================================
 
-so 68 float64 + 3 int64 = 568 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
-packed: 565 bytes plus 176 per open pass).
+so 69 float64 + 3 int64 = 576 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
+packed: 565 bytes plus 176 per open pass, or with a pull 573 plus 184: :meth:`pack_rows`).
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
 interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
 ``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance, ray weight
-sums c and c^2, holder key and held ``J``: 176 bytes). A pass enters ``A``, ``b`` and the
+sums c and c^2, holder key, held ``J``, pull: 184 bytes). A pass enters ``A``, ``b`` and the
 sandwich sums when it closes, with the
 random-effects weighting of
 :func:`hdmap.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S`` the
@@ -48,7 +51,7 @@ ray count at the pass's last ray, so the rule is deterministic and survives
 >>> s = LandmarkSums(capacity=2)
 >>> rows = s.new_rows(1, np.array([[0.0, 20.0, 2.0]]))
 >>> rows.tolist(), s.bytes_per_landmark, len(s.pack_rows(rows)[0])
-([0], 568, 565)
+([0], 576, 565)
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ from hdmap.estimator.model import (
     outer6_to_tri,
     pass_weighted,
     predicted_information,
+    pull_terms,
     ray_terms,
     sym_to_mat,
     tri_to_mat6,
@@ -79,12 +83,12 @@ from hdmap.estimator.solve import Solution, solve_sums
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-PACK_VERSION = 4
-_OLD_PACK_VERSIONS = (1, 2, 3)
+PACK_VERSION = 5
+_OLD_PACK_VERSIONS = (1, 2, 3, 4)
 """Version 1 kept open passes' raw sums in ``A`` and ``b`` as well; they are taken out
 on load (its closed passes keep their unweighted sums; its open passes had no angular
 variance sum: treated as precise). Versions 1 and 2 had no ray weight sums: taken as
-weights of 1. Versions 1-3 had no held passes."""
+weights of 1. Versions 1-3 had no held passes. Versions 1-4 had no pull sum (0)."""
 _ROW_DTYPE_V2 = np.dtype(
     [
         ("anchor", "<f8", 3),
@@ -100,7 +104,8 @@ _ROW_DTYPE_V2 = np.dtype(
         ("n_open", "<i4"),
     ]
 )
-_ROW_DTYPE = np.dtype([*_ROW_DTYPE_V2.descr, ("w1", "<f8"), ("w2", "<f8")])
+_ROW_DTYPE_V4 = np.dtype([*_ROW_DTYPE_V2.descr, ("w1", "<f8"), ("w2", "<f8")])
+_ROW_DTYPE = np.dtype([*_ROW_DTYPE_V4.descr, ("c1", "<f8")])
 _OPEN_DTYPE_V3 = np.dtype(
     [
         ("cluster", "<i8"),
@@ -112,17 +117,19 @@ _OPEN_DTYPE_V3 = np.dtype(
         ("w", "<f8"),
     ]
 )
-_OPEN_DTYPE = np.dtype([*_OPEN_DTYPE_V3.descr, ("w2", "<f8"), ("hold", "<i8"), ("j6", "<f8", 6)])
+_OPEN_DTYPE_V4 = np.dtype([*_OPEN_DTYPE_V3.descr, ("w2", "<f8"), ("hold", "<i8"), ("j6", "<f8", 6)])
+_OPEN_DTYPE = np.dtype([*_OPEN_DTYPE_V4.descr, ("c1", "<f8")])
 _OPEN_DTYPE_V1 = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )
 _ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
-_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2")
+_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2", "_c1")
 """The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
 _OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2", "_o_w")
-_OPEN_ARRAYS += ("_o_w2", "_o_hold", "_o_j6")
+_OPEN_ARRAYS += ("_o_w2", "_o_hold", "_o_j6", "_o_c1")
 _ROW_FIELDS_V2 = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
-_ROW_FIELDS = (*_ROW_FIELDS_V2, "w1", "w2")
+_ROW_FIELDS_V4 = (*_ROW_FIELDS_V2, "w1", "w2")
+_ROW_FIELDS = (*_ROW_FIELDS_V4, "c1")
 
 
 def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
@@ -159,6 +166,7 @@ class LandmarkSums:
         self._n_open = np.zeros(cap, np.int64)
         self._w1 = np.zeros(cap)  # sum of the rays' weights (Rays.weight, default 1)
         self._w2 = np.zeros(cap)  # sum of their squares (the model floor's scale)
+        self._c1 = np.zeros(cap)  # sum of the rays' pull (model.pull_terms)
         # open (landmark, pass) partial sums; slots recycled through a free list
         self._slot: dict[tuple[int, int], int] = {}
         self._row_slots: dict[int, list[int]] = {}  # row -> its open slots (any order)
@@ -176,6 +184,7 @@ class LandmarkSums:
         self._o_w2 = np.zeros(ocap)  # sum of their squares
         self._o_hold = np.zeros(ocap, np.int64)  # held: the holder's key (0: not held)
         self._o_j6 = np.zeros((ocap, 6))  # held passes' predicted information
+        self._o_c1 = np.zeros(ocap)  # the pass's pull (model.pull_terms), raw
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -189,7 +198,14 @@ class LandmarkSums:
 
     @property
     def open_pass_bytes(self) -> int:
+        """In-memory state per open pass, bytes."""
         return _OPEN_DTYPE.itemsize
+
+    @property
+    def packed_open_pass_bytes(self) -> int:
+        """Bytes an open pass adds to a packed row (:meth:`pack_rows`: the pull column only
+        where the pull is on)."""
+        return (_OPEN_DTYPE if self.config.extra_sigma_pos_m > 0 else _OPEN_DTYPE_V4).itemsize
 
     @property
     def n_open_passes(self) -> int:
@@ -281,6 +297,7 @@ class LandmarkSums:
         self._o_w[s] = self._o_w2[s] = 0.0
         self._o_hold[s] = 0
         self._o_j6[s] = 0.0
+        self._o_c1[s] = 0.0
         self._n_open[key[0]] += 1
         return s
 
@@ -288,7 +305,8 @@ class LandmarkSums:
         if slots.size == 0:
             return
         rows = self._o_row[slots]
-        a6, b = self._weighted(slots)
+        a6, b, c1 = self._weighted(slots)
+        _scatter_add(self._c1, rows, c1)
         _scatter_add(self._a6, rows, a6)
         _scatter_add(self._b, rows, b)
         _scatter_add(self._saa, rows, outer6_to_tri(a6))
@@ -298,10 +316,14 @@ class LandmarkSums:
         _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
         self._release(slots)
 
-    def _weighted(self, slots: IntArray) -> tuple[Array, Array]:
-        """Open passes' raw sums -> what they add to ``A``, ``b`` (:func:`pass_weighted`;
-        passes of imprecise rays unweighted, see ``pass_weighting_max_sigma_rad``)."""
+    def _weighted(self, slots: IntArray) -> tuple[Array, Array, Array]:
+        """Open passes' raw sums -> what they add to ``A``, ``b`` and the pull
+        (:func:`pass_weighted`; passes of imprecise rays unweighted, see
+        ``pass_weighting_max_sigma_rad``). The pull
+        scales with the pass's horizontal information, ``tr_h W_p / tr_h A_p``: ``C_p``
+        goes through the weighting as ``A_p`` does (``C_p ~ kappa_p A_p``)."""
         a6, b = self._o_a6[slots].copy(), self._o_b[slots].copy()
+        c1 = self._o_c1[slots].copy()
         n = np.maximum(self._o_n[slots], 1)
         rms2 = self._o_s2[slots] / n
         precise = rms2 <= self.config.pass_weighting_max_sigma_rad**2
@@ -310,8 +332,12 @@ class LandmarkSums:
             # c W_p(A_p), that is W for c A_p with S / c (weighting passes, not only rays)
             c = np.maximum(self._o_w[slots][precise] / n[precise], 1e-12)
             sigma = np.asarray(self.config.pass_sigma_m, float)[None, :] / np.sqrt(c)[:, None]
+            raw_h = a6[precise, 0] + a6[precise, 1]
             a6[precise], b[precise] = pass_weighted(a6[precise], b[precise], sigma)
-        return a6, b
+            if c1.any():
+                w_h = a6[precise, 0] + a6[precise, 1]
+                c1[precise] *= np.divide(w_h, raw_h, out=np.zeros_like(w_h), where=raw_h > 0)
+        return a6, b, c1
 
     def _release(self, slots: IntArray) -> None:
         """Forget open slots (their sums already folded or dropped); free them in order."""
@@ -409,6 +435,7 @@ class LandmarkSums:
         self._o_a6[slots] *= f[:, None]
         self._o_b[slots] *= f[:, None]
         _scatter_add(self._j6, rows, f[:, None] * self._o_j6[slots])
+        self._o_c1[slots] *= f  # linear in the rays' weight, like A_p
         _scatter_add(self._w1, rows, (f - 1.0) * self._o_w[slots])
         _scatter_add(self._w2, rows, (f**2 - 1.0) * self._o_w2[slots])
         self._o_w[slots] *= f
@@ -470,6 +497,7 @@ class LandmarkSums:
         alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
         j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
         _scatter_add(self._j6, r[~held], j6[~held])
+        pull = pull_terms(rays, origin_rel, self._x_ref[r], self.config)
         if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
             raise ValueError("non-finite ray terms (check directions and sigmas)")
         _scatter_add(self._n_obs, r, np.ones(n, np.int64))
@@ -477,6 +505,7 @@ class LandmarkSums:
         _scatter_add(self._w1, r, wr)
         _scatter_add(self._w2, r, wr**2)
         if not self.config.cluster_robust:
+            _scatter_add(self._c1, r, pull)
             _scatter_add(self._a6, r, alpha)
             _scatter_add(self._b, r, beta)
             _scatter_add(self._saa, r, outer6_to_tri(alpha))
@@ -517,6 +546,8 @@ class LandmarkSums:
         self._o_w2[slots] += np.add.reduceat((wr**2)[order], starts)
         self._o_a6[slots] += g_a6
         self._o_b[slots] += g_b
+        if self.config.extra_sigma_pos_m > 0:
+            self._o_c1[slots] += np.add.reduceat(pull[order], starts)
         self._o_s2[slots] += g_s2
         self._o_w[slots] += g_w
         self._o_n[slots] += g_n
@@ -537,11 +568,13 @@ class LandmarkSums:
         a_all, b_all = self._a6[uniq].copy(), self._b[uniq].copy()
         n_cl = self._n_closed[uniq] + self._n_open[uniq]
         j6 = self._j6[uniq].copy()
+        c1 = self._c1[uniq].copy()
         slots = self._slots_of(uniq)
         if slots.size:
             pos = np.searchsorted(uniq, self._o_row[slots])
             _scatter_add(j6, pos, self._o_j6[slots])
-            a6, b = self._weighted(slots)
+            a6, b, c1o = self._weighted(slots)
+            _scatter_add(c1, pos, c1o)
             _scatter_add(a_all, pos, a6)
             _scatter_add(b_all, pos, b)
             _scatter_add(saa, pos, outer6_to_tri(a6))
@@ -560,6 +593,7 @@ class LandmarkSums:
             floor_scale=np.divide(
                 self._w2[uniq], self._w1[uniq], out=np.ones(uniq.size), where=self._w1[uniq] > 0
             ),
+            pull=c1 if c1.any() else None,
         )
         if update_reference:
             ok = sol.ok
@@ -625,6 +659,7 @@ class LandmarkSums:
         self._a6[d_row] += a6
         self._b[d_row] += b
         self._j6[d_row] += self._j6[s_row] @ t6.T
+        self._c1[d_row] += self._c1[s_row]  # a trace: the same in every frame
         saa = t6 @ tri_to_mat6(self._saa[s_row]) @ t6.T
         sab = self._sab[s_row]
         t_sab_r = t6 @ sab @ r.T
@@ -651,6 +686,7 @@ class LandmarkSums:
             self._o_w[to] += self._o_w[sl]
             self._o_w2[to] += self._o_w2[sl]
             self._o_j6[to] += self._o_j6[sl] @ t6.T
+            self._o_c1[to] += self._o_c1[sl]
             self._o_hold[to] = self._o_hold[sl]
             self._o_last[to] = max(self._o_last[to], self._o_last[sl])
         self._release(mine)
@@ -660,17 +696,27 @@ class LandmarkSums:
 
     # ------------------------------------------------------------------ persistence
     def pack_rows(self, rows: ArrayLike) -> list[bytes]:
-        """Serialise rows (closed sums, reference, open passes) to self-contained blobs."""
+        """Serialise rows (closed sums, reference, open passes) to self-contained blobs.
+
+        A row without any pull (``EstimatorConfig.extra_sigma_pos_m`` unset) is written in
+        version 4, without the pull columns: 8 bytes less per row and per open pass, which
+        keeps two rows with 8 open passes in one SQLite page."""
         r = self._check_rows(rows)
         out = []
         for row in r.tolist():
-            rec = np.zeros((), _ROW_DTYPE)
-            for f in _ROW_FIELDS:
-                rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
             mine = np.sort(np.array(self._row_slots.get(row, ()), np.int64))
             mine = mine[np.lexsort((self._o_cluster[mine], self._o_last[mine]))]
+            pulled = bool(self._c1[row] != 0 or np.any(self._o_c1[mine] != 0))
+            version, row_dt, fields, open_dt = (
+                (PACK_VERSION, _ROW_DTYPE, _ROW_FIELDS, _OPEN_DTYPE)
+                if pulled
+                else (4, _ROW_DTYPE_V4, _ROW_FIELDS_V4, _OPEN_DTYPE_V4)
+            )
+            rec = np.zeros((), row_dt)
+            for f in fields:
+                rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
             rec["n_open"] = mine.size
-            op = np.zeros(mine.size, _OPEN_DTYPE)
+            op = np.zeros(mine.size, open_dt)
             op["cluster"], op["last"], op["n"] = (
                 self._o_cluster[mine],
                 self._o_last[mine],
@@ -679,7 +725,9 @@ class LandmarkSums:
             op["a6"], op["b"], op["s2"] = self._o_a6[mine], self._o_b[mine], self._o_s2[mine]
             op["w"], op["w2"] = self._o_w[mine], self._o_w2[mine]
             op["hold"], op["j6"] = self._o_hold[mine], self._o_j6[mine]
-            out.append(bytes([PACK_VERSION]) + rec.tobytes() + op.tobytes())
+            if pulled:
+                op["c1"] = self._o_c1[mine]
+            out.append(bytes([version]) + rec.tobytes() + op.tobytes())
         return out
 
     def unpack_rows(self, blobs: Sequence[bytes], rows: ArrayLike | None = None) -> IntArray:
@@ -695,19 +743,26 @@ class LandmarkSums:
         for row, blob in zip(r.tolist(), blobs, strict=True):
             if not blob or blob[0] not in (PACK_VERSION, *_OLD_PACK_VERSIONS):
                 raise ValueError("unknown landmark state version")
+            v = blob[0]
             row_dt, fields = (
-                (_ROW_DTYPE, _ROW_FIELDS) if blob[0] >= 3 else (_ROW_DTYPE_V2, _ROW_FIELDS_V2)
+                (_ROW_DTYPE, _ROW_FIELDS)
+                if v == PACK_VERSION
+                else (_ROW_DTYPE_V4, _ROW_FIELDS_V4)
+                if v >= 3
+                else (_ROW_DTYPE_V2, _ROW_FIELDS_V2)
             )
             rec = np.frombuffer(blob, row_dt, count=1, offset=1)[0]
             for f in fields:
                 getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
                     getattr(self, "_" + f)[row].shape
                 )
-            if blob[0] < 3:
+            if v < 3:
                 self._w1[row] = self._w2[row] = float(rec["n_obs"])
+            if v < PACK_VERSION:
+                self._c1[row] = 0.0
             k = int(rec["n_open"])
             old = blob[0] == 1
-            dt = {1: _OPEN_DTYPE_V1, 4: _OPEN_DTYPE}.get(blob[0], _OPEN_DTYPE_V3)
+            dt = {1: _OPEN_DTYPE_V1, 4: _OPEN_DTYPE_V4, 5: _OPEN_DTYPE}.get(v, _OPEN_DTYPE_V3)
             op = np.frombuffer(blob, dt, count=k, offset=1 + row_dt.itemsize)
             self._n_open[row] = 0
             for o in op:
@@ -716,9 +771,10 @@ class LandmarkSums:
                 self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
                 self._o_s2[s] = 0.0 if old else float(o["s2"])
                 self._o_w[s] = float(o["n"]) if old else float(o["w"])
-                if blob[0] == PACK_VERSION:
+                if v >= 4:
                     self._o_w2[s], self._o_hold[s] = float(o["w2"]), int(o["hold"])
                     self._o_j6[s] = o["j6"]
+                    self._o_c1[s] = float(o["c1"]) if v == PACK_VERSION else 0.0
                 else:
                     self._o_w2[s] = self._o_w[s] ** 2 / max(int(o["n"]), 1)
                 if old and self.config.cluster_robust:

@@ -22,6 +22,7 @@ STYLE = {
     "ours": dict(color="tab:red", lw=2.0, label="ours (compensated, pass-level cov.)"),
     "independent": dict(color="tab:purple", lw=1.2, ls="--", label="ours, rays independent"),
     "ours_no_floor": dict(color="tab:orange", lw=1.2, ls="-.", label="ours, reported sigmas only"),
+    "ours_pull": dict(color="tab:green", lw=1.2, ls=":", label="ours + position-bias budget"),
     "paper": dict(color="black", lw=1.5, label="paper (textbook sums)"),
 }
 

@@ -24,7 +24,10 @@ Noise models (per-axis standard deviations; vertical GNSS noise = horizontal):
   (0.117 rad = 6.7 degrees per passing, + 0.330 rad white). The vehicle reports only its
   white noise (it cannot know its bias). ``ours`` is configured with the receiver's
   heading-bias budget as unreported azimuth noise (``extra_sigma_az`` = 0.117 rad);
-  ``ours_no_floor`` trusts the reported sigmas.
+  ``ours_no_floor`` trusts the reported angular sigmas; ``ours_pull`` (reported, not
+  claimed) is ours with the position-bias budget too (``extra_sigma_pos_m`` = 3.54 m:
+  the covariance counts each passing's pull toward the previous estimate; the estimates
+  are ours', docs/estimator.md section 6).
 - ``correlated_equal`` (a stress case, reported, not part of the claims): headings also
   half and half (0.247 rad per passing + 0.247 rad white). A heading bias of 14 degrees
   shared by the 31 images of a passing leaves about one independent look per passing at
@@ -231,9 +234,14 @@ def checkpoints(max_passes: int) -> list[int]:
 
 
 def estimator_configs(
-    model: str, extra_sigma_az: float = 0.0, ours: EstimatorConfig | None = None
+    model: str,
+    extra_sigma_az: float = 0.0,
+    ours: EstimatorConfig | None = None,
+    extra_sigma_pos_m: float = 0.0,
 ) -> dict[str, EstimatorConfig]:
-    """The estimators run side by side for one error model."""
+    """The estimators run side by side for one error model (``extra_*``: the unreported
+    per-pass heading and position bias budgets; ``ours_pull``, with the position budget,
+    only where it is not 0)."""
     ours = replace(ours or EstimatorConfig(), extra_sigma_az=extra_sigma_az)
     out = {
         "ours": ours,
@@ -242,6 +250,8 @@ def estimator_configs(
     }
     if model.startswith("correlated"):
         out["ours_no_floor"] = replace(ours, extra_sigma_az=0.0)
+    if extra_sigma_pos_m > 0:
+        out["ours_pull"] = replace(ours, extra_sigma_pos_m=extra_sigma_pos_m)
     return out
 
 
@@ -327,7 +337,7 @@ def run_model(
                 f"[{model}] extra_sigma_az = {extra:.3f} rad (heading-bias budget); a "
                 f"residual calibration on a pilot would set {est:.3f}"
             )
-    cfgs = estimator_configs(model, extra, ours)
+    cfgs = estimator_configs(model, extra, ours, noise.pos_bias_m)
     f = geom.frames().size
     rows = np.repeat(np.arange(trials), f)
     cps = checkpoints(max_passes)
