@@ -8,10 +8,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays, triangulate
+from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.model import pull_terms, ray_terms, sym_to_mat
 from hdmap.estimator.solve import pull_inflation
-from hdmap.evaluation.paper_sim import CHI2_2_95, CORRELATED, Geometry, simulate_pass
+from hdmap.evaluation.paper_sim import CHI2_2_95, CORRELATED
+from tests.test_paper_sim import side_by_side
 
 SIGN = np.array([6.0, 40.0, 2.0])
 
@@ -101,26 +102,9 @@ def test_the_pull_removes_the_coverage_drift_of_the_correlated_simulation():
     passings, seed 2: without the position budget the reported ellipse is too small (the
     passes' pull toward the previous estimate links them), with it the mean squared
     Mahalanobis distance is close to its value for an honest region (2)."""
-    rng, geom, trials = np.random.default_rng(2), Geometry(), 300
-    f = geom.frames().size
-    rows = np.repeat(np.arange(trials), f)
     ours = EstimatorConfig(extra_sigma_az=CORRELATED.heading_bias_rad)
     cfgs = {"ours": ours, "pull": replace(ours, extra_sigma_pos_m=CORRELATED.pos_bias_m)}
-    sums: dict[str, LandmarkSums] = {}
-    for p in range(1, 601):
-        rays = simulate_pass(rng, trials, geom, CORRELATED)
-        if p == 1:
-            x0, _ = triangulate(rays, rows)
-            x0 = np.where(np.isfinite(x0), x0, rays.origin[::f] + 30.0 * rays.direction[::f])
-            for k, c in cfgs.items():
-                sums[k] = LandmarkSums(c, capacity=trials)
-                sums[k].new_rows(trials, x0)
-        for s in sums.values():
-            s.accumulate(rows, np.full(rows.size, p, np.int64), rays)
-            s.close_passes()
-            if p % 20 == 0:
-                s.solve(np.arange(trials))
-    sol = {k: s.solve(np.arange(trials), update_reference=False) for k, s in sums.items()}
+    sol, geom = side_by_side(CORRELATED, 300, 600, cfgs, seed=2, solve_every=20)
     ok = sol["ours"].ok
     assert np.array_equal(ok, sol["pull"].ok) and ok.mean() > 0.95
     e = (sol["ours"].x - geom.sign)[ok][:, :2]

@@ -153,29 +153,40 @@ def test_fit_slope_and_checkpoints():
     assert math.isnan(fit_slope([1, 2], [1.0, float("nan")], 1, 2)["slope"])
 
 
+def side_by_side(
+    noise, trials: int, passes: int, cfgs: dict, seed: int, solve_every: int = 1
+) -> tuple[dict, Geometry]:
+    """The paper simulation with several estimators on the same rays (each initialised from
+    the first passing, solved every ``solve_every`` passings as the evaluation does each):
+    their final solutions, without moving the references."""
+    rng, geom = np.random.default_rng(seed), Geometry()
+    f = geom.frames().size
+    rows = np.repeat(np.arange(trials), f)
+    sums: dict = {}
+    for p in range(1, passes + 1):
+        rays = simulate_pass(rng, trials, geom, noise)
+        if p == 1:
+            x0, _ = triangulate(rays, rows)
+            x0 = np.where(np.isfinite(x0), x0, rays.origin[::f] + 30.0 * rays.direction[::f])
+            for k, c in cfgs.items():
+                sums[k] = LandmarkSums(c, capacity=trials)
+                sums[k].new_rows(trials, x0)
+        for s in sums.values():
+            s.accumulate(rows, np.full(rows.size, p, np.int64), rays)
+            s.close_passes()
+            if p % solve_every == 0:
+                s.solve(np.arange(trials))
+    return {k: s.solve(np.arange(trials), update_reference=False) for k, s in sums.items()}, geom
+
+
 def test_integrated_meat_raises_the_coverage_where_the_plug_in_is_short():
     """White noise, 600 trials x 40 passings (seed 0): the plug-in meat shrinks with the range
     to the estimate, so the trials it reports smallest are under-covered; the integrated
     meat (docs/estimator.md section 6) lifts the coverage. Both estimators see the same rays
     and give the same estimates (the meat changes only the covariance)."""
-    rng, geom, trials = np.random.default_rng(0), Geometry(), 600
-    f = geom.frames().size
-    rows = np.repeat(np.arange(trials), f)
-    sums: dict[bool, LandmarkSums] = {}
-    for p in range(1, 41):
-        rays = simulate_pass(rng, trials, geom, WHITE)
-        if p == 1:
-            x0, _ = triangulate(rays, rows)
-            x0 = np.where(np.isfinite(x0), x0, rays.origin[::f] + 30.0 * rays.direction[::f])
-            for integrated in (False, True):
-                s = LandmarkSums(EstimatorConfig(integrated_meat=integrated), capacity=trials)
-                s.new_rows(trials, x0)
-                sums[integrated] = s
-        for s in sums.values():
-            s.accumulate(rows, np.full(rows.size, p, np.int64), rays)
-            s.close_passes()
-            s.solve(np.arange(trials))
-    plug, integ = (sums[k].solve(np.arange(trials), update_reference=False) for k in (False, True))
+    cfgs = {k: EstimatorConfig(integrated_meat=k) for k in (False, True)}
+    sol, geom = side_by_side(WHITE, 600, 40, cfgs, seed=0)
+    plug, integ = sol[False], sol[True]
     ok = plug.ok
     assert np.array_equal(ok, integ.ok) and 0.8 < ok.mean() < 0.95
     np.testing.assert_allclose(integ.x[ok], plug.x[ok], rtol=0, atol=1e-9)
