@@ -166,7 +166,7 @@ class LandmarkSums:
         self._n_open = np.zeros(cap, np.int64)
         self._w1 = np.zeros(cap)  # sum of the rays' weights (Rays.weight, default 1)
         self._w2 = np.zeros(cap)  # sum of their squares (the model floor's scale)
-        self._c1 = np.zeros(cap)  # sum of the rays' pull (model.pull_terms)
+        self._c1 = np.zeros(cap)  # closed passes' pull (model.pull_terms, pass-weighted)
         # open (landmark, pass) partial sums; slots recycled through a free list
         self._slot: dict[tuple[int, int], int] = {}
         self._row_slots: dict[int, list[int]] = {}  # row -> its open slots (any order)
