@@ -91,6 +91,36 @@ def test_quick_run_writes_json_and_figures(quick):
         assert set(block["fits"]) == names
 
 
+def test_quick_seeds_run_summarises_the_claims(tmp_path, capsys):
+    args = argparse.Namespace(
+        evaluation="paper-sim",
+        out=str(tmp_path),
+        trials=20,
+        max_passes=60,
+        seed=1,
+        seeds=[3, 4],
+        quick=True,
+        workers=1,
+        models="white,correlated",
+    )
+    assert eval_cmd.run(args) == 0
+    summary = json.loads((tmp_path / "paper_sim_seeds.json").read_text())
+    assert summary["seeds"] == [3, 4] and summary["evaluated_seeds"] == 2
+    for s in (3, 4):
+        run = json.loads((tmp_path / f"seed-{s}" / "paper_sim.json").read_text())
+        assert run["meta"]["seed"] == s
+        row = summary["per_seed"][str(s)]
+        assert row["slope_ours_white"] == run["slope_ours_white"]
+        assert row["pass"] == {k: v for k, v in run.items() if k.endswith("_pass")}
+        pull = run["models"]["correlated"]["estimators"]["ours_pull"]["coverage_ellipse"]
+        sel = [c for n, c in zip(run["checkpoints"], pull, strict=True) if n >= 30]
+        assert row["coverage_ours_pull_correlated_max"] == max(sel)
+    for claim, n in summary["targets_passed"].items():
+        assert n == sum(summary["per_seed"][str(s)]["pass"][claim] for s in (3, 4))
+    assert "--seeds 3,4" in summary["meta"]["command"]
+    assert "w.slope" in capsys.readouterr().err
+
+
 def test_quick_numbers_are_sane(quick):
     _, res = quick
     for model in ("white", "correlated"):

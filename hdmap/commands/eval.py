@@ -4,7 +4,8 @@ Sub-subcommands (each ``add_<name>_arguments(parser)`` / ``run_<name>(args)``, r
 in :data:`EVALUATIONS`):
 
 - ``paper-sim``: the paper's simulation (section IV-A), ours vs the paper's estimator,
-  written to ``DIR/paper_sim.json`` and PNG figures (:mod:`hdmap.evaluation.paper_sim`).
+  written to ``DIR/paper_sim.json`` and PNG figures (:mod:`hdmap.evaluation.paper_sim`);
+  ``--seeds`` runs several seeds and summarises the claims (``DIR/paper_sim_seeds.json``).
 - ``fleet``: central Helsinki through the real pipeline with the realistic fleet noise,
   written to ``DIR/fleet.json`` and PNG figures (:mod:`hdmap.evaluation.fleet_eval`).
 """
@@ -35,6 +36,14 @@ def add_paper_sim_arguments(p: argparse.ArgumentParser) -> None:
         help="passings per trial (default 1000; --quick 100)",
     )
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument(
+        "--seeds",
+        type=_seed_list,
+        default=None,
+        metavar="S,S,...",
+        help="instead of --seed: run each seed into DIR/seed-<s>/ and summarise the claims "
+        "over them (DIR/paper_sim_seeds.json)",
+    )
     p.add_argument(
         "--quick", action="store_true", help="small run for the test suite (< 30 s, one process)"
     )
@@ -72,6 +81,34 @@ def _clean(o: object) -> object:
 
 
 def run_paper_sim_command(args: argparse.Namespace) -> int:
+    seeds = getattr(args, "seeds", None)
+    if not seeds:
+        _run_paper_once(args, Path(args.out), int(args.seed))
+        return 0
+    from hdmap.evaluation.fleet_seeds import format_seed_table, summarise_seeds
+    from hdmap.evaluation.paper_sim import SEED_COLUMNS, claims_row
+
+    out = Path(args.out)
+    rows = {}
+    for k, seed in enumerate(seeds, start=1):
+        print(f"paper-sim: seed {seed} ({k}/{len(seeds)})", file=sys.stderr, flush=True)
+        rows[seed] = claims_row(_run_paper_once(args, out / f"seed-{seed}", seed))
+    summary = summarise_seeds(rows)
+    opts = [f"--out {args.out}", f"--seeds {','.join(map(str, seeds))}"]
+    opts += [f"--trials {args.trials}"] if args.trials else []
+    opts += [f"--max-passes {args.max_passes}"] if args.max_passes else []
+    if getattr(args, "quick", False):
+        opts.append("--quick")
+    summary["meta"] = {"command": "hdmap eval paper-sim " + " ".join(opts)}
+    path = out / "paper_sim_seeds.json"
+    path.write_text(json.dumps(_clean(summary), indent=1, default=_json_default))
+    print(format_seed_table(summary, SEED_COLUMNS), file=sys.stderr)
+    print(f"paper-sim: wrote {path}", file=sys.stderr, flush=True)
+    return 0
+
+
+def _run_paper_once(args: argparse.Namespace, out: Path, seed: int) -> dict:
+    """One paper-sim run with ``seed`` into ``out``; its result (also written there)."""
     from hdmap.evaluation.paper_plots import write_figures
     from hdmap.evaluation.paper_sim import run_paper_sim
 
@@ -83,25 +120,24 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
         "white,correlated" if quick else "white,correlated,correlated_equal"
     )
     models = tuple(m for m in str(names).split(",") if m)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     print(
         f"paper-sim: {trials} trials x {passes} passings, models {', '.join(models)}, "
-        f"seed {args.seed}, {workers} process(es)",
+        f"seed {seed}, {workers} process(es)",
         file=sys.stderr,
         flush=True,
     )
     result = run_paper_sim(
         trials=trials,
         max_passes=passes,
-        seed=int(args.seed),
+        seed=seed,
         models=models,
         workers=workers,
         pilot=(20, 30) if quick else (100, 100),
     )
     result["meta"]["command"] = "hdmap eval paper-sim " + " ".join(
-        [f"--out {args.out}", f"--trials {trials}", f"--max-passes {passes}", f"--seed {args.seed}"]
+        [f"--out {out}", f"--trials {trials}", f"--max-passes {passes}", f"--seed {seed}"]
         + (["--quick"] if quick else [])
     )
     figures = write_figures(result, out)
@@ -123,7 +159,7 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    return 0
+    return result
 
 
 def add_fleet_arguments(p: argparse.ArgumentParser) -> None:

@@ -36,6 +36,23 @@ TARGET_KEYS = (
 )
 """Figures of ``targets_at_50_passes`` carried per seed."""
 
+FLEET_COLUMNS: list[tuple[str, str, str]] = [
+    ("mean_err_m", "mean m", ".2f"),
+    ("p95_err_m", "p95 m", ".2f"),
+    ("coverage95_from_30", "cov30", ".3f"),
+    ("recall", "recall", ".3f"),
+    ("precision", "prec", ".3f"),
+    ("duplicated", "dup", "d"),
+    ("assoc_right", "assoc", ".3f"),
+    ("assoc_right_obs_pooled", "a.obs", ".3f"),
+    ("assoc_right_obs_from_50", "a.late", ".3f"),
+    ("final_mean_err_m", "fin.m", ".2f"),
+    ("final_recall", "fin.rec", ".3f"),
+    ("young_precision", "y.prec", ".3f"),
+    ("young_duplicated", "y.dup", "d"),
+]
+"""Columns of :func:`format_seed_table` for the fleet."""
+
 YOUNG_BIN = 3
 """Lower edge of the pass-count bin reported as the young map (3-4 passes)."""
 
@@ -93,23 +110,11 @@ def summarise_seeds(per_seed: dict[int, dict]) -> dict:
     }
 
 
-def format_seed_table(summary: dict) -> str:
-    """Per seed one line of the figures nearest the targets, then mean / min / max."""
-    cols = [
-        ("mean_err_m", "mean m", ".2f"),
-        ("p95_err_m", "p95 m", ".2f"),
-        ("coverage95_from_30", "cov30", ".3f"),
-        ("recall", "recall", ".3f"),
-        ("precision", "prec", ".3f"),
-        ("duplicated", "dup", "d"),
-        ("assoc_right", "assoc", ".3f"),
-        ("assoc_right_obs_pooled", "a.obs", ".3f"),
-        ("assoc_right_obs_from_50", "a.late", ".3f"),
-        ("final_mean_err_m", "fin.m", ".2f"),
-        ("final_recall", "fin.rec", ".3f"),
-        ("young_precision", "y.prec", ".3f"),
-        ("young_duplicated", "y.dup", "d"),
-    ]
+def format_seed_table(summary: dict, cols: list[tuple[str, str, str]] | None = None) -> str:
+    """Per seed one line of the figures nearest the targets, then mean / min / max.
+
+    ``cols``: (key, heading, format) per column; default the fleet's figures."""
+    cols = cols or FLEET_COLUMNS
 
     def cell(v: object, fmt: str) -> str:
         if isinstance(v, int | float) and not isinstance(v, bool):

@@ -450,6 +450,46 @@ def summarise(result: dict, fit_from: int, fit_to: int, cover_from: int = 30) ->
     return flat
 
 
+SEED_COLUMNS: list[tuple[str, str, str]] = [
+    ("slope_ours_white", "w.slope", ".3f"),
+    ("coverage_ours_white_min", "w.cmin", ".3f"),
+    ("coverage_ours_white_max", "w.cmax", ".3f"),
+    ("slope_ours_correlated", "c.slope", ".3f"),
+    ("coverage_ours_correlated_min", "c.cmin", ".3f"),
+    ("coverage_ours_correlated_max", "c.cmax", ".3f"),
+    ("coverage_independent_correlated_max", "c.indep", ".3f"),
+    ("coverage_ours_pull_correlated_min", "pull.min", ".3f"),
+    ("coverage_ours_pull_correlated_max", "pull.max", ".3f"),
+]
+"""Columns of the ``--seeds`` table (:func:`hdmap.evaluation.fleet_seeds.format_seed_table`)."""
+
+
+def claims_row(result: dict, cover_from: int = 30) -> dict:
+    """One run's claim figures for a table over seeds: the flat keys of :func:`summarise`
+    (slopes, coverage extremes), the extremes of ``ours_pull`` (reported, not claimed) and
+    ``pass`` (every ``*_pass`` claim).
+
+    >>> r = {"checkpoints": [10, 30], "slope_ours_white": -0.5, "slope_ours_white_pass": True,
+    ...      "models": {"correlated": {"estimators": {"ours_pull": {
+    ...          "coverage_ellipse": [0.99, 0.96]}}}}}
+    >>> row = claims_row(r)
+    >>> row["slope_ours_white"], row["coverage_ours_pull_correlated_max"], row["pass"]
+    (-0.5, 0.96, {'slope_ours_white_pass': True})
+    """
+    row: dict = {k: result.get(k) for k, _, _ in SEED_COLUMNS}
+    sel = [i for i, n in enumerate(result["checkpoints"]) if n >= cover_from]
+    for model, block in result.get("models", {}).items():
+        est = block["estimators"].get("ours_pull")
+        cov = [est["coverage_ellipse"][i] for i in sel] if est else []
+        cov = [c for c in cov if c is not None and np.isfinite(c)]
+        if cov:
+            row[f"coverage_ours_pull_{model}_min"] = float(min(cov))
+            row[f"coverage_ours_pull_{model}_max"] = float(max(cov))
+    row["evaluated"] = True
+    row["pass"] = {k: bool(v) for k, v in result.items() if k.endswith("_pass")}
+    return row
+
+
 def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
