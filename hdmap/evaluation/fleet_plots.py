@@ -1,9 +1,11 @@
-"""Figures of the fleet evaluation: metrics per passes past a sign, and the final map."""
+"""Figures of the fleet evaluation: metrics per passes past a sign, the final map, and the
+final errors as arrows (their common offset shows there)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -48,7 +50,60 @@ def write_fleet_figures(result: dict, world: World, final: Landmarks, out: Path)
     fig.savefig(p1)
     p2 = out / "fleet_map.png"
     plot_map(world, final, p2, title=f"Helsinki after {result['meta']['passes']} passes")
-    return [p1, p2]
+    return [p1, p2, write_error_map(result, world, out)]
+
+
+ARROW_SCALE = 20.0
+"""Error arrows are drawn this many times their length."""
+
+
+def write_error_map(result: dict, world: World, out: Path, min_passes: int = 30) -> Path:
+    """``fleet_errors.png``: per found sign with ``min_passes`` or more passes its error (East,
+    North) as an arrow, ``ARROW_SCALE`` times its length, green inside its 95 % ellipse and
+    red outside; the mean error of those signs as one arrow in the corner: signs that share
+    passes share their GNSS biases, and that common offset moves them together."""
+    signs = [
+        s
+        for s in result.get("signs", [])
+        if s["found"] and s["passes"] >= min_passes and s["err_enu_m"] is not None
+    ]
+    fig = Figure(figsize=(10, 9.5), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    for road in world.roads():
+        ax.plot(road[:, 0], road[:, 1], color="0.88", lw=5, solid_capstyle="round", zorder=0)
+    pos = world.signs.position
+    ax.scatter(pos[:, 0], pos[:, 1], s=6, color="0.6", zorder=1, label="sign")
+    mean = np.zeros(2)
+    if signs:
+        row = np.array([s["sign"] for s in signs])
+        e = np.array([s["err_enu_m"][:2] for s in signs])
+        inside = np.array([bool(s["inside95"]) for s in signs])
+        for ok, colour, label in ((True, "tab:green", "inside"), (False, "tab:red", "outside")):
+            m = inside == ok
+            text = f"error x{ARROW_SCALE:g}, {label} its 95% ellipse ({m.sum()})"
+            ax.quiver(pos[row[m], 0], pos[row[m], 1], e[m, 0], e[m, 1], color=colour,
+                      angles="xy", scale_units="xy", scale=1.0 / ARROW_SCALE, width=0.003,
+                      label=text)  # fmt: skip
+        mean = e.mean(axis=0)
+        x0, y0 = pos[:, 0].max(), pos[:, 1].min()
+        k = 5.0 * ARROW_SCALE
+        ax.quiver([x0], [y0], [mean[0]], [mean[1]], color="black", angles="xy",
+                  scale_units="xy", scale=1.0 / k, width=0.006,
+                  label=f"mean error x{k:g}: ({mean[0]:+.2f}, {mean[1]:+.2f}) m")  # fmt: skip
+    ax.set_aspect("equal")
+    ax.set_xlabel("East (m)")
+    ax.set_ylabel("North (m)")
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.07), ncol=2, fontsize=8)
+    ax.set_title(
+        f"Landmark errors, signs with {min_passes}+ passes, after {result['meta']['passes']} "
+        f"passes (seed {result['meta']['seed']})",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    path = out / "fleet_errors.png"
+    fig.savefig(path)
+    return path
 
 
 def write_seed_figure(summary: dict, out: Path) -> Path:
