@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
@@ -22,15 +23,21 @@ def ellipse_params(c: np.ndarray, k2: float = CHI2_95_2D) -> tuple[float, float,
     return 2 * np.sqrt(k2 * w[1]), 2 * np.sqrt(k2 * w[0]), angle
 
 
-def plot_map(
-    world: World, lm: Landmarks, out_png: str | Path, title: str = "", zoom_sign: int | None = None
-) -> None:
-    """True signs, estimated landmarks and their 95% ellipses, roads, in local metres."""
-    fig = Figure(figsize=(11, 10), dpi=110)
+def town_axes(world: World, figsize: tuple[float, float] = (11, 10)) -> tuple[Figure, Axes]:
+    """A figure with one axes showing the town's roads (local metres, grey)."""
+    fig = Figure(figsize=figsize, dpi=110)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     for road in world.roads():
         ax.plot(road[:, 0], road[:, 1], color="0.85", lw=6, solid_capstyle="round", zorder=0)
+    return fig, ax
+
+
+def plot_map(
+    world: World, lm: Landmarks, out_png: str | Path, title: str = "", zoom_sign: int | None = None
+) -> None:
+    """True signs, estimated landmarks and their 95% ellipses, roads, in local metres."""
+    fig, ax = town_axes(world)
     t = world.signs.position
     ax.scatter(t[:, 0], t[:, 1], marker="x", s=40, color="black", label="true sign", zorder=3)
     if len(lm):

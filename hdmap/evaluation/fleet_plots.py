@@ -9,7 +9,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from fleetsim.mapplot import plot_map
+from fleetsim.mapplot import plot_map, town_axes
 from fleetsim.world import World
 from schemas import Landmarks
 
@@ -67,11 +67,7 @@ def write_error_map(result: dict, world: World, out: Path, min_passes: int = 30)
         for s in result.get("signs", [])
         if s["found"] and s["passes"] >= min_passes and s["err_enu_m"] is not None
     ]
-    fig = Figure(figsize=(10, 9.5), dpi=110)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    for road in world.roads():
-        ax.plot(road[:, 0], road[:, 1], color="0.88", lw=5, solid_capstyle="round", zorder=0)
+    fig, ax = town_axes(world, (10, 9.5))
     pos = world.signs.position
     ax.scatter(pos[:, 0], pos[:, 1], s=6, color="0.6", zorder=1, label="sign")
     mean = np.zeros(2)
