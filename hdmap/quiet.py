@@ -52,6 +52,24 @@ class QuietPasses:
         mine.update((int(a), int(b)) for a, b in members)
         self._open[int(key)] = (self._clock(), mine)  # to the end: the most recent
 
+    def extend(self, key: int, members: Iterable[tuple[int, int]]) -> None:
+        """Pass ``key`` is open on ``members`` too (a merge moved it there), keeping its
+        quiet time; a pass not known here is noted now.
+
+        >>> t = [0.0]
+        >>> q = QuietPasses(after_s=100.0, clock=lambda: t[0])
+        >>> q.note(7, [(1, 10)]); t[0] = 60.0; q.extend(7, [(2, 11)]); q.extend(8, [(2, 11)])
+        >>> t[0] = 120.0; q.due()
+        [(7, [(1, 10), (2, 11)])]
+        """
+        if self.after_s <= 0:
+            return
+        known = self._open.get(int(key))
+        if known is None:
+            self.note(key, members)
+        else:
+            known[1].update((int(a), int(b)) for a, b in members)
+
     def due(self) -> list[tuple[int, list[tuple[int, int]]]]:
         """Passes quiet for ``after_s`` (forgotten here), oldest first."""
         out = []
@@ -87,6 +105,13 @@ def note_open(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:
             quiet.note(cluster, [(lid, row)])
             n += 1
     return n
+
+
+def follow_merge(quiet: QuietPasses, clusters: Iterable[int], keep: tuple[int, int]) -> None:
+    """A merge moved the open passes ``clusters`` onto ``keep`` ((landmark id, row)): they
+    close with the rest of their pass (:meth:`QuietPasses.extend`), not only by eviction."""
+    for c in clusters:
+        quiet.extend(c, [keep])
 
 
 def close_quiet(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:

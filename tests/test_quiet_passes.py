@@ -164,3 +164,36 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
     assert blob[False] - blob[True] == 8 * svcs[True].sums.packed_open_pass_bytes
+
+
+def test_a_merged_landmarks_open_pass_closes_with_its_pass():
+    """Pass 5 is open on landmark 2 only; landmark 2 is merged into landmark 1: the moved
+    pass closes when pass 5 is quiet (it was noted for landmark 2, now gone)."""
+    from types import SimpleNamespace
+
+    from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
+    from hdmap.quiet import close_quiet, follow_merge
+
+    class State:
+        def __init__(self) -> None:
+            self.landmarks = {1: SimpleNamespace(row=0), 2: SimpleNamespace(row=1)}
+            self.put_ids: list[int] = []
+
+        def put(self, lm) -> None:
+            self.put_ids.append(lm.row)
+
+    sums = LandmarkSums(EstimatorConfig(), capacity=2)
+    rows = sums.new_rows(2, np.array([[0.0, 20.0, 2.0], [0.5, 20.0, 2.0]]))
+    rays = Rays.from_angles(np.zeros((3, 3)), [0.0, 0.01, 0.02], [0.1] * 3, 0.01, 0.01, 1.0, 1.0)
+    sums.accumulate([rows[1]] * 3, [5] * 3, rays)
+    clock, state = Clock(), State()
+    quiet = QuietPasses(7200.0, clock)
+    quiet.note(5, [(2, int(rows[1]))])
+    moved = sums.open_clusters(int(rows[1]))
+    sums.merge_rows(int(rows[0]), int(rows[1]))
+    del state.landmarks[2]
+    follow_merge(quiet, moved, (1, int(rows[0])))
+    assert moved == [5] and sums.open_passes() == [(int(rows[0]), 5)]
+    clock.t = 7201.0
+    assert close_quiet(quiet, sums, state) == 1
+    assert sums.n_open_passes == 0 and state.put_ids == [int(rows[0])]

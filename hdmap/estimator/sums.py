@@ -211,6 +211,10 @@ class LandmarkSums:
     def n_open_passes(self) -> int:
         return len(self._slot)
 
+    def open_clusters(self, row: int) -> list[int]:
+        """Cluster ids of ``row``'s open passes."""
+        return sorted(int(self._o_cluster[s]) for s in self._row_slots.get(int(row), ()))
+
     def open_passes(self) -> list[tuple[int, int]]:
         """The open (row, cluster) pairs, sorted.
 

@@ -24,7 +24,7 @@ import numpy as np
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import usable
 from hdmap.geodesy import enu_rotation
-from hdmap.quiet import QuietPasses, close_quiet, note_open
+from hdmap.quiet import QuietPasses, close_quiet, follow_merge, note_open
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, quadkeys_of
 from schemas import (
@@ -247,7 +247,9 @@ class SolverService(StageService):
                     self.reject("assoc.unknown_merge_target")
                     continue
                 rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
+                moved = self.sums.open_clusters(drop.row)
                 self.sums.merge_rows(keep.row, drop.row, rot, t)
+                follow_merge(self._quiet, moved, (keep.id, keep.row))
                 touched.add(keep.id)
                 src = self._source.pop(drop.id, 0.0)
                 self._source[keep.id] = max(self._source.get(keep.id, 0.0), src)
