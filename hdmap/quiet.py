@@ -107,11 +107,16 @@ def note_open(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:
     return n
 
 
-def follow_merge(quiet: QuietPasses, clusters: Iterable[int], keep: tuple[int, int]) -> None:
-    """A merge moved the open passes ``clusters`` onto ``keep`` ((landmark id, row)): they
-    close with the rest of their pass (:meth:`QuietPasses.extend`), not only by eviction."""
-    for c in clusters:
-        quiet.extend(c, [keep])
+def merge_rows(
+    quiet: QuietPasses, sums: LandmarkSums, keep: Any, drop: Any, rotation: Any, translation: Any
+) -> None:
+    """:meth:`LandmarkSums.merge_rows` of landmark ``drop`` into ``keep`` (each with ``.id``,
+    ``.row``); ``drop``'s open passes move onto ``keep`` and close with the rest of their
+    pass (:meth:`QuietPasses.extend`), not only by eviction."""
+    moved = sums.open_clusters(drop.row)
+    sums.merge_rows(keep.row, drop.row, rotation, translation)
+    for c in moved:
+        quiet.extend(c, [(keep.id, keep.row)])
 
 
 def close_quiet(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:

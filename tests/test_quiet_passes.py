@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdmap.estimator.sums import _OPEN_DTYPE_V4
 from hdmap.quiet import QuietPasses
 from hdmap.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
@@ -98,7 +99,7 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
     blob = {
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
-    assert blob[False] - blob[True] == 7 * svcs[True].sums.packed_open_pass_bytes
+    assert blob[False] - blob[True] == 7 * _OPEN_DTYPE_V4.itemsize  # no pull: v4 rows
     # restart: the stored (closed) state gives the same map
     again = solver(tmp_path / "sTrue", True, clock)
     sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
@@ -163,7 +164,7 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
     blob = {
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
-    assert blob[False] - blob[True] == 8 * svcs[True].sums.packed_open_pass_bytes
+    assert blob[False] - blob[True] == 8 * _OPEN_DTYPE_V4.itemsize
 
 
 def test_a_merged_landmarks_open_pass_closes_with_its_pass():
@@ -172,11 +173,11 @@ def test_a_merged_landmarks_open_pass_closes_with_its_pass():
     from types import SimpleNamespace
 
     from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
-    from hdmap.quiet import close_quiet, follow_merge
+    from hdmap.quiet import close_quiet, merge_rows
 
     class State:
         def __init__(self) -> None:
-            self.landmarks = {1: SimpleNamespace(row=0), 2: SimpleNamespace(row=1)}
+            self.landmarks = {1: SimpleNamespace(id=1, row=0), 2: SimpleNamespace(id=2, row=1)}
             self.put_ids: list[int] = []
 
         def put(self, lm) -> None:
@@ -189,11 +190,9 @@ def test_a_merged_landmarks_open_pass_closes_with_its_pass():
     clock, state = Clock(), State()
     quiet = QuietPasses(7200.0, clock)
     quiet.note(5, [(2, int(rows[1]))])
-    moved = sums.open_clusters(int(rows[1]))
-    sums.merge_rows(int(rows[0]), int(rows[1]))
-    del state.landmarks[2]
-    follow_merge(quiet, moved, (1, int(rows[0])))
-    assert moved == [5] and sums.open_passes() == [(int(rows[0]), 5)]
+    assert sums.open_clusters(int(rows[1])) == [5]
+    merge_rows(quiet, sums, state.landmarks[1], state.landmarks.pop(2), None, None)
+    assert sums.open_passes() == [(int(rows[0]), 5)]
     clock.t = 7201.0
     assert close_quiet(quiet, sums, state) == 1
     assert sums.n_open_passes == 0 and state.put_ids == [int(rows[0])]

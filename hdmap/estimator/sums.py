@@ -202,12 +202,6 @@ class LandmarkSums:
         return _OPEN_DTYPE.itemsize
 
     @property
-    def packed_open_pass_bytes(self) -> int:
-        """Bytes an open pass adds to a packed row (:meth:`pack_rows`: the pull column only
-        where the pull is on)."""
-        return (_OPEN_DTYPE if self.config.extra_sigma_pos_m > 0 else _OPEN_DTYPE_V4).itemsize
-
-    @property
     def n_open_passes(self) -> int:
         return len(self._slot)
 

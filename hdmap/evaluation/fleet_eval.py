@@ -270,9 +270,9 @@ def bin_table(state: EvalState, lm_rows: list[dict], linked: Linked, bins=BINS) 
     row, got, right = linked.row, linked.got, linked.right
     real = row >= 0
     row, got, right = row[real], got[real], right[real]
-    linked = got != 0
-    other = linked & ~right & np.isin(got, sign_lm[sign_lm != 0])
-    unpaired = linked & ~right & ~other
+    wrong = (got != 0) & ~right
+    other = wrong & np.isin(got, sign_lm[sign_lm != 0])
+    unpaired = wrong & ~other
     k = len(final.n)
     n_obs = np.bincount(row, minlength=k)
     n_right = np.bincount(row[right], minlength=k)
@@ -341,13 +341,11 @@ def sign_table(state: EvalState, linked: Linked) -> list[dict]:
     n_obs = np.bincount(row[real], minlength=k)
     n_right = np.bincount(row[real & right], minlength=k)
     world = state.world
+    enu = final.err_enu if final.err_enu is not None else np.full((k, 3), np.nan)
+    sig = final.sigma_en if final.sigma_en is not None else np.full((k, 2), np.nan)
     out = []
     for s in range(k):
         found = bool(final.found[s])
-
-        def vec(a: np.ndarray | None, s: int = s, found: bool = found) -> list[float] | None:
-            return a[s].tolist() if found and a is not None else None
-
         out.append(
             {
                 "sign": s,
@@ -356,8 +354,8 @@ def sign_table(state: EvalState, linked: Linked) -> list[dict]:
                 "found": found,
                 "landmark": int(final.landmark[s]),
                 "err_m": float(final.err[s]) if found else None,
-                "err_enu_m": vec(final.err_enu),
-                "sigma_en_m": vec(final.sigma_en),
+                "err_enu_m": enu[s].tolist() if found else None,
+                "sigma_en_m": sig[s].tolist() if found else None,
                 "inside95": bool(final.inside[s]) if found else None,
                 "observations": int(n_obs[s]),
                 "assoc_right": float(n_right[s] / n_obs[s]) if n_obs[s] else None,

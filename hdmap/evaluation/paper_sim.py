@@ -53,6 +53,7 @@ Output ``paper_sim.json`` (all errors horizontal, metres; coverage over publishe
   ``coverage_ours_<model>_pass`` (all within 0.92..0.98), for ``correlated`` also
   ``coverage_independent_correlated_min``/``_max`` and
   ``independent_overconfident_correlated_pass`` (max < 0.92), and ``claims_pass`` (all);
+  where ``ours_pull`` runs, ``coverage_ours_pull_<model>_min``/``_max`` (not claimed);
   models outside the claims (``correlated_equal``) get the same keys ending ``_in_range``
   instead of ``_pass``;
 - ``meta``: arguments, command, seed, geometry, camera, fit range, figures, wall time;
@@ -429,12 +430,14 @@ def summarise(result: dict, fit_from: int, fit_to: int, cover_from: int = 30) ->
         flat[f"slope_paper_{model}"] = s_paper
         flat[f"paper_plateau_{model}{ok}"] = bool(s_paper > -0.1)
         sel = [i for i, n in enumerate(cps) if n >= cover_from]
-        for k in ("ours", "independent"):
+        for k in ("ours", "independent", "ours_pull"):
+            if k not in block["estimators"]:
+                continue
             cov = [block["estimators"][k]["coverage_ellipse"][i] for i in sel]
             cov = [c for c in cov if np.isfinite(c)]
             lo = float(min(cov)) if cov else float("nan")
             hi = float(max(cov)) if cov else float("nan")
-            if k == "ours" or corr:
+            if k != "independent" or corr:
                 flat[f"coverage_{k}_{model}_min"] = lo
                 flat[f"coverage_{k}_{model}_max"] = hi
         flat[f"coverage_ours_{model}{ok}"] = bool(
@@ -464,27 +467,15 @@ SEED_COLUMNS: list[tuple[str, str, str]] = [
 """Columns of the ``--seeds`` table (:func:`hdmap.evaluation.fleet_seeds.format_seed_table`)."""
 
 
-def claims_row(result: dict, cover_from: int = 30) -> dict:
-    """One run's claim figures for a table over seeds: the flat keys of :func:`summarise`
-    (slopes, coverage extremes), the extremes of ``ours_pull`` (reported, not claimed) and
-    ``pass`` (every ``*_pass`` claim).
+def claims_row(result: dict) -> dict:
+    """One run's claim figures for a table over seeds: the columns of :data:`SEED_COLUMNS`
+    (flat keys of :func:`summarise`) and ``pass`` (every ``*_pass`` claim).
 
-    >>> r = {"checkpoints": [10, 30], "slope_ours_white": -0.5, "slope_ours_white_pass": True,
-    ...      "models": {"correlated": {"estimators": {"ours_pull": {
-    ...          "coverage_ellipse": [0.99, 0.96]}}}}}
-    >>> row = claims_row(r)
+    >>> row = claims_row({"slope_ours_white": -0.5, "slope_ours_white_pass": True})
     >>> row["slope_ours_white"], row["coverage_ours_pull_correlated_max"], row["pass"]
-    (-0.5, 0.96, {'slope_ours_white_pass': True})
+    (-0.5, None, {'slope_ours_white_pass': True})
     """
     row: dict = {k: result.get(k) for k, _, _ in SEED_COLUMNS}
-    sel = [i for i, n in enumerate(result["checkpoints"]) if n >= cover_from]
-    for model, block in result.get("models", {}).items():
-        est = block["estimators"].get("ours_pull")
-        cov = [est["coverage_ellipse"][i] for i in sel] if est else []
-        cov = [c for c in cov if c is not None and np.isfinite(c)]
-        if cov:
-            row[f"coverage_ours_pull_{model}_min"] = float(min(cov))
-            row[f"coverage_ours_pull_{model}_max"] = float(max(cov))
     row["evaluated"] = True
     row["pass"] = {k: bool(v) for k, v in result.items() if k.endswith("_pass")}
     return row

@@ -42,7 +42,7 @@ from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import prior_covariance, usable
 from hdmap.geodesy import GEODESY
 from hdmap.initiation import InitConfig, propose, triangulate_groups
-from hdmap.quiet import QuietPasses, close_quiet, follow_merge, note_open
+from hdmap.quiet import QuietPasses, close_quiet, merge_rows, note_open
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
 from schemas import (
@@ -693,9 +693,7 @@ class MatcherService(StageService):
 
     def _merge(self, keep: Landmark, drop: Landmark) -> None:
         rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
-        moved = self.sums.open_clusters(drop.row)
-        self.sums.merge_rows(keep.row, drop.row, rot, t)
-        follow_merge(self._quiet, moved, (keep.id, keep.row))
+        merge_rows(self._quiet, self.sums, keep, drop, rot, t)
         self.state.merge(keep, drop)
         self._out[drop.home].retired.append((drop.id, keep.id))
         self.count("merged")

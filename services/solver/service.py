@@ -24,7 +24,7 @@ import numpy as np
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.provisional import usable
 from hdmap.geodesy import enu_rotation
-from hdmap.quiet import QuietPasses, close_quiet, follow_merge, note_open
+from hdmap.quiet import QuietPasses, close_quiet, merge_rows, note_open
 from hdmap.stage import StageService
 from hdmap.tiles import TileFrames, frame_map, quadkeys_of
 from schemas import (
@@ -74,7 +74,7 @@ class SolverConfig:
     initiated), and a ray of a pass already closed would start a new cluster, which changes
     the estimate (closing a vehicle's passes as soon as it uploads another did: seed 3 of
     the fleet evaluation moved, precision 1.000 -> 0.982). The bookkeeping is in memory:
-    after a restart the passes open then stay open until evicted."""
+    passes open at a restart count as quiet from then on (:func:`hdmap.quiet.note_open`)."""
 
 
 @dataclass(frozen=True)
@@ -247,9 +247,7 @@ class SolverService(StageService):
                     self.reject("assoc.unknown_merge_target")
                     continue
                 rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
-                moved = self.sums.open_clusters(drop.row)
-                self.sums.merge_rows(keep.row, drop.row, rot, t)
-                follow_merge(self._quiet, moved, (keep.id, keep.row))
+                merge_rows(self._quiet, self.sums, keep, drop, rot, t)
                 touched.add(keep.id)
                 src = self._source.pop(drop.id, 0.0)
                 self._source[keep.id] = max(self._source.get(keep.id, 0.0), src)
