@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdmap.estimator.sums import _OPEN_DTYPE_V4
+from hdmap.estimator.packing import OPEN_DTYPE_V4
 from hdmap.quiet import QuietPasses
 from hdmap.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
@@ -99,7 +99,7 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
     blob = {
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
-    assert blob[False] - blob[True] == 7 * _OPEN_DTYPE_V4.itemsize  # no pull: v4 rows
+    assert blob[False] - blob[True] == 7 * OPEN_DTYPE_V4.itemsize  # no pull: v4 rows
     # restart: the stored (closed) state gives the same map
     again = solver(tmp_path / "sTrue", True, clock)
     sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
@@ -164,7 +164,7 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
     blob = {
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
-    assert blob[False] - blob[True] == 8 * _OPEN_DTYPE_V4.itemsize
+    assert blob[False] - blob[True] == 8 * OPEN_DTYPE_V4.itemsize
 
 
 def test_a_merged_landmarks_open_pass_closes_with_its_pass():

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
-from hdmap.estimator.sums import (
-    _OPEN_DTYPE,
-    _OPEN_DTYPE_V3,
-    _OPEN_DTYPE_V4,
-    _ROW_DTYPE,
-    _ROW_DTYPE_V4,
+from hdmap.estimator.packing import (
+    OPEN_DTYPE,
+    OPEN_DTYPE_V2,
+    OPEN_DTYPE_V3,
+    OPEN_DTYPE_V4,
+    ROW_DTYPE,
+    ROW_DTYPE_V2,
+    ROW_DTYPE_V4,
 )
 from tests.test_estimator import true_angles
 
@@ -155,7 +157,7 @@ def test_a_pass_is_held_or_not_for_good(data):
 
 def _downgrade(blob: bytes, version: int, row_dt: np.dtype, open_dt: np.dtype) -> bytes:
     """An older blob: the current one with only the older version's columns."""
-    now = (_ROW_DTYPE, _OPEN_DTYPE) if blob[0] == 5 else (_ROW_DTYPE_V4, _OPEN_DTYPE_V4)
+    now = (ROW_DTYPE, OPEN_DTYPE) if blob[0] == 5 else (ROW_DTYPE_V4, OPEN_DTYPE_V4)
     row_now, open_now = now
     rec = np.frombuffer(blob, row_now, count=1, offset=1)
     op = np.frombuffer(blob, open_now, offset=1 + row_now.itemsize)
@@ -178,7 +180,22 @@ def test_version_3_and_4_blobs_still_load(data):
     pulled, _ = fresh(EstimatorConfig(extra_sigma_pos_m=2.0))
     pulled.accumulate(np.full(hc.size, row[0]), hc, hr)
     assert pulled.pack_rows(row)[0][0] == 5
-    for version, open_dt in ((3, _OPEN_DTYPE_V3), (4, _OPEN_DTYPE_V4)):
+    for version, open_dt in ((3, OPEN_DTYPE_V3), (4, OPEN_DTYPE_V4)):
         old = LandmarkSums(EstimatorConfig())
-        r_old = old.unpack_rows([_downgrade(blob, version, _ROW_DTYPE_V4, open_dt)])
+        r_old = old.unpack_rows([_downgrade(blob, version, ROW_DTYPE_V4, open_dt)])
         same(old.solve(r_old, update_reference=False), s.solve(row, update_reference=False))
+
+
+def test_version_2_blob_with_open_passes_loads(data):
+    """A v2 blob (no ray weight sums: its open records have no ``w``, 104 bytes) with open
+    passes loads; with rays of weight 1 it is the same state."""
+    hc, hr = data[0][0]
+    s, row = fresh(EstimatorConfig())
+    s.accumulate(np.full(hc.size, row[0]), hc, hr)
+    assert s.n_open_passes > 0
+    blob = _downgrade(s.pack_rows(row)[0], 2, ROW_DTYPE_V2, OPEN_DTYPE_V2)
+    assert len(blob) == 1 + ROW_DTYPE_V2.itemsize + s.n_open_passes * 104
+    old = LandmarkSums(EstimatorConfig())
+    r_old = old.unpack_rows([blob])
+    assert old.n_open_passes == s.n_open_passes
+    same(old.solve(r_old, update_reference=False), s.solve(row, update_reference=False))

@@ -27,7 +27,7 @@ c1         1     sum over closed passes of their pull ``tr C_p`` (the rays'
 =========  ====  =============================================================
 
 so 69 float64 + 3 int64 = 576 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
-packed: 565 bytes plus 176 per open pass, or with a pull 573 plus 184: :meth:`pack_rows`).
+packed by :meth:`pack_rows`: the byte layout and its sizes are in :mod:`hdmap.estimator.packing`).
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
 interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
@@ -78,58 +78,17 @@ from hdmap.estimator.model import (
     sym_to_mat,
     tri_to_mat6,
 )
+from hdmap.estimator.packing import OPEN_DTYPE, PACK_VERSION, decode, encode, layout
 from hdmap.estimator.solve import Solution, solve_sums
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-PACK_VERSION = 5
-_OLD_PACK_VERSIONS = (1, 2, 3, 4)
-"""Version 1 kept open passes' raw sums in ``A`` and ``b`` as well; they are taken out
-on load (its closed passes keep their unweighted sums; its open passes had no angular
-variance sum: treated as precise). Versions 1 and 2 had no ray weight sums: taken as
-weights of 1. Versions 1-3 had no held passes. Versions 1-4 had no pull sum (0)."""
-_ROW_DTYPE_V2 = np.dtype(
-    [
-        ("anchor", "<f8", 3),
-        ("x_ref", "<f8", 3),
-        ("a6", "<f8", 6),
-        ("j6", "<f8", 6),
-        ("b", "<f8", 3),
-        ("saa", "<f8", 21),
-        ("sab", "<f8", 18),
-        ("sbb", "<f8", 6),
-        ("n_obs", "<i8"),
-        ("n_closed", "<i8"),
-        ("n_open", "<i4"),
-    ]
-)
-_ROW_DTYPE_V4 = np.dtype([*_ROW_DTYPE_V2.descr, ("w1", "<f8"), ("w2", "<f8")])
-_ROW_DTYPE = np.dtype([*_ROW_DTYPE_V4.descr, ("c1", "<f8")])
-_OPEN_DTYPE_V3 = np.dtype(
-    [
-        ("cluster", "<i8"),
-        ("last", "<i8"),
-        ("n", "<i8"),
-        ("a6", "<f8", 6),
-        ("b", "<f8", 3),
-        ("s2", "<f8"),
-        ("w", "<f8"),
-    ]
-)
-_OPEN_DTYPE_V4 = np.dtype([*_OPEN_DTYPE_V3.descr, ("w2", "<f8"), ("hold", "<i8"), ("j6", "<f8", 6)])
-_OPEN_DTYPE = np.dtype([*_OPEN_DTYPE_V4.descr, ("c1", "<f8")])
-_OPEN_DTYPE_V1 = np.dtype(
-    [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
-)
 _ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
 _ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2", "_c1")
 """The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
 _OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2", "_o_w")
 _OPEN_ARRAYS += ("_o_w2", "_o_hold", "_o_j6", "_o_c1")
-_ROW_FIELDS_V2 = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
-_ROW_FIELDS_V4 = (*_ROW_FIELDS_V2, "w1", "w2")
-_ROW_FIELDS = (*_ROW_FIELDS_V4, "c1")
 
 
 def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
@@ -199,7 +158,7 @@ class LandmarkSums:
     @property
     def open_pass_bytes(self) -> int:
         """In-memory state per open pass, bytes."""
-        return _OPEN_DTYPE.itemsize
+        return OPEN_DTYPE.itemsize
 
     @property
     def n_open_passes(self) -> int:
@@ -698,23 +657,20 @@ class LandmarkSums:
 
         A row without any pull (``EstimatorConfig.extra_sigma_pos_m`` unset) is written in
         version 4, without the pull columns: 8 bytes less per row and per open pass, which
-        keeps two rows with 8 open passes in one SQLite page."""
+        keeps two rows with 8 open passes in one SQLite page. Byte layout:
+        :mod:`hdmap.estimator.packing`."""
         r = self._check_rows(rows)
         out = []
         for row in r.tolist():
             mine = np.sort(np.array(self._row_slots.get(row, ()), np.int64))
             mine = mine[np.lexsort((self._o_cluster[mine], self._o_last[mine]))]
             pulled = bool(self._c1[row] != 0 or np.any(self._o_c1[mine] != 0))
-            version, row_dt, fields, open_dt = (
-                (PACK_VERSION, _ROW_DTYPE, _ROW_FIELDS, _OPEN_DTYPE)
-                if pulled
-                else (4, _ROW_DTYPE_V4, _ROW_FIELDS_V4, _OPEN_DTYPE_V4)
-            )
-            rec = np.zeros((), row_dt)
-            for f in fields:
+            lay = layout(PACK_VERSION if pulled else 4)
+            rec = np.zeros((), lay.row)
+            for f in lay.fields:
                 rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
             rec["n_open"] = mine.size
-            op = np.zeros(mine.size, open_dt)
+            op = np.zeros(mine.size, lay.open)
             op["cluster"], op["last"], op["n"] = (
                 self._o_cluster[mine],
                 self._o_last[mine],
@@ -725,7 +681,7 @@ class LandmarkSums:
             op["hold"], op["j6"] = self._o_hold[mine], self._o_j6[mine]
             if pulled:
                 op["c1"] = self._o_c1[mine]
-            out.append(bytes([version]) + rec.tobytes() + op.tobytes())
+            out.append(encode(lay, rec, op))
         return out
 
     def unpack_rows(self, blobs: Sequence[bytes], rows: ArrayLike | None = None) -> IntArray:
@@ -739,18 +695,9 @@ class LandmarkSums:
                 raise ValueError("rows and blobs differ in length")
             self._release(self._slots_of(r))
         for row, blob in zip(r.tolist(), blobs, strict=True):
-            if not blob or blob[0] not in (PACK_VERSION, *_OLD_PACK_VERSIONS):
-                raise ValueError("unknown landmark state version")
-            v = blob[0]
-            row_dt, fields = (
-                (_ROW_DTYPE, _ROW_FIELDS)
-                if v == PACK_VERSION
-                else (_ROW_DTYPE_V4, _ROW_FIELDS_V4)
-                if v >= 3
-                else (_ROW_DTYPE_V2, _ROW_FIELDS_V2)
-            )
-            rec = np.frombuffer(blob, row_dt, count=1, offset=1)[0]
-            for f in fields:
+            lay, rec, op = decode(blob)
+            v = lay.version
+            for f in lay.fields:
                 getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
                     getattr(self, "_" + f)[row].shape
                 )
@@ -758,17 +705,14 @@ class LandmarkSums:
                 self._w1[row] = self._w2[row] = float(rec["n_obs"])
             if v < PACK_VERSION:
                 self._c1[row] = 0.0
-            k = int(rec["n_open"])
-            old = blob[0] == 1
-            dt = {1: _OPEN_DTYPE_V1, 4: _OPEN_DTYPE_V4, 5: _OPEN_DTYPE}.get(v, _OPEN_DTYPE_V3)
-            op = np.frombuffer(blob, dt, count=k, offset=1 + row_dt.itemsize)
+            old = v == 1
             self._n_open[row] = 0
             for o in op:
                 s = self._alloc_slot((row, int(o["cluster"])))
                 self._o_last[s], self._o_n[s] = int(o["last"]), int(o["n"])
                 self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
                 self._o_s2[s] = 0.0 if old else float(o["s2"])
-                self._o_w[s] = float(o["n"]) if old else float(o["w"])
+                self._o_w[s] = float(o["n"]) if v < 3 else float(o["w"])
                 if v >= 4:
                     self._o_w2[s], self._o_hold[s] = float(o["w2"]), int(o["hold"])
                     self._o_j6[s] = o["j6"]
