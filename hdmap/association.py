@@ -144,13 +144,15 @@ def pair_chi2(
     ``a_cov`` is the (len(rays), 3, 3) origin covariance; ``offset`` shifts origins.
     """
     a = rays.origin[ri] + (0.0 if offset is None else offset)
+    d = rays.direction[ri]
     v = x - a
     rng = np.linalg.norm(v, axis=-1)
     az, el = angles(v)
-    az_m, el_m = angles(rays.direction[ri])
+    az_m, el_m = angles(d)
     res = np.stack([wrap(az - az_m), el - el_m], axis=-1)
     j = angle_jacobian(v)
-    s = np.einsum("kij,kjl,kml->kim", j, cov + a_cov[ri], j)
+    c = cov + a_cov[ri]
+    s = j @ c @ j.transpose(0, 2, 1)
     floor2 = cfg.angle_floor_rad**2
     s[:, 0, 0] += rays.sigma_az[ri] ** 2 + floor2
     s[:, 1, 1] += rays.sigma_el[ri] ** 2 + floor2
@@ -161,14 +163,12 @@ def pair_chi2(
         - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
         + res[:, 1] ** 2 * s[:, 0, 0]
     ) / det
-    front = np.einsum("kj,kj->k", v, rays.direction[ri]) > 0
+    front = np.einsum("kj,kj->k", v, d) > 0
     ok = front & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
     r_est = rays.range_m[ri]
     has_r = r_est > 0
     # landmark distance uncertainty along the ray: origin and landmark position spread
-    along = np.sqrt(
-        np.einsum("ki,kij,kj->k", rays.direction[ri], cov + a_cov[ri], rays.direction[ri])
-    )
+    along = np.sqrt(np.einsum("ki,kij,kj->k", d, c, d))
     s_r = np.hypot(rays.sigma_range_m[ri], along)
     ok &= ~has_r | (np.abs(rng - r_est) <= cfg.range_k * s_r)
     if cfg.range_in_cost:
