@@ -72,6 +72,16 @@ class GateConfig:
     track_link_factor: float = 1.0
     """A tracked ray links to its track's landmark when its statistic is within this
     multiple of ``chi2_gate`` (the track, not the ray alone, chose the landmark)."""
+    offset_hypotheses: int = 3
+    """A unit with tracks also tries the offsets that put its longest track on each of its
+    candidate landmarks (at most this many, most gated rays first), each iterated like the
+    first; 0 = only the offset from the wide-gate assignment. Against a lattice of
+    identical signs (a row of parking signs 8.5 m apart) the wide gate can settle on the
+    neighbouring alignment, which the offset then follows."""
+    offset_hypothesis_margin: float = 13.82
+    """An alternative replaces the fit it is compared with only when its score (the linked
+    pairs' summed margins ``chi2_gate - chi2`` minus the offset's prior chi-square) is
+    higher by this much (one ``chi2_gate``: about one more well-fitting ray)."""
 
 
 @dataclass(frozen=True)
@@ -382,8 +392,105 @@ def _assign(rays: LocalRays, ri: IntArray, li: IntArray, cost: Array, cfg: GateC
     return assign_tracks(rays, ri, li, cost, cfg.chi2_gate, cfg.chi2_gate * cfg.track_link_factor)
 
 
+@dataclass(frozen=True)
+class _Fit:
+    """One offset hypothesis of a unit: per ray its landmark (-1 = none), the tracks' unlinked
+    rays, the pairs' statistics under the offset, and the offset with its covariance."""
+
+    best: IntArray
+    unlinked: NDArray[np.bool_] | None
+    cost: Array
+    offset: Array
+    offset_cov: Array
+
+
+def _gated_cost(
+    rays: LocalRays,
+    ri: IntArray,
+    li: IntArray,
+    x: Array,
+    cov: Array,
+    a_cov: Array,
+    cfg: GateConfig,
+    offset: Array | None = None,
+) -> Array:
+    chi2, ok = pair_chi2(rays, ri, x[li], cov[li], a_cov, cfg, offset)
+    return np.where(ok, chi2, np.inf)
+
+
+def _assigned_at(
+    rays: LocalRays,
+    ri: IntArray,
+    li: IntArray,
+    x: Array,
+    cov: Array,
+    cfg: GateConfig,
+    offset: Array,
+    offset_cov: Array,
+) -> _Fit:
+    """The assignment with the origins moved by ``offset`` (their covariance the offset's)."""
+    narrow = origin_cov(rays, 0.0, 0.0) + offset_cov[None]
+    cost = _gated_cost(rays, ri, li, x, cov, narrow, cfg, offset)
+    best, unlinked = _assign(rays, ri, li, cost, cfg)
+    return _Fit(best, unlinked, cost, offset, offset_cov)
+
+
+def _refined(
+    rays: LocalRays, ri: IntArray, li: IntArray, x: Array, cov: Array, cfg: GateConfig, fit: _Fit
+) -> _Fit:
+    """``cfg.offset_iterations`` times: the offset from the assignment, then the assignment
+    under it (while at least ``min_offset_rays`` rays are assigned)."""
+    for _ in range(cfg.offset_iterations):
+        if int((fit.best >= 0).sum()) < cfg.min_offset_rays:
+            break
+        o, oc = estimate_offset(rays, fit.best, x, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m)
+        fit = _assigned_at(rays, ri, li, x, cov, cfg, o, oc)
+    return fit
+
+
+def _fit_score(fit: _Fit, ri: IntArray, li: IntArray, cfg: GateConfig) -> float:
+    """How well an offset hypothesis explains the unit: the summed margins ``chi2_gate -
+    chi2`` of the pairs it links, minus the offset's chi-square under the pass-bias prior
+    (both are twice a log-likelihood ratio)."""
+    linked = (fit.best[ri] == li) & np.isfinite(fit.cost)
+    prior = np.array([cfg.pass_bias_sigma_m, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m])
+    return float(np.sum(cfg.chi2_gate - fit.cost[linked])) - float(
+        np.sum((fit.offset / prior) ** 2)
+    )
+
+
+def _alternative_seeds(
+    rays: LocalRays, ri: IntArray, li: IntArray, x: Array, wide_cost: Array, cfg: GateConfig
+) -> list[tuple[Array, Array]]:
+    """Offsets that put the unit's longest track on each of its candidate landmarks (those
+    its rays gate to under the wide origin covariance, most gated rays first; the one the
+    first fit gave it too: all its rays on it move the offset differently)."""
+    track = rays.tracks
+    cand = np.isfinite(wide_cost) & (track[ri] > 0)
+    if cfg.offset_hypotheses <= 0 or not cand.any():
+        return []
+    pairs = np.unique(np.c_[track[ri[cand]], li[cand]], axis=0)
+    if pairs.shape[0] == np.unique(pairs[:, 0]).size:
+        return []  # every track has one candidate: no other alignment to try
+    ids, n_pairs = np.unique(track[ri[cand]], return_counts=True)
+    longest = ids[np.argmax(n_pairs)]
+    lms, n_rays = np.unique(li[cand & (track[ri] == longest)], return_counts=True)
+    lms = lms[np.argsort(-n_rays, kind="stable")][: cfg.offset_hypotheses]
+    seeds = []
+    for lm in lms.tolist():
+        on = np.where(track == longest, lm, -1)
+        seeds.append(estimate_offset(rays, on, x, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m))
+    return seeds
+
+
 def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateConfig) -> Association:
-    """Associate a unit's rays with landmarks (positions ``x``, covariances, classes)."""
+    """Associate a unit's rays with landmarks (positions ``x``, covariances, classes).
+
+    First every ray against every candidate under the wide origin covariance (the pass's
+    unknown GNSS bias), then under the unit's offset estimated from that assignment
+    (``offset_iterations``); with tracks, also from the offsets that put the longest track
+    on each of its candidates (``offset_hypotheses``), keeping the best-scored
+    (:func:`_fit_score`) if it beats the first by ``offset_hypothesis_margin``."""
     n, m = len(rays), x.shape[0]
     none = Association(np.full(n, -1, np.int64), np.full(n, np.inf), np.zeros(3), np.zeros((3, 3)))
     if n == 0 or m == 0:
@@ -392,19 +499,19 @@ def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateCon
     if ri.size == 0:
         return none
     bias_h, bias_v = cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m
-    wide = origin_cov(rays, bias_h, bias_v)
-    chi2, ok = pair_chi2(rays, ri, x[li], cov[li], wide, cfg)
-    cost = np.where(ok, chi2, np.inf)
-    best, unlinked = _assign(rays, ri, li, cost, cfg)
-    offset, offset_cov = np.zeros(3), np.diag([bias_h**2, bias_h**2, bias_v**2])
-    for _ in range(cfg.offset_iterations):
-        if int((best >= 0).sum()) < cfg.min_offset_rays:
-            break
-        offset, offset_cov = estimate_offset(rays, best, x, bias_h, bias_v)
-        narrow = origin_cov(rays, 0.0, 0.0) + offset_cov[None]
-        chi2, ok = pair_chi2(rays, ri, x[li], cov[li], narrow, cfg, offset)
-        cost = np.where(ok, chi2, np.inf)
-        best, unlinked = _assign(rays, ri, li, cost, cfg)
+    wide_cost = _gated_cost(rays, ri, li, x, cov, origin_cov(rays, bias_h, bias_v), cfg)
+    best, unlinked = _assign(rays, ri, li, wide_cost, cfg)
+    prior_cov = np.diag([bias_h, bias_h, bias_v]) ** 2
+    fit = _refined(
+        rays, ri, li, x, cov, cfg, _Fit(best, unlinked, wide_cost, np.zeros(3), prior_cov)
+    )
+    top = _fit_score(fit, ri, li, cfg) + cfg.offset_hypothesis_margin
+    for o, oc in _alternative_seeds(rays, ri, li, x, wide_cost, cfg):
+        alt = _refined(rays, ri, li, x, cov, cfg, _assigned_at(rays, ri, li, x, cov, cfg, o, oc))
+        if (score := _fit_score(alt, ri, li, cfg)) > top:
+            fit, top = alt, score + cfg.offset_hypothesis_margin
+    best, cost, unlinked = fit.best, fit.cost, fit.unlinked
+    offset, offset_cov = fit.offset, fit.offset_cov
     out_chi2 = np.full(n, np.inf)
     sel = best[ri] == li
     out_chi2[ri[sel]] = cost[sel]
