@@ -118,6 +118,38 @@ def test_offset_recovers_a_shared_bias():
     assert np.linalg.norm(delta[:2] + bias[:2]) < 0.5
 
 
+def _pass_rays(
+    signs: np.ndarray,
+    classes: list[int],
+    origins: np.ndarray,
+    rng,
+    bias: np.ndarray,
+    ahead_m: tuple[float, float],
+    tracked: bool = False,
+) -> tuple[LocalRays, np.ndarray]:
+    """One pass's rays (0.004 rad, 0.5 m white, ``bias`` shared) toward each sign seen
+    between ``ahead_m`` metres ahead along North; with ``tracked`` each sign's rays are one
+    track and carry no range. Returns the rays and each ray's sign."""
+    parts, truth = [], []
+    for k, (s, c) in enumerate(zip(signs, classes, strict=True)):
+        ahead = s[1] - origins[:, 1]
+        seen = (ahead > ahead_m[0]) & (ahead < ahead_m[1])
+        r = rays_to(
+            np.broadcast_to(s, (seen.sum(), 3)),
+            origins[seen],
+            rng,
+            s_ang=0.004,
+            s_pos=0.5,
+            bias=bias,
+            images=np.flatnonzero(seen),
+            cls=c,
+            ranged=not tracked,
+        )
+        parts.append(replace(r, track=np.full(len(r), k + 1)) if tracked else r)
+        truth += [k] * len(r)
+    return LocalRays.concat(parts), np.array(truth)
+
+
 def _pair_scene(sep: np.ndarray, seed: int):
     """Two same-class signs ``sep`` apart plus one other sign, one pass with a 2.4 m bias."""
     rng = np.random.default_rng(seed)
@@ -125,27 +157,11 @@ def _pair_scene(sep: np.ndarray, seed: int):
     b, other = a + sep, np.array([-5.0, 80.0, 2.5])
     origins = np.c_[np.zeros(40), np.linspace(0, 45, 40), np.full(40, 1.4)]
     bias = np.array([1.8, 1.6, 0.0])
-    parts, truth = [], []
-    for k, (s, c) in enumerate(((a, 4), (b, 4), (other, 7))):
-        ahead = (s[1] - origins[:, 1] > 10) & (s[1] - origins[:, 1] < 60)
-        parts.append(
-            rays_to(
-                np.broadcast_to(s, (ahead.sum(), 3)),
-                origins[ahead],
-                rng,
-                s_ang=0.004,
-                s_pos=0.5,
-                bias=bias,
-                images=np.flatnonzero(ahead),
-                cls=c,
-            )
-        )
-        truth += [k] * int(ahead.sum())
-    rays = LocalRays.concat(parts)
     x = np.array([a, b, other])
+    rays, truth = _pass_rays(x, [4, 4, 7], origins, rng, bias, (10.0, 60.0))
     cov = np.repeat(np.diag([0.3, 0.3, 0.5])[None] ** 2, 3, axis=0)
     res = associate(rays, x, cov, np.array([4, 4, 7]), GateConfig())
-    return res, np.array(truth), bias
+    return res, truth, bias
 
 
 def test_same_class_pair_three_metres_apart_across_the_view_is_resolved():
@@ -175,24 +191,9 @@ def _lattice_unit(seed: int) -> tuple[LocalRays, np.ndarray, np.ndarray, np.ndar
     signs = np.array([[x, y, 2.5] for x in (4.0, 17.0) for y in (50.0, 58.5, 67.0)])
     origins = np.c_[np.zeros(60), np.linspace(0, 59, 60), np.full(60, 1.4)]
     bias = np.r_[rng.normal(0, 2.5, 2), 0.0]
-    parts, truth = [], []
-    for k, s in enumerate(signs):
-        ahead = s[1] - origins[:, 1]
-        seen = (ahead > 8) & (ahead < 45)
-        r = rays_to(
-            np.broadcast_to(s, (seen.sum(), 3)),
-            origins[seen],
-            rng,
-            s_ang=0.004,
-            s_pos=0.5,
-            bias=bias,
-            images=np.flatnonzero(seen),
-            ranged=False,
-        )
-        parts.append(replace(r, track=np.full(len(r), k + 1)))
-        truth += [k] * len(r)
+    rays, truth = _pass_rays(signs, [4] * 6, origins, rng, bias, (8.0, 45.0), tracked=True)
     cov = np.repeat(np.diag([0.3, 0.3, 0.5])[None] ** 2, len(signs), axis=0)
-    return LocalRays.concat(parts), signs, cov, np.array(truth)
+    return rays, signs, cov, truth
 
 
 def test_offset_hypotheses_align_a_lattice_of_identical_signs():
