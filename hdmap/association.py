@@ -439,12 +439,16 @@ def _refined(
     rays: LocalRays, ri: IntArray, li: IntArray, x: Array, cov: Array, cfg: GateConfig, fit: _Fit
 ) -> _Fit:
     """``cfg.offset_iterations`` times: the offset from the assignment, then the assignment
-    under it (while at least ``min_offset_rays`` rays are assigned)."""
+    under it (while at least ``min_offset_rays`` rays are assigned). An assignment that
+    comes back unchanged is a fixed point (the same offset again, the same assignment), so
+    the iterations stop there with the same result."""
     for _ in range(cfg.offset_iterations):
         if int((fit.best >= 0).sum()) < cfg.min_offset_rays:
             break
         o, oc = estimate_offset(rays, fit.best, x, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m)
-        fit = _assigned_at(rays, ri, li, x, cov, cfg, o, oc)
+        prev, fit = fit, _assigned_at(rays, ri, li, x, cov, cfg, o, oc)
+        if np.array_equal(fit.best, prev.best):
+            break
     return fit
 
 
@@ -469,9 +473,6 @@ def _alternative_seeds(
     cand = np.isfinite(wide_cost) & (track[ri] > 0)
     if cfg.offset_hypotheses <= 0 or not cand.any():
         return []
-    pairs = np.unique(np.c_[track[ri[cand]], li[cand]], axis=0)
-    if pairs.shape[0] == np.unique(pairs[:, 0]).size:
-        return []  # every track has one candidate: no other alignment to try
     ids, n_pairs = np.unique(track[ri[cand]], return_counts=True)
     longest = ids[np.argmax(n_pairs)]
     lms, n_rays = np.unique(li[cand & (track[ri] == longest)], return_counts=True)
