@@ -149,3 +149,12 @@ def test_decode_returns_or_raises_value_error(blob):
     assert lay.version == blob[0]
     assert rec.dtype == lay.row and op.dtype == lay.open
     assert len(blob) >= 1 + lay.row.itemsize + op.size * lay.open.itemsize
+    assert int(rec["n_open"]) == op.size >= 0
+
+
+def test_negative_n_open_is_refused():
+    rec = np.zeros((), ROW_DTYPE)
+    rec["n_open"] = -1
+    blob = encode(layout(5), rec, np.zeros(2, OPEN_DTYPE))
+    with pytest.raises(ValueError, match="n_open -1"):
+        decode(blob)

@@ -20,8 +20,8 @@ So a row packs to 565 bytes plus 176 per open pass, or, where it keeps a pull
 only for such rows, version 4 otherwise (8 bytes less per row and per open pass, which
 keeps two rows with 8 open passes in one SQLite page). Versions 1-4 still load
 (:data:`OLD_PACK_VERSIONS` says what ``unpack_rows`` fills in). Bytes after the last open
-record are ignored. (Until 2026-11-30 version 2 was read with version 3's open record, so
-a version 2 blob with open passes failed to load.)
+record are ignored; a negative ``n_open`` is refused. (Until 2026-11-30 version 2 was
+read with version 3's open record, so a version 2 blob with open passes failed to load.)
 
 >>> layout(4).row.itemsize, layout(4).open.itemsize
 (564, 176)
@@ -132,10 +132,14 @@ def encode(lay: Layout, rec: np.ndarray | np.void, op: np.ndarray) -> bytes:
 
 def decode(blob: bytes) -> tuple[Layout, np.void, np.ndarray]:
     """A blob's layout, row record and ``n_open`` open-pass records (read-only views of
-    ``blob``). ``ValueError`` for an empty blob, an unknown version or too few bytes."""
+    ``blob``). ``ValueError`` for an empty blob, an unknown version, a negative ``n_open``
+    or too few bytes."""
     if not blob:
         raise ValueError("unknown landmark state version")
     lay = layout(blob[0])
     rec = np.frombuffer(blob, lay.row, count=1, offset=1)[0]
-    op = np.frombuffer(blob, lay.open, count=int(rec["n_open"]), offset=1 + lay.row.itemsize)
+    n_open = int(rec["n_open"])
+    if n_open < 0:
+        raise ValueError(f"landmark state: n_open {n_open} < 0")
+    op = np.frombuffer(blob, lay.open, count=n_open, offset=1 + lay.row.itemsize)
     return lay, rec, op
