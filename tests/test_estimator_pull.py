@@ -83,11 +83,10 @@ def test_the_pull_survives_pass_weighting_holds_packs_and_merges():
     np.testing.assert_allclose(held.solve(row, False).cov, ref.solve(r_ref, False).cov, rtol=1e-9)
     # closed, packed and restored; and merged from two halves: the same covariance
     b = held.solve(row, False)
-    on = held
-    on.close_passes()
-    np.testing.assert_allclose(on.solve(row, False).cov, b.cov, rtol=1e-9)
+    held.close_passes()
+    np.testing.assert_allclose(held.solve(row, False).cov, b.cov, rtol=1e-9)
     again = LandmarkSums(cfg)
-    r2 = again.unpack_rows(on.pack_rows(row))
+    r2 = again.unpack_rows(held.pack_rows(row))
     np.testing.assert_allclose(again.solve(r2, False).cov, b.cov, rtol=1e-9)
     halves = LandmarkSums(cfg)
     rows = halves.new_rows(2, np.stack([x0, x0]))

@@ -11,13 +11,12 @@ import pytest
 
 from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.estimator.packing import (
-    OPEN_DTYPE,
     OPEN_DTYPE_V2,
     OPEN_DTYPE_V3,
     OPEN_DTYPE_V4,
-    ROW_DTYPE,
     ROW_DTYPE_V2,
     ROW_DTYPE_V4,
+    decode,
 )
 from tests.test_estimator import true_angles
 
@@ -157,10 +156,7 @@ def test_a_pass_is_held_or_not_for_good(data):
 
 def _downgrade(blob: bytes, version: int, row_dt: np.dtype, open_dt: np.dtype) -> bytes:
     """An older blob: the current one with only the older version's columns."""
-    now = (ROW_DTYPE, OPEN_DTYPE) if blob[0] == 5 else (ROW_DTYPE_V4, OPEN_DTYPE_V4)
-    row_now, open_now = now
-    rec = np.frombuffer(blob, row_now, count=1, offset=1)
-    op = np.frombuffer(blob, open_now, offset=1 + row_now.itemsize)
+    _, rec, op = decode(blob)
     r_old, o_old = np.zeros(1, row_dt), np.zeros(op.size, open_dt)
     for name in row_dt.names:
         r_old[name] = rec[name]

@@ -85,7 +85,7 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
     if not seeds:
         _run_paper_once(args, Path(args.out), int(args.seed))
         return 0
-    from hdmap.evaluation.fleet_seeds import format_seed_table, summarise_seeds
+    from hdmap.evaluation.fleet_seeds import summarise_seeds
     from hdmap.evaluation.paper_sim import SEED_COLUMNS, claims_row
 
     out = Path(args.out)
@@ -100,11 +100,20 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
     if getattr(args, "quick", False):
         opts.append("--quick")
     summary["meta"] = {"command": "hdmap eval paper-sim " + " ".join(opts)}
-    path = out / "paper_sim_seeds.json"
-    path.write_text(json.dumps(_clean(summary), indent=1, default=_json_default))
-    print(format_seed_table(summary, SEED_COLUMNS), file=sys.stderr)
-    print(f"paper-sim: wrote {path}", file=sys.stderr, flush=True)
+    _write_seed_summary(summary, out / "paper_sim_seeds.json", SEED_COLUMNS, "paper-sim")
     return 0
+
+
+def _write_seed_summary(
+    summary: dict, path: Path, columns: list[tuple[str, str, str]], prog: str
+) -> None:
+    """Write a ``--seeds`` summary as JSON and print its table (``columns``, see
+    :func:`hdmap.evaluation.fleet_seeds.format_seed_table`)."""
+    from hdmap.evaluation.fleet_seeds import format_seed_table
+
+    path.write_text(json.dumps(_clean(summary), indent=1, default=_json_default))
+    print(format_seed_table(summary, columns), file=sys.stderr)
+    print(f"{prog}: wrote {path}", file=sys.stderr, flush=True)
 
 
 def _run_paper_once(args: argparse.Namespace, out: Path, seed: int) -> dict:
@@ -209,7 +218,7 @@ def _non_negative(text: str) -> float:
         v = float(text)
     except ValueError:
         v = float("nan")
-    if not v >= 0.0 or v == float("inf"):
+    if not (math.isfinite(v) and v >= 0.0):
         raise argparse.ArgumentTypeError(f"need a finite number >= 0, got {text!r}")
     return v
 
@@ -231,7 +240,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         _run_fleet_once(args, out, args.seed)
         return 0
     from hdmap.evaluation.fleet_plots import write_seed_figure
-    from hdmap.evaluation.fleet_seeds import format_seed_table, seed_row, summarise_seeds
+    from hdmap.evaluation.fleet_seeds import FLEET_COLUMNS, seed_row, summarise_seeds
 
     rows = {}
     if args.jobs > 1:
@@ -251,10 +260,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         "command": "hdmap eval fleet " + " ".join(opts + _run_options(args)),
         "figures": [write_seed_figure(summary, out).name],
     }
-    path = out / "fleet_seeds.json"
-    path.write_text(json.dumps(_clean(summary), indent=1, default=_json_default))
-    print(format_seed_table(summary), file=sys.stderr)
-    print(f"fleet: wrote {path}", file=sys.stderr, flush=True)
+    _write_seed_summary(summary, out / "fleet_seeds.json", FLEET_COLUMNS, "fleet")
     return 0
 
 

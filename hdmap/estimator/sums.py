@@ -157,7 +157,8 @@ class LandmarkSums:
 
     @property
     def open_pass_bytes(self) -> int:
-        """In-memory state per open pass, bytes."""
+        """Bytes of numeric state per open pass: the size of its packed (version 5) record
+        (the in-memory arrays hold the same fields, plus the slot's row)."""
         return OPEN_DTYPE.itemsize
 
     @property
@@ -454,7 +455,9 @@ class LandmarkSums:
         alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
         j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
         _scatter_add(self._j6, r[~held], j6[~held])
-        pull = pull_terms(rays, origin_rel, self._x_ref[r], self.config)
+        # the pull sum of an unreported pass bias: only when configured (zeros otherwise)
+        pulled = self.config.extra_sigma_pos_m > 0
+        pull = pull_terms(rays, origin_rel, self._x_ref[r], self.config) if pulled else None
         if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
             raise ValueError("non-finite ray terms (check directions and sigmas)")
         _scatter_add(self._n_obs, r, np.ones(n, np.int64))
@@ -462,7 +465,8 @@ class LandmarkSums:
         _scatter_add(self._w1, r, wr)
         _scatter_add(self._w2, r, wr**2)
         if not self.config.cluster_robust:
-            _scatter_add(self._c1, r, pull)
+            if pull is not None:
+                _scatter_add(self._c1, r, pull)
             _scatter_add(self._a6, r, alpha)
             _scatter_add(self._b, r, beta)
             _scatter_add(self._saa, r, outer6_to_tri(alpha))
@@ -503,7 +507,7 @@ class LandmarkSums:
         self._o_w2[slots] += np.add.reduceat((wr**2)[order], starts)
         self._o_a6[slots] += g_a6
         self._o_b[slots] += g_b
-        if self.config.extra_sigma_pos_m > 0:
+        if pull is not None:
             self._o_c1[slots] += np.add.reduceat(pull[order], starts)
         self._o_s2[slots] += g_s2
         self._o_w[slots] += g_w
