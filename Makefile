@@ -18,8 +18,10 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP) ## create .venv and install the project with its dev tools
 
-lint: $(STAMP) ## ruff check
+lint: $(STAMP) ## ruff check, ruff format --check, the import contracts (pyproject.toml)
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/lint-imports
 
 format: $(STAMP) ## ruff format + autofix
 	$(BIN)/ruff check --fix .

@@ -37,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine
-from hdmap.signs import CATALOG
+from hdmap.geo.signs import CATALOG
 from schemas import Landmarks, MapDelta, MapSnapshot, ObservationBatch, Observations, Removals
 
 T0 = 1.7e9

@@ -1,6 +1,6 @@
 """End to end: the highest sustained observations/s with zero loss and p99 latency < 1 s.
 
-A router and the four services (hdmap.stack.Stack, on 127.0.0.1) get a simulated
+A router and the four services (hdmap.ops.stack.Stack, on 127.0.0.1) get a simulated
 fleet (``hdmap loadtest``'s :func:`run_load`) at stepped rates (1k, 2k, 5k, 10k, 20k,
 50k, 100k obs/s; the goal is 100k), each step ``--seconds`` of load plus its drain, on
 one stack (the map built by the first steps stays, like a running deployment). A step
@@ -42,9 +42,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks import bench_zenoh
 from fleetsim.loadgen import LoadConfig, build_pool, upload_payloads
-from hdmap.bus import open_session
-from hdmap.commands.loadtest import run_load
-from hdmap.stack import Stack
+from hdmap.cli.loadtest import run_load
+from hdmap.ops.stack import Stack
+from hdmap.runtime.bus import open_session
 
 ROOT = Path(__file__).resolve().parent.parent
 RATES = (1_000, 2_000, 5_000, 10_000, 20_000, 50_000, 100_000)

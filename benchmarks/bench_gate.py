@@ -1,6 +1,6 @@
 """Gating statistic kernel: the projected covariance ``J C J^T`` by batched matmul vs einsum.
 
-:func:`hdmap.association.pair_chi2` is the matcher's hottest function (5.5 of 19.6 s
+:func:`hdmap.mapping.association.pair_chi2` is the matcher's hottest function (5.5 of 19.6 s
 under cProfile replaying a fleet evaluation's uploads, before this change) and also runs
 in the vehicle's tracker and in initiation. Per (ray, landmark) pair it projects the 3x3
 position covariance (landmark plus ray origin) through the 2x3 angle Jacobian and takes
@@ -36,8 +36,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine, machine_line, write_json
-from hdmap.association import GateConfig, LocalRays, origin_cov, pair_chi2
-from hdmap.estimator.gating import angle_jacobian
+from hdmap.mapping.association import GateConfig, LocalRays, origin_cov, pair_chi2
+from hdmap.mapping.estimator.gating import angle_jacobian
 
 
 def random_pairs(rng: np.random.Generator, k: int) -> tuple[LocalRays, np.ndarray, np.ndarray]:

@@ -28,7 +28,7 @@ Three measurements, one process, one run:
    (``--tile-landmarks``): ``services.publisher.tilemap.snapshot(conn, tile)`` on the
    publisher's SQLite (read-only connection, as the queryable uses), then encoded; and the
    same through a real Zenoh query (router + publisher process started with
-   :class:`hdmap.stack.Stack`, ``--no-zenoh`` skips it).
+   :class:`hdmap.ops.stack.Stack`, ``--no-zenoh`` skips it).
 
     .venv/bin/python benchmarks/bench_scale.py [--quick] [--json out/bench/scale.json]
 """
@@ -60,11 +60,10 @@ from bench_solver import (
     write_json,
 )
 
-from hdmap import keys
-from hdmap.estimator import EstimatorConfig, LandmarkSums
-from hdmap.store import connect
-from hdmap.tiles import quadkeys_of, tile_center
-from schemas import LandmarkUpdates, MapSnapshot, Removals
+from hdmap.geo.tiles import quadkeys_of, tile_center
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
+from hdmap.runtime.store import connect
+from schemas import LandmarkUpdates, MapSnapshot, Removals, keys
 from services.publisher.tilemap import TileMaps, snapshot
 from services.solver.state import SolverLandmark, SolverState
 
@@ -291,8 +290,8 @@ def bench_snapshot_direct(db: Path, tiles: dict[int, str], repeat: int) -> list[
 
 
 def bench_snapshot_zenoh(data_dir: Path, tiles: dict[int, str], repeat: int) -> list[dict]:
-    from hdmap.bus import open_session
-    from hdmap.stack import Stack
+    from hdmap.ops.stack import Stack
+    from hdmap.runtime.bus import open_session
 
     out = []
     with Stack(data_dir) as st:

@@ -39,9 +39,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks import bench_zenoh
 from benchmarks.bench_e2e import load_average, load_config, step
 from fleetsim.loadgen import LoadConfig, build_pool
-from hdmap.bus import open_session
-from hdmap.stack import Stack
-from hdmap.tiles import DEFAULT_TARGET_RANGE_M, DEFAULT_ZOOM, route_rays
+from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, DEFAULT_ZOOM, route_rays
+from hdmap.ops.stack import Stack
+from hdmap.runtime.bus import open_session
 from schemas import Observations
 
 

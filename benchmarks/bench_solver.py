@@ -50,8 +50,8 @@ from scipy.optimize import least_squares
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine, machine_line, write_json
-from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
-from hdmap.estimator.model import SYM_I, SYM_J, ray_angles, sym_to_mat
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.mapping.estimator.model import SYM_I, SYM_J, ray_angles, sym_to_mat
 
 # ---------------------------------------------------------------------------- shared helpers
 
@@ -175,8 +175,8 @@ def make_fleet(n: int, passes: int, per_pass: int, seed: int = 0) -> Fleet:
 
 
 def load_sums_class(path: Path) -> type:
-    """``LandmarkSums`` from another copy of ``hdmap/estimator/sums.py`` (e.g. ``git show
-    REV:hdmap/estimator/sums.py > /tmp/sums_rev.py``), to time two versions side by side."""
+    """``LandmarkSums`` from another copy of ``hdmap/mapping/estimator/sums.py`` (e.g. ``git show
+    REV:hdmap/mapping/estimator/sums.py > /tmp/sums_rev.py``), to time two versions side by side."""
     spec = importlib.util.spec_from_file_location(f"sums_{path.stem}", path)
     if spec is None or spec.loader is None:
         raise SystemExit(f"cannot load {path}")

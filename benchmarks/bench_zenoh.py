@@ -29,10 +29,10 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import machine
-from hdmap.bus import BusConfig, Publishers, open_session
-from hdmap.stack import Stack
+from fleetsim.synthetic import make_observations
+from hdmap.ops.stack import Stack
+from hdmap.runtime.bus import BusConfig, Publishers, open_session
 from schemas import ObservationBatch
-from tests.conftest import make_observations
 
 
 def serve(endpoint: str) -> None:

@@ -10,14 +10,14 @@ panel's top/bottom and left/right edge points (panel width = panel height).
 Each visible sign is detected with the detector's probability; the box centre
 gets pixel noise, its width and height ``size_sigma_px`` (0 in the presets: size kept),
 and it is clipped to the image as real detectors do
-(a clipped box gives no range in :func:`hdmap.geoloc.box_range`). An image
+(a clipped box gives no range in :func:`vehicle.geoloc.box_range`). An image
 holds one false positive (random class, random plausible box) with the false
 positive rate.
 
 The GNSS antenna's true position and heading get the noise model's errors
 (per-pass bias + random walk, white, multipath) and become geodetic fixes; the
 heading is turned to the local North at the fix (meridian convergence), so a
-noise-free pass is geometrically exact through :func:`hdmap.geoloc.geolocate`.
+noise-free pass is geometrically exact through :func:`vehicle.geoloc.geolocate`.
 
 Headings inside the simulator are radians clockwise from the world frame's North.
 """
@@ -32,8 +32,8 @@ from numpy.typing import NDArray
 from fleetsim.noise import GnssErrors, NoiseModel
 from fleetsim.route import Path
 from fleetsim.world import World
-from hdmap.geodesy import ecef_to_enu_vectors
-from hdmap.geoloc import Detections, GnssFixes, VehicleModel, vehicle_to_enu
+from hdmap.geo.geodesy import ecef_to_enu_vectors
+from vehicle.geoloc import Detections, GnssFixes, VehicleModel, vehicle_to_enu
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

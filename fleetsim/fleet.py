@@ -28,7 +28,7 @@ from fleetsim.drive import DriveParams, DriveTruth, simulate_pass
 from fleetsim.noise import FLEET, NoiseModel
 from fleetsim.route import Path, random_route
 from fleetsim.world import World
-from hdmap.geoloc import Detections, GnssFixes, VehicleModel
+from vehicle.geoloc import Detections, GnssFixes, VehicleModel
 
 
 def vehicle_id(index: int) -> str:

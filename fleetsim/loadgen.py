@@ -34,15 +34,14 @@ from fleetsim.fleet import Fleet, FleetConfig
 from fleetsim.noise import FLEET
 from fleetsim.pipeline import model_for
 from fleetsim.world import World, demo_town
-from hdmap import keys
-from hdmap.bus import query
-from hdmap.geoloc import geolocate
-from hdmap.tiles import neighbours, quadkeys_of
-from hdmap.tracking import smoothed_rays, track_rays
-from schemas import DecodeError, MapDelta, ObservationBatch, Observations, UploadAck
+from hdmap.geo.tiles import neighbours, quadkeys_of
+from hdmap.runtime.bus import query
+from schemas import DecodeError, MapDelta, ObservationBatch, Observations, UploadAck, keys
 from vehicle.agent import DEFAULT_TRACKING as TRACKING
 from vehicle.agent import to_observations
 from vehicle.config import load_vehicle_model
+from vehicle.geoloc import geolocate
+from vehicle.tracking import smoothed_rays, track_rays
 
 
 def new_run_id() -> str:

@@ -155,7 +155,7 @@ class DetectorNoise:
     """Std of the box's width and of its height, px (the centre keeps ``pixel_sigma``).
     0 keeps the true size: the box-size range then errs only by the panel's own size.
     The vehicle model assumes ``sqrt(2) * pixel_sigma`` on the height
-    (:func:`hdmap.geoloc.box_range`)."""
+    (:func:`vehicle.geoloc.box_range`)."""
     detection_prob: float = 1.0
     false_positive_rate: float = 0.0
     """Probability that an image holds one false positive."""

@@ -46,8 +46,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from fleetsim.world import Signs, World, tile_border_distance
-from hdmap.geodesy import EnuFrame
-from hdmap.signs import CATALOG
+from hdmap.geo.geodesy import EnuFrame
+from hdmap.geo.signs import CATALOG
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -20,9 +20,9 @@ import zenoh
 from fleetsim.fleet import Fleet, FleetConfig, Pass
 from fleetsim.noise import NoiseModel
 from fleetsim.world import World
-from hdmap.geoloc import VehicleModel
-from hdmap.tiles import DEFAULT_ZOOM, quadkeys_of
+from hdmap.geo.tiles import DEFAULT_ZOOM, quadkeys_of
 from vehicle.agent import VehicleAgent
+from vehicle.geoloc import VehicleModel
 from vehicle.mapclient import MapClient
 
 

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from fleetsim.drive import DriveTruth
 from fleetsim.world import World
-from hdmap.signs import CATALOG, SignCatalog
+from hdmap.geo.signs import CATALOG, SignCatalog
 
 Array = NDArray[np.float64]
 

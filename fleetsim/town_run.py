@@ -22,11 +22,11 @@ from fleetsim.noise import FLEET, PAPER, NoiseModel
 from fleetsim.pipeline import FleetDriver, fleet_config_ending_now, model_for, town_tiles
 from fleetsim.score import MapScore, score
 from fleetsim.world import World, demo_town
-from hdmap.bus import open_session
-from hdmap.commands.status import collect
-from hdmap.quiesce import totals, wait_quiet
-from hdmap.stack import Stack
-from hdmap.tiles import neighbours
+from hdmap.geo.tiles import neighbours
+from hdmap.ops.quiesce import totals, wait_quiet
+from hdmap.ops.stack import Stack
+from hdmap.ops.status import collect
+from hdmap.runtime.bus import open_session
 from schemas import Landmarks
 from vehicle.config import load_vehicle_model
 from vehicle.mapclient import MapClient

@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
 from fleetsim.world import World
-from hdmap.geoloc import ProjectionLines
+from vehicle.geoloc import ProjectionLines
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -20,9 +20,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from hdmap.geodesy import EnuFrame
-from hdmap.signs import CATALOG, SignCatalog
-from hdmap.tiles import DEFAULT_ZOOM, tile_xy
+from hdmap.geo.geodesy import EnuFrame
+from hdmap.geo.signs import CATALOG, SignCatalog
+from hdmap.geo.tiles import DEFAULT_ZOOM, tile_xy
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from hdmap.signs import CATALOG, SignCatalog
+from hdmap.geo.signs import CATALOG, SignCatalog
 from schemas.codec import (
     VERSION,
     DecodeError,
@@ -60,7 +60,7 @@ class Observations(Table):
     obs_id: np.ndarray = col("u8", doc="unique per vehicle")
     t: np.ndarray = col("f8", lo=0.0, hi=_FLOAT_EPOCH_MAX, unit_label="s", doc="capture time, Unix")
     image: np.ndarray = col("u4", doc="image index within the pass; same value = same image")
-    sign_class: np.ndarray = col("u2", doc="sign class code (hdmap.signs)")
+    sign_class: np.ndarray = col("u2", doc="sign class code (hdmap.geo.signs)")
     lat: np.ndarray = col("f8", lo=-90.0, hi=90.0, unit_label="deg", doc="camera centre A")
     lon: np.ndarray = col("f8", lo=-180.0, hi=180.0, unit_label="deg")
     h: np.ndarray = col("f8", lo=-1000.0, hi=10000.0, unit_label="m", doc="ellipsoidal height")

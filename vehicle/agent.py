@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from hdmap.geoloc import (
+from schemas import Observations
+from vehicle.geoloc import (
     Detections,
     FixCheck,
     GnssFixes,
@@ -20,8 +21,7 @@ from hdmap.geoloc import (
     fix_outliers,
     geolocate,
 )
-from hdmap.tracking import TrackConfig, smoothed_rays, track_rays
-from schemas import Observations
+from vehicle.tracking import TrackConfig, smoothed_rays, track_rays
 from vehicle.uploader import Uploader, UploadResult
 
 DEFAULT_FIX_CHECK = FixCheck()

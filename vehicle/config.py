@@ -1,4 +1,4 @@
-"""Vehicle + camera configuration: a TOML file -> :class:`hdmap.geoloc.VehicleModel`.
+"""Vehicle + camera configuration: a TOML file -> :class:`vehicle.geoloc.VehicleModel`.
 
 The format is documented in ``vehicle/default_vehicle.toml`` (shipped with the
 package, loaded when no file is given). Every error names the offending key:
@@ -22,9 +22,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from hdmap.camera import Intrinsics
-from hdmap.geoloc import VehicleModel
-from hdmap.signs import CATALOG, SignCatalog
+from hdmap.geo.camera import Intrinsics
+from hdmap.geo.signs import CATALOG, SignCatalog
+from vehicle.geoloc import VehicleModel
 
 DEFAULT_FILE = "default_vehicle.toml"
 

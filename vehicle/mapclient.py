@@ -25,11 +25,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from hdmap import keys
-from hdmap.bus import query
-from hdmap.geodesy import EnuFrame
-from hdmap.tiles import DEFAULT_ZOOM, tiles_around
-from schemas import DecodeError, Landmarks, MapDelta, MapSnapshot
+from hdmap.geo.geodesy import EnuFrame
+from hdmap.geo.tiles import DEFAULT_ZOOM, tiles_around
+from hdmap.runtime.bus import query
+from schemas import DecodeError, Landmarks, MapDelta, MapSnapshot, keys
 
 log = logging.getLogger(__name__)
 

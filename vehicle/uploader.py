@@ -22,10 +22,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from hdmap import keys
-from hdmap.bus import query
-from hdmap.store import connect, i64_to_u64, transaction, u64_to_i64
-from schemas import DecodeError, ObservationBatch, Observations, Rejection, UploadAck
+from hdmap.runtime.bus import query
+from hdmap.runtime.store import connect, i64_to_u64, transaction, u64_to_i64
+from schemas import DecodeError, ObservationBatch, Observations, Rejection, UploadAck, keys
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from hdmap.config import ConfigError
+from hdmap.runtime.config import ConfigError
 
 
 @dataclass(frozen=True)

@@ -30,12 +30,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from hdmap import keys
-from hdmap.service import Item, Service, ServiceOptions
-from hdmap.store import StorageError, u64_to_i64
-from hdmap.stream import STAGE_KEYS, LogServer, LogWriter
-from hdmap.tiles import DEFAULT_TARGET_RANGE_M, route_rays
-from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck
+from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, route_rays
+from hdmap.runtime.service import Item, Service, ServiceOptions
+from hdmap.runtime.store import StorageError, u64_to_i64
+from hdmap.runtime.stream import STAGE_KEYS, LogServer, LogWriter
+from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys
 from schemas.codec import valid_id
 from schemas.messages import MAX_BATCH
 from services.ingest.admission import AdmissionPolicy, admit, check_header

@@ -1,12 +1,12 @@
 """Matcher: the single writer of landmark identities for its region.
 
-Per obs entry (one upload's rays for one tile, in order; see :mod:`hdmap.stage`):
+Per obs entry (one upload's rays for one tile, in order; see :mod:`hdmap.runtime.stage`):
 
 1. rays into the tile's ENU frame; candidate landmarks of the same classes from
    the tile and its 8 neighbours (so a sign near a border is one landmark);
-2. :func:`hdmap.association.associate`: gate, per-pass offset, per-image assignment;
+2. :func:`hdmap.mapping.association.associate`: gate, per-pass offset, per-image assignment;
 3. unmatched rays join the pending pool; the pass's pending rays (this tile and
-   its neighbours) may form candidate landmarks (:mod:`hdmap.initiation`); then
+   its neighbours) may form candidate landmarks (:mod:`hdmap.mapping.initiation`); then
    pending rays of other passes are offered to the new landmarks;
 4. matched rays update the matcher's own gating sums (the same estimator as the
    solver, so gating is deterministic given the input order), and one
@@ -28,7 +28,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hdmap.association import (
+from hdmap.geo.geodesy import GEODESY
+from hdmap.geo.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
+from hdmap.mapping.association import (
     Association,
     GateConfig,
     LocalRays,
@@ -37,14 +39,13 @@ from hdmap.association import (
     pair_chi2,
     valid_tracks,
 )
-from hdmap.config import ConfigError
-from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
-from hdmap.estimator.provisional import prior_covariance, usable
-from hdmap.geodesy import GEODESY
-from hdmap.initiation import InitConfig, propose, triangulate_groups
-from hdmap.quiet import QuietPasses, close_quiet, merge_rows, note_open
-from hdmap.stage import StageService
-from hdmap.tiles import TileFrames, frame_map, in_region, neighbours, quadkeys_of
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.mapping.estimator.provisional import prior_covariance, usable
+from hdmap.mapping.initiation import InitConfig, propose, triangulate_groups
+from hdmap.mapping.quiet import QuietPasses, close_quiet, merge_rows, note_open
+from hdmap.mapping.trust import CAUGHT, FleetOffsets, TrustConfig, VehicleTrust
+from hdmap.runtime.config import ConfigError
+from hdmap.runtime.stage import StageService
 from schemas import (
     DROP,
     RELEASE,
@@ -57,8 +58,8 @@ from schemas import (
     ObsGroup,
     TrustChanges,
 )
-from services.matcher.state import Landmark, MatcherState, hold_key, pass_key
-from services.matcher.trust import CAUGHT, FleetOffsets, TrustConfig, VehicleTrust
+from schemas.ids import hold_key, pass_key
+from services.matcher.state import Landmark, MatcherState
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +85,7 @@ class MatcherConfig:
     """Unmatched rays older than this are dropped (counted as expired)."""
     close_passes_after_s: float = 7200.0
     """Close a pass in the gating sums once no ray of it has been linked for this long
-    (wall-clock seconds, :mod:`hdmap.quiet`; 0: open until evicted). Above
+    (wall-clock seconds, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above
     ``pending_ttl_s``: a pending ray can still be linked until it expires."""
     trust: TrustConfig = field(default_factory=TrustConfig)
     """Per-vehicle weights from the history of its pass offsets and gate failures."""
@@ -128,7 +129,7 @@ class MatcherConfig:
     provisional_passes: int = 0
     """If > 0, gating estimates follow the landmark's solution from this many passes on
     (before the estimator's ``min_clusters``, with the pass-bias prior in the covariance;
-    see :mod:`hdmap.estimator.provisional`). Off: until ``min_clusters`` passes the gate
+    see :mod:`hdmap.mapping.estimator.provisional`). Off: until ``min_clusters`` passes the gate
     uses the initiating pass's triangulation with the full pass bias, which the fleet
     evaluation found far safer (with 2: association right 0.51 vs 0.81 at 20-29 passes,
     many more duplicates; a 2-4 pass sandwich covariance is too small to gate with)."""

@@ -7,7 +7,6 @@ memory from the database (start, or after a failed transaction).
 
 from __future__ import annotations
 
-import hashlib
 import sqlite3
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -15,10 +14,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from hdmap.store import id_from_sql, id_to_sql, u64_to_i64
-from hdmap.tiles import tile_id
+from hdmap.mapping.trust import PassOffsets, VehicleTrust
+from hdmap.runtime.store import id_from_sql, id_to_sql, u64_to_i64
 from schemas import Observations
-from services.matcher.trust import PassOffsets, VehicleTrust
+from schemas.ids import landmark_id, pass_key
 
 _REC = Observations.CODEC.record_dtype
 
@@ -46,45 +45,10 @@ CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
 """
 
-COUNTER_BITS = 24
-
-
-def landmark_id(home_tile: str, counter: int) -> int:
-    """A landmark id embeds its creation tile: (quadkey as base-4 int) << 24 | counter.
-
-    >>> hex(landmark_id('0123', 5))
-    '0x1b000005'
-    """
-    if not 0 < counter < (1 << COUNTER_BITS):
-        raise ValueError("landmark counter out of range for its tile")
-    return (tile_id(home_tile) << COUNTER_BITS) | counter
-
 
 def _pair(a: int, b: int) -> tuple[int, int]:
     """Key of an unordered pair of landmark ids."""
     return (a, b) if a < b else (b, a)
-
-
-def _key63(text: str) -> int:
-    h = hashlib.blake2b(text.encode(), digest_size=8).digest()
-    return int.from_bytes(h, "little") & ((1 << 63) - 1) or 1
-
-
-def pass_key(vehicle: str, pass_id: int, held: bool = False) -> int:
-    """Stable 63-bit cluster key of (vehicle, pass), the same in every process; the rays a
-    pass sent while its vehicle was on probation form a cluster of their own (``held``).
-
-    >>> pass_key("veh-1", 7) == pass_key("veh-1", 7) != pass_key("veh-1", 8)
-    True
-    >>> pass_key("veh-1", 7, held=True) != pass_key("veh-1", 7)
-    True
-    """
-    return _key63(f"{vehicle}\x00{pass_id}" + ("\x00held" if held else ""))
-
-
-def hold_key(vehicle: str) -> int:
-    """Non-zero key of a vehicle's held passes (``LandmarkSums.accumulate(hold=...)``)."""
-    return _key63(f"{vehicle}\x00hold")
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """Publisher: owns the tile maps, pushes deltas, answers snapshots.
 
 Consumes the solver's update log for its region (exactly once, see
-:mod:`hdmap.stage`), coalesces changes, and every ``interval_s`` publishes one
+:mod:`hdmap.runtime.stage`), coalesces changes, and every ``interval_s`` publishes one
 :class:`schemas.MapDelta` per changed tile on ``hdmap/v1/map/<tile>/delta``
 (version + 1 per change set). The ``hdmap/v1/map/<tile>`` queryable answers
 :class:`schemas.MapSnapshot` for any tile of the region, also empty ones.
@@ -19,12 +19,11 @@ from dataclasses import dataclass
 
 import zenoh
 
-from hdmap import keys
-from hdmap.stage import StageService
-from hdmap.store import StorageError
-from hdmap.stream import QueryServer
-from hdmap.tiles import in_region, valid_quadkey
-from schemas import DecodeError, ErrorReply, LandmarkUpdates, LogEntry
+from hdmap.geo.tiles import in_region, valid_quadkey
+from hdmap.runtime.stage import StageService
+from hdmap.runtime.store import StorageError
+from hdmap.runtime.stream import QueryServer
+from schemas import DecodeError, ErrorReply, LandmarkUpdates, LogEntry, keys
 from services.publisher.tilemap import TileMaps, snapshot
 
 log = logging.getLogger(__name__)

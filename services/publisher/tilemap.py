@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from hdmap.store import i64_to_u64, u64_to_i64
+from hdmap.runtime.store import i64_to_u64, u64_to_i64
 from schemas import Landmarks, LandmarkUpdates, MapDelta, MapSnapshot, Removals
 
 _FIELDS = (

@@ -1,7 +1,7 @@
 """Solver: the single writer of landmark estimates for its region.
 
-Consumes the matcher's assoc log (exactly once, :mod:`hdmap.stage`). Per landmark
-it keeps the incremental normal-equation sums of :mod:`hdmap.estimator` (O(1) per
+Consumes the matcher's assoc log (exactly once, :mod:`hdmap.runtime.stage`). Per landmark
+it keeps the incremental normal-equation sums of :mod:`hdmap.mapping.estimator` (O(1) per
 observation, updated in vectorised batches, in the ENU frame of the landmark's
 home tile). After each batch it solves the touched landmarks and appends, per tile,
 a :class:`schemas.LandmarkUpdates` entry to its update log with the landmarks whose
@@ -21,12 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hdmap.estimator import EstimatorConfig, LandmarkSums, Rays
-from hdmap.estimator.provisional import usable
-from hdmap.geodesy import enu_rotation
-from hdmap.quiet import QuietPasses, close_quiet, merge_rows, note_open
-from hdmap.stage import StageService
-from hdmap.tiles import TileFrames, frame_map, quadkeys_of
+from hdmap.geo.geodesy import enu_rotation
+from hdmap.geo.tiles import TileFrames, frame_map, quadkeys_of
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.mapping.estimator.provisional import usable
+from hdmap.mapping.quiet import QuietPasses, close_quiet, merge_rows, note_open
+from hdmap.runtime.stage import StageService
 from schemas import (
     DROP,
     STATUS_CANDIDATE,
@@ -38,7 +38,7 @@ from schemas import (
     LogEntry,
     Removals,
 )
-from services.matcher.state import hold_key, pass_key
+from schemas.ids import hold_key, home_tile, pass_key
 from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
@@ -66,7 +66,7 @@ class SolverConfig:
     sections 12 and 15)."""
     close_passes_after_s: float = 7200.0
     """Close a pass (``LandmarkSums.close_passes``) once no ray of it has come for this long
-    (wall-clock seconds, :mod:`hdmap.quiet`); 0 keeps passes open until evicted
+    (wall-clock seconds, :mod:`hdmap.mapping.quiet`); 0 keeps passes open until evicted
     (``max_open_passes`` per landmark). The estimate and covariance do not change (an open
     pass enters the solve exactly as a closed one); the stored state shrinks about
     threefold (BENCHMARKS.md "Scale"). Twice the matcher's ``pending_ttl_s``: a ray can be
@@ -74,7 +74,7 @@ class SolverConfig:
     initiated), and a ray of a pass already closed would start a new cluster, which changes
     the estimate (closing a vehicle's passes as soon as it uploads another did: seed 3 of
     the fleet evaluation moved, precision 1.000 -> 0.982). The bookkeeping is in memory:
-    passes open at a restart count as quiet from then on (:func:`hdmap.quiet.note_open`)."""
+    passes open at a restart count as quiet from then on (:func:`hdmap.mapping.quiet.note_open`)."""
 
 
 @dataclass(frozen=True)
@@ -157,7 +157,7 @@ class SolverService(StageService):
             lid = int(c.id[k])
             if lid in self.state.landmarks:
                 continue
-            home = self.state.home_of(lid, self.opts.zoom)
+            home = home_tile(lid, self.opts.zoom)
             x0 = self.frames(home).from_geodetic(c.lat[k : k + 1], c.lon[k : k + 1], c.h[k : k + 1])
             row = int(self.sums.new_rows(1, x0)[0])
             self.state.put(SolverLandmark(lid, int(c.sign_class[k]), home, row))

@@ -7,8 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap.store import id_from_sql, id_to_sql
-from services.matcher.state import COUNTER_BITS
+from hdmap.runtime.store import id_from_sql, id_to_sql
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS landmarks (
@@ -35,16 +34,6 @@ class SolverState:
         self.landmarks: dict[int, SolverLandmark] = {}
         self._dirty: set[int] = set()
         self._deleted: set[int] = set()
-
-    @staticmethod
-    def home_of(landmark_id: int, zoom: int) -> str:
-        """The creation tile embedded in a landmark id (see services.matcher.state)."""
-        q = landmark_id >> COUNTER_BITS
-        digits = []
-        for _ in range(zoom):
-            digits.append(str(q & 3))
-            q >>= 2
-        return "".join(reversed(digits))
 
     def put(self, lm: SolverLandmark) -> None:
         self.landmarks[lm.id] = lm

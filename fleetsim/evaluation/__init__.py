@@ -1,0 +1,1 @@
+"""Accuracy evaluations: the paper's simulation (:mod:`fleetsim.evaluation.paper_sim`)."""

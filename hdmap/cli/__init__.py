@@ -1,0 +1,54 @@
+"""The ``hdmap`` command: one entry point, one subcommand per job.
+
+Each subcommand module exposes ``add_arguments(parser)`` and ``run(args) -> int``;
+this module only wires them (CLI entry -> orchestration -> domain).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from hdmap.runtime.orphan import watch_parent
+
+# name -> (module, help). Modules are imported lazily so `hdmap --help` stays fast.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("hdmap.cli.demo", "run the main job on embedded defaults"),
+    "vehicle-demo": ("hdmap.cli.vehicle_demo", "the vehicle side alone: rays of one drive"),
+    "router": ("hdmap.cli.router", "run a Zenoh router"),
+    "service": ("hdmap.cli.service", "run one service (ingest, matcher, solver, publisher)"),
+    "up": ("hdmap.cli.up", "router + one of each service, until Ctrl-C"),
+    "status": ("hdmap.cli.status", "live services, their regions and counters"),
+    "eval": ("hdmap.cli.eval", "accuracy evaluations (paper simulation, fleet)"),
+    "loadtest": ("hdmap.cli.loadtest", "a simulated fleet against a running stack"),
+}
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``only``, just that subcommand's module is imported."""
+    parser = argparse.ArgumentParser(prog="hdmap", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_text) in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if only is None or name == only:
+            mod = importlib.import_module(module)
+            mod.add_arguments(p)
+            p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    only = argv[0] if argv and argv[0] in SUBCOMMANDS else None
+    args = build_parser(only).parse_args(argv)
+    watch_parent()  # a stack's child ends with its starter (hdmap.runtime.orphan)
+    try:
+        return int(args._run(args) or 0)
+    except BrokenPipeError:  # `hdmap ... | head`: the reader left, not an error of ours
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

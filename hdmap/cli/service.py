@@ -1,0 +1,67 @@
+"""``hdmap service NAME``: run one service in this process until SIGTERM/SIGINT."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+
+from hdmap.cli.common import add_bus_arguments, bus_from_args, setup_logging
+from hdmap.geo.tiles import DEFAULT_ZOOM, valid_quadkey
+from hdmap.runtime.config import from_mapping, load_toml
+from hdmap.runtime.service import ServiceOptions, run_until_signalled
+
+# name -> (module, service class, config class)
+SERVICES: dict[str, tuple[str, str, str]] = {
+    "ingest": ("services.ingest.service", "IngestService", "IngestConfig"),
+    "matcher": ("services.matcher.service", "MatcherService", "MatcherConfig"),
+    "solver": ("services.solver.service", "SolverService", "SolverConfig"),
+    "publisher": ("services.publisher.service", "PublisherService", "PublisherConfig"),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", choices=sorted(SERVICES))
+    p.add_argument(
+        "--region",
+        action="append",
+        default=[],
+        metavar="QUADKEY_PREFIX",
+        help="tiles this instance owns (repeatable; default: all)",
+    )
+    p.add_argument("--data-dir", default="var", help="state directory (default ./var)")
+    p.add_argument("--instance", help="stable instance id (default: kept in the data dir)")
+    p.add_argument(
+        "--sync",
+        choices=["normal", "full"],
+        default="normal",
+        help="SQLite durability: normal survives crashes, full survives power loss",
+    )
+    p.add_argument("--zoom", type=int, default=DEFAULT_ZOOM, help="tile zoom of the deployment")
+    p.add_argument("--config", metavar="FILE", help="TOML file; the [NAME] table configures it")
+    p.add_argument("--log-level", default="INFO")
+    add_bus_arguments(p)
+
+
+def build(args: argparse.Namespace):
+    for r in args.region:
+        if not valid_quadkey(r):
+            raise SystemExit(f"--region {r!r}: not a quadkey prefix (digits 0-3)")
+    module, cls_name, cfg_name = SERVICES[args.name]
+    mod = importlib.import_module(module)
+    table = load_toml(args.config).get(args.name, {}) if args.config else {}
+    config = from_mapping(getattr(mod, cfg_name), table, args.name)
+    opts = ServiceOptions(
+        region=tuple(args.region),
+        data_dir=Path(args.data_dir),
+        bus=bus_from_args(args),
+        instance=args.instance,
+        sync=args.sync,
+        zoom=args.zoom,
+    )
+    return getattr(mod, cls_name)(opts, config)
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.log_level)
+    return run_until_signalled(build(args))

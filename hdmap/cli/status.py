@@ -1,0 +1,36 @@
+"""``hdmap status``: the live services, their regions and counters."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from hdmap.cli.common import add_bus_arguments, bus_from_args
+from hdmap.ops.status import collect
+from hdmap.runtime.bus import open_session
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--timeout", type=float, default=3.0)
+    add_bus_arguments(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    with open_session(bus_from_args(args)) as session:
+        stats = collect(session, args.timeout)
+    if args.json:
+        print(json.dumps([s._encode() for s in stats], indent=2, default=float))
+        return 0
+    if not stats:
+        print("no live services")
+        return 1
+    for s in stats:
+        region = ",".join(s.region) or "all"
+        print(f"{s.service:<10} {s.instance:<40} region={region}")
+        for k in sorted(s.counters):
+            v = s.counters[k]
+            print(f"    {k:<22} {v:.3f}" if isinstance(v, float) else f"    {k:<22} {v}")
+        for reason, n in sorted(s.rejected.items()):
+            print(f"    rejected[{reason}] {n}")
+    return 0

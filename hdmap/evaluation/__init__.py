@@ -1,1 +1,0 @@
-"""Accuracy evaluations: the paper's simulation (:mod:`hdmap.evaluation.paper_sim`)."""

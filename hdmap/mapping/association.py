@@ -1,0 +1,519 @@
+"""Ray-to-landmark association: gating, per-image assignment, per-pass offset.
+
+All geometry is in one local metric frame (ENU of the tile being processed).
+
+Gating statistic of ray j (origin a, measured azimuth/elevation) against a
+landmark at x with covariance C: with v = x - a, the predicted angles
+``az(v), el(v)`` and their Jacobian J (2x3),
+
+    chi2 = r^T S^-1 r,  r = (wrap(az(v) - az_j), el(v) - el_j),
+    S = diag(s_az^2, s_el^2) + J (C + Sigma_a) J^T,
+
+where Sigma_a is the origin's position covariance. Under the ray's noise model
+chi2 ~ chi-square with 2 degrees of freedom.
+
+One pass shares its GNSS bias (metres, unknown to the vehicle). Before anything
+is known, that bias is part of Sigma_a (``pass_bias_sigma_m``), which makes the
+gate wide. Rays of one unit (one vehicle pass, one tile, one upload) that gate
+to landmarks then estimate the pass's offset delta by weighted least squares on
+their perpendicular residuals,
+
+    (sum_j w_j P_j + I / s_b^2) delta = sum_j w_j P_j (x_L(j) - a_j),
+
+and the gate is re-run with origins a_j + delta and Sigma_a = white + Cov(delta).
+That is what keeps two same-class signs a few metres apart apart: the offset is
+shared by all rays of the pass, so one sign the pass sees well fixes it for all.
+
+Detections of one image never share a landmark: each image's assignment is a
+small linear assignment problem (:func:`hdmap.mapping.assignment.min_cost_assignment`) on chi2.
+
+>>> import numpy as np
+>>> angles(np.array([[1.0, 1.0, 0.0]]))[0].round(4).tolist()
+[0.7854]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from hdmap.mapping.assignment import min_cost_assignment
+from hdmap.mapping.estimator.gating import angle_jacobian, wrap
+from hdmap.mapping.estimator.model import ray_angles as angles
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_BIG = 1e12
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    chi2_gate: float = 13.82
+    """Gate on the 2-dof statistic (13.82 = 99.9%)."""
+    pass_bias_sigma_m: float = 3.0
+    """Assumed per-axis std of a pass's unknown GNSS bias before the offset is estimated."""
+    vertical_bias_sigma_m: float = 3.0
+    angle_floor_rad: float = 0.003
+    """Added in quadrature to reported angular sigmas (unmodelled calibration, timing)."""
+    min_range_m: float = 2.0
+    max_range_m: float = 120.0
+    range_k: float = 3.0
+    """A range estimate must agree with the landmark distance within range_k sigma."""
+    range_in_cost: bool = True
+    """Add the range residual (from the box size) to the statistic of ranged rays: same-class
+    signs a few metres apart along a road are seen along nearly the same bearing, their
+    ranges differ."""
+    offset_iterations: int = 2
+    min_offset_rays: int = 3
+    """Rays needed before a unit's offset is estimated (fewer: the wide gate stays)."""
+    track_link_factor: float = 1.0
+    """A tracked ray links to its track's landmark when its statistic is within this
+    multiple of ``chi2_gate`` (the track, not the ray alone, chose the landmark)."""
+    offset_hypotheses: int = 3
+    """A unit with tracks also tries the offsets that put its longest track on each of its
+    candidate landmarks (at most this many, most gated rays first), each iterated like the
+    first; 0 = only the offset from the wide-gate assignment. Against a lattice of
+    identical signs (a row of parking signs 8.5 m apart) the wide gate can settle on the
+    neighbouring alignment, which the offset then follows."""
+    offset_hypothesis_margin: float = 13.82
+    """An alternative replaces the fit it is compared with only when its score (the linked
+    pairs' summed margins ``chi2_gate - chi2`` minus the offset's prior chi-square) is
+    higher by this much (one ``chi2_gate``: about one more well-fitting ray)."""
+
+
+@dataclass(frozen=True)
+class LocalRays:
+    """Rays of one unit in a local metric frame (struct of arrays)."""
+
+    origin: Array
+    direction: Array
+    sigma_az: Array
+    sigma_el: Array
+    sigma_pos_h: Array
+    sigma_pos_v: Array
+    range_m: Array
+    sigma_range_m: Array
+    image: IntArray
+    sign_class: IntArray
+    track: IntArray | None = None
+    """Per ray its track within the unit (detections of one sign followed from image to
+    image by the vehicle); 0 = not tracked. None = no ray tracked."""
+
+    def __len__(self) -> int:
+        return int(self.origin.shape[0])
+
+    def take(self, idx: NDArray) -> LocalRays:
+        return LocalRays(
+            **{
+                k: None if getattr(self, k) is None else getattr(self, k)[idx]
+                for k in self.__dataclass_fields__
+            }
+        )
+
+    @staticmethod
+    def concat(parts: list[LocalRays]) -> LocalRays:
+        """Rows of ``parts`` in order (tracks kept only when every part has them)."""
+        return LocalRays(
+            **{
+                k: None
+                if any(getattr(p, k) is None for p in parts)
+                else np.concatenate([getattr(p, k) for p in parts])
+                for k in LocalRays.__dataclass_fields__
+            }
+        )
+
+    @property
+    def tracks(self) -> IntArray:
+        """``track``, zeros when None."""
+        return np.zeros(len(self), np.int64) if self.track is None else self.track
+
+
+def origin_cov(rays: LocalRays, bias_h: float, bias_v: float) -> Array:
+    """(n, 3, 3) position covariance of the origins, with an assumed shared bias."""
+    n = len(rays)
+    c = np.zeros((n, 3, 3))
+    c[:, 0, 0] = c[:, 1, 1] = rays.sigma_pos_h**2 + bias_h**2
+    c[:, 2, 2] = rays.sigma_pos_v**2 + bias_v**2
+    return c
+
+
+def pair_chi2(
+    rays: LocalRays,
+    ri: IntArray,
+    x: Array,
+    cov: Array,
+    a_cov: Array,
+    cfg: GateConfig,
+    offset: Array | None = None,
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Gating statistic for pairs (ray ri[k], landmark k of x/cov) and the plausibility mask.
+
+    ``a_cov`` is the (len(rays), 3, 3) origin covariance; ``offset`` shifts origins.
+    """
+    a = rays.origin[ri] + (0.0 if offset is None else offset)
+    d = rays.direction[ri]
+    v = x - a
+    rng = np.linalg.norm(v, axis=-1)
+    az, el = angles(v)
+    az_m, el_m = angles(d)
+    res = np.stack([wrap(az - az_m), el - el_m], axis=-1)
+    j = angle_jacobian(v)
+    c = cov + a_cov[ri]
+    s = j @ c @ j.transpose(0, 2, 1)
+    floor2 = cfg.angle_floor_rad**2
+    s[:, 0, 0] += rays.sigma_az[ri] ** 2 + floor2
+    s[:, 1, 1] += rays.sigma_el[ri] ** 2 + floor2
+    det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+    det = np.where(det > 0, det, 1e-30)
+    chi2 = (
+        res[:, 0] ** 2 * s[:, 1, 1]
+        - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
+        + res[:, 1] ** 2 * s[:, 0, 0]
+    ) / det
+    front = np.einsum("kj,kj->k", v, d) > 0
+    ok = front & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
+    r_est = rays.range_m[ri]
+    has_r = r_est > 0
+    # landmark distance uncertainty along the ray: origin and landmark position spread
+    along = np.sqrt(np.einsum("ki,kij,kj->k", d, c, d))
+    s_r = np.hypot(rays.sigma_range_m[ri], along)
+    ok &= ~has_r | (np.abs(rng - r_est) <= cfg.range_k * s_r)
+    if cfg.range_in_cost:
+        # the range residual joins the statistic: it separates signs along one ray
+        chi2 = chi2 + np.where(has_r, ((rng - r_est) / np.where(has_r, s_r, 1.0)) ** 2, 0.0)
+    return chi2, ok
+
+
+def assign_per_image(
+    n_rays: int, images: IntArray, ri: IntArray, li: IntArray, cost: Array, gate: float
+) -> IntArray:
+    """Best landmark per ray (-1 = none), no landmark used twice within one image.
+
+    Pairs (ri, li) with ``cost`` above ``gate`` are not allowed.
+    """
+    out = np.full(n_rays, -1, np.int64)
+    keep = cost <= gate
+    ri, li, cost = ri[keep], li[keep], cost[keep]
+    if ri.size == 0:
+        return out
+    img = images[ri]
+    order = np.lexsort((cost, ri, img))
+    ri, li, cost, img = ri[order], li[order], cost[order], img[order]
+    # Fast path: in an image where the rays' best landmarks are all different, each ray
+    # takes its best (that is the assignment's optimum); only the others need the solver.
+    first = np.r_[True, ri[1:] != ri[:-1]]
+    b_r, b_l, b_img = ri[first], li[first], img[first]
+    o2 = np.lexsort((b_l, b_img))
+    clash = (b_img[o2][1:] == b_img[o2][:-1]) & (b_l[o2][1:] == b_l[o2][:-1])
+    slow_imgs = np.unique(b_img[o2][1:][clash])
+    fast = ~np.isin(b_img, slow_imgs)
+    out[b_r[fast]] = b_l[fast]
+    slow = np.isin(img, slow_imgs)
+    ri, li, cost, img = ri[slow], li[slow], cost[slow], img[slow]
+    if ri.size == 0:
+        return out
+    bounds = np.flatnonzero(np.diff(img)) + 1
+    for s, e in zip(np.r_[0, bounds], np.r_[bounds, ri.size], strict=True):
+        r, lm, c = ri[s:e], li[s:e], cost[s:e]
+        ur, rinv = np.unique(r, return_inverse=True)
+        ul, linv = np.unique(lm, return_inverse=True)
+        if ur.size == 1:
+            out[ur[0]] = lm[0]  # sorted by cost within the ray: the best
+            continue
+        m = np.full((ur.size, ul.size), _BIG)
+        np.minimum.at(m, (rinv, linv), c)
+        rows, cols = min_cost_assignment(m)
+        good = m[rows, cols] < _BIG
+        out[ur[rows[good]]] = ul[cols[good]]
+    return out
+
+
+def assign_tracks(
+    rays: LocalRays, ri: IntArray, li: IntArray, cost: Array, gate: float, link_gate: float
+) -> tuple[IntArray, NDArray[np.bool_]]:
+    """Best landmark per ray (-1 = none), tracks kept whole; and the rays of tracks that
+    got a landmark but do not link to it.
+
+    A track (rays with one ``track`` > 0: one sign followed through the images) takes the
+    landmark that its rays gate to with the largest summed margin ``sum (gate - chi2)``,
+    tracks seen together never the same landmark (:func:`_greedy_tracks`); its rays with
+    ``chi2 <= link_gate`` against that landmark link to it, none to another. Untracked rays
+    are assigned per image (:func:`assign_per_image`) among the landmarks no track holds in
+    their image.
+
+    >>> r = LocalRays(*np.zeros((2, 4, 3)), *np.ones((6, 4)), image=np.array([0, 1, 2, 1]),
+    ...               sign_class=np.ones(4, np.int64), track=np.array([1, 1, 1, 2]))
+    >>> ri, li = np.array([0, 1, 2, 2, 3]), np.array([0, 0, 0, 1, 0])
+    >>> best, unlinked = assign_tracks(r, ri, li, np.array([1.0, 2.0, 20.0, 3.0, 0.5]), 10, 10)
+    >>> best.tolist(), unlinked.tolist()
+    ([0, 0, -1, -1], [False, False, True, False])
+    """
+    n, track = len(rays), rays.tracks
+    tracked = track[ri] > 0
+    best = np.full(n, -1, np.int64)
+    unlinked = np.zeros(n, bool)
+    keep = tracked & (cost <= gate)
+    if keep.any():
+        r, lm, c = ri[keep], li[keep], cost[keep]
+        ut, tinv = np.unique(track[r], return_inverse=True)
+        ul, linv = np.unique(lm, return_inverse=True)
+        margin = np.zeros((ut.size, ul.size))
+        np.add.at(margin, (tinv, linv), gate - c)
+        chosen = _greedy_tracks(margin, track_spans(track, rays.image, ut), ul)
+        # every ray of an assigned track, against its track's landmark
+        pos, hit = _find(ut, track)
+        ray_lm = np.where(hit, chosen[pos], -1)
+        mine = tracked & (ray_lm[ri] == li)
+        link = mine & (cost <= link_gate)
+        best[ri[link]] = li[link]
+        unlinked = (track > 0) & (ray_lm >= 0) & (best < 0)
+        m = int(li.max()) + 1
+        used = np.unique(rays.image[ri[link]] * m + li[link])
+        free = ~tracked & ~np.isin(rays.image[ri] * m + li, used)
+    else:
+        free = ~tracked
+    rest = assign_per_image(n, rays.image, ri[free], li[free], cost[free], gate)
+    loose = track == 0
+    best[loose] = rest[loose]
+    return best, unlinked
+
+
+def valid_tracks(track: ArrayLike, image: ArrayLike) -> IntArray:
+    """``track`` with every track that holds two rays of one image set to 0 (untracked).
+
+    One sign is detected at most once per image, so such a track is not one sign (a
+    vehicle's tracker fault or a forged upload); it is not trusted to keep its rays
+    together, and its rays are assigned per image like an older vehicle's.
+
+    >>> valid_tracks([1, 1, 2, 2, 0, 0], [0, 1, 0, 0, 3, 3]).tolist()
+    [1, 1, 0, 0, 0, 0]
+    """
+    t = np.asarray(track, np.int64)
+    on = t > 0
+    if not on.any():
+        return t
+    img = np.asarray(image, np.int64)[on]
+    stride = int(img.max()) + 1  # one key per (track, image)
+    key, count = np.unique(t[on] * stride + img, return_counts=True)
+    return np.where(np.isin(t, key[count > 1] // stride), 0, t)
+
+
+def track_spans(track: IntArray, image: IntArray, tracks: IntArray) -> IntArray:
+    """(k, 2) first and last image of each of ``tracks`` (sorted ids) among the rays.
+
+    >>> track_spans(np.array([3, 0, 3, 5]), np.array([4, 6, 9, 1]), np.array([3, 5])).tolist()
+    [[4, 9], [1, 1]]
+    """
+    pos, mine = _find(tracks, track)
+    lo = np.full(tracks.size, np.iinfo(np.int64).max)
+    hi = np.full(tracks.size, np.iinfo(np.int64).min)
+    np.minimum.at(lo, pos[mine], np.asarray(image, np.int64)[mine])
+    np.maximum.at(hi, pos[mine], np.asarray(image, np.int64)[mine])
+    return np.column_stack([lo, hi])
+
+
+def _find(ids: IntArray, values: IntArray) -> tuple[IntArray, NDArray[np.bool_]]:
+    """Position of each value in the sorted ``ids`` (clipped into range) and whether it is
+    there (track ids are arbitrary u32 from the vehicle: looked up, not indexed).
+
+    >>> [a.tolist() for a in _find(np.array([3, 5]), np.array([5, 0, 9]))]
+    [[1, 0, 1], [True, False, False]]
+    """
+    pos = np.minimum(np.searchsorted(ids, values), ids.size - 1)
+    return pos, ids[pos] == values
+
+
+def _greedy_tracks(margin: Array, span: IntArray, landmarks: IntArray) -> IntArray:
+    """Landmark per track (-1 = none), largest margins first; two tracks whose image spans
+    overlap (two signs in view together) never share a landmark, two that follow each
+    other (a track broken by a gap, or the sign passed again) may.
+
+    >>> m = np.array([[5.0, 1.0], [4.0, 0.0], [3.0, 0.0]])
+    >>> _greedy_tracks(m, np.array([[0, 9], [5, 12], [20, 30]]), np.array([7, 8])).tolist()
+    [7, -1, 7]
+    """
+    chosen = np.full(margin.shape[0], -1, np.int64)
+    holders: dict[int, list[int]] = {}
+    ti, li = np.nonzero(margin > 0)
+    for k in np.lexsort((li, ti, -margin[ti, li])).tolist():
+        t, j = int(ti[k]), int(li[k])
+        if chosen[t] >= 0:
+            continue
+        others = holders.setdefault(j, [])
+        if any(span[t, 0] <= span[o, 1] and span[o, 0] <= span[t, 1] for o in others):
+            continue
+        chosen[t] = landmarks[j]
+        others.append(t)
+    return chosen
+
+
+def estimate_offset(
+    rays: LocalRays, assigned: IntArray, x: Array, bias_h: float, bias_v: float
+) -> tuple[Array, Array]:
+    """Shared origin offset of a unit from its assigned rays, and its covariance.
+
+    Weighted least squares on perpendicular residuals with a zero-mean prior of
+    the assumed bias size (so an unobservable direction stays at 0).
+    """
+    m = assigned >= 0
+    prior = np.diag([1 / bias_h**2, 1 / bias_h**2, 1 / bias_v**2])
+    if not m.any():
+        return np.zeros(3), np.linalg.inv(prior)
+    d = rays.direction[m]
+    a = rays.origin[m]
+    xl = x[assigned[m]]
+    rng = np.linalg.norm(xl - a, axis=1)
+    sig_ang = np.hypot(rays.sigma_az[m], rays.sigma_el[m]) / np.sqrt(2)
+    w = 1.0 / ((rng * sig_ang) ** 2 + rays.sigma_pos_h[m] ** 2)
+    p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    info = np.einsum("k,kij->ij", w, p) + prior
+    rhs = np.einsum("k,kij,kj->i", w, p, xl - a)
+    cov = np.linalg.inv(info)
+    return cov @ rhs, cov
+
+
+@dataclass(frozen=True)
+class Association:
+    landmark: IntArray
+    """Per ray, the index into the candidate landmarks (-1 = unmatched)."""
+    chi2: Array
+    offset: Array
+    offset_cov: Array
+    unlinked: NDArray[np.bool_] | None = None
+    """Rays of tracks that went to a landmark without them (see :func:`assign_tracks`)."""
+
+
+def _assign(rays: LocalRays, ri: IntArray, li: IntArray, cost: Array, cfg: GateConfig):
+    if rays.track is None or not (rays.track > 0).any():
+        return assign_per_image(len(rays), rays.image, ri, li, cost, cfg.chi2_gate), None
+    return assign_tracks(rays, ri, li, cost, cfg.chi2_gate, cfg.chi2_gate * cfg.track_link_factor)
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """One offset hypothesis of a unit: per ray its landmark (-1 = none), the tracks' unlinked
+    rays, the pairs' statistics under the offset, and the offset with its covariance."""
+
+    best: IntArray
+    unlinked: NDArray[np.bool_] | None
+    cost: Array
+    offset: Array
+    offset_cov: Array
+
+
+def _gated_cost(
+    rays: LocalRays,
+    ri: IntArray,
+    li: IntArray,
+    x: Array,
+    cov: Array,
+    a_cov: Array,
+    cfg: GateConfig,
+    offset: Array | None = None,
+) -> Array:
+    chi2, ok = pair_chi2(rays, ri, x[li], cov[li], a_cov, cfg, offset)
+    return np.where(ok, chi2, np.inf)
+
+
+def _assigned_at(
+    rays: LocalRays,
+    ri: IntArray,
+    li: IntArray,
+    x: Array,
+    cov: Array,
+    cfg: GateConfig,
+    offset: Array,
+    offset_cov: Array,
+) -> _Fit:
+    """The assignment with the origins moved by ``offset`` (their covariance the offset's)."""
+    narrow = origin_cov(rays, 0.0, 0.0) + offset_cov[None]
+    cost = _gated_cost(rays, ri, li, x, cov, narrow, cfg, offset)
+    best, unlinked = _assign(rays, ri, li, cost, cfg)
+    return _Fit(best, unlinked, cost, offset, offset_cov)
+
+
+def _refined(
+    rays: LocalRays, ri: IntArray, li: IntArray, x: Array, cov: Array, cfg: GateConfig, fit: _Fit
+) -> _Fit:
+    """``cfg.offset_iterations`` times: the offset from the assignment, then the assignment
+    under it (while at least ``min_offset_rays`` rays are assigned). An assignment that
+    comes back unchanged is a fixed point (the same offset again, the same assignment), so
+    the iterations stop there with the same result."""
+    for _ in range(cfg.offset_iterations):
+        if int((fit.best >= 0).sum()) < cfg.min_offset_rays:
+            break
+        o, oc = estimate_offset(rays, fit.best, x, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m)
+        prev, fit = fit, _assigned_at(rays, ri, li, x, cov, cfg, o, oc)
+        if np.array_equal(fit.best, prev.best):
+            break
+    return fit
+
+
+def _fit_score(fit: _Fit, ri: IntArray, li: IntArray, cfg: GateConfig) -> float:
+    """How well an offset hypothesis explains the unit: the summed margins ``chi2_gate -
+    chi2`` of the pairs it links, minus the offset's chi-square under the pass-bias prior
+    (both are twice a log-likelihood ratio)."""
+    linked = (fit.best[ri] == li) & np.isfinite(fit.cost)
+    prior = np.array([cfg.pass_bias_sigma_m, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m])
+    return float(np.sum(cfg.chi2_gate - fit.cost[linked])) - float(
+        np.sum((fit.offset / prior) ** 2)
+    )
+
+
+def _alternative_seeds(
+    rays: LocalRays, ri: IntArray, li: IntArray, x: Array, wide_cost: Array, cfg: GateConfig
+) -> list[tuple[Array, Array]]:
+    """Offsets that put the unit's longest track on each of its candidate landmarks (those
+    its rays gate to under the wide origin covariance, most gated rays first; the one the
+    first fit gave it too: all its rays on it move the offset differently)."""
+    track = rays.tracks
+    cand = np.isfinite(wide_cost) & (track[ri] > 0)
+    if cfg.offset_hypotheses <= 0 or not cand.any():
+        return []
+    ids, n_pairs = np.unique(track[ri[cand]], return_counts=True)
+    longest = ids[np.argmax(n_pairs)]
+    lms, n_rays = np.unique(li[cand & (track[ri] == longest)], return_counts=True)
+    lms = lms[np.argsort(-n_rays, kind="stable")][: cfg.offset_hypotheses]
+    seeds = []
+    for lm in lms.tolist():
+        on = np.where(track == longest, lm, -1)
+        seeds.append(estimate_offset(rays, on, x, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m))
+    return seeds
+
+
+def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateConfig) -> Association:
+    """Associate a unit's rays with landmarks (positions ``x``, covariances, classes).
+
+    First every ray against every candidate under the wide origin covariance (the pass's
+    unknown GNSS bias), then under the unit's offset estimated from that assignment
+    (``offset_iterations``); with tracks, also from the offsets that put the longest track
+    on each of its candidates (``offset_hypotheses``), keeping the best-scored
+    (:func:`_fit_score`) if it beats the first by ``offset_hypothesis_margin``."""
+    n, m = len(rays), x.shape[0]
+    none = Association(np.full(n, -1, np.int64), np.full(n, np.inf), np.zeros(3), np.zeros((3, 3)))
+    if n == 0 or m == 0:
+        return none
+    ri, li = np.nonzero(rays.sign_class[:, None] == cls[None, :])
+    if ri.size == 0:
+        return none
+    bias_h, bias_v = cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m
+    wide_cost = _gated_cost(rays, ri, li, x, cov, origin_cov(rays, bias_h, bias_v), cfg)
+    best, unlinked = _assign(rays, ri, li, wide_cost, cfg)
+    prior_cov = np.diag([bias_h, bias_h, bias_v]) ** 2
+    fit = _refined(
+        rays, ri, li, x, cov, cfg, _Fit(best, unlinked, wide_cost, np.zeros(3), prior_cov)
+    )
+    top = _fit_score(fit, ri, li, cfg) + cfg.offset_hypothesis_margin
+    for o, oc in _alternative_seeds(rays, ri, li, x, wide_cost, cfg):
+        alt = _refined(rays, ri, li, x, cov, cfg, _assigned_at(rays, ri, li, x, cov, cfg, o, oc))
+        if (score := _fit_score(alt, ri, li, cfg)) > top:
+            fit, top = alt, score + cfg.offset_hypothesis_margin
+    best, cost, unlinked = fit.best, fit.cost, fit.unlinked
+    offset, offset_cov = fit.offset, fit.offset_cov
+    out_chi2 = np.full(n, np.inf)
+    sel = best[ri] == li
+    out_chi2[ri[sel]] = cost[sel]
+    return Association(best, out_chi2, offset, offset_cov, unlinked)

@@ -1,0 +1,730 @@
+"""Per-landmark incremental sums (struct of arrays) with pass-level partial sums.
+
+One row per landmark. Closed state per row (float64 unless noted):
+
+=========  ====  =============================================================
+field      n     meaning (coordinates relative to the row's anchor)
+=========  ====  =============================================================
+anchor     3     fixed origin of the row's sums (its first position), tile ENU
+x_ref      3     reference position for the weights (last published estimate)
+A          6     sum over closed passes of ``W_p`` (symmetric), the pass-weighted sum
+                 ``A_p`` of its (compensated) ray terms ``Q~_j``
+J          6     sum of the predicted terms ``Q_ref,j`` (conditioning test)
+b          3     sum over closed passes of ``b~_p``, from ``b_p = sum Q~_j a_j`` (with
+                 the weight correction)
+S_AA       21    sum over closed passes of ``alpha_p alpha_p^T`` (symmetric 6x6;
+                 ``alpha_p`` = ``W_p`` as a 6-vector)
+S_Ab       18    sum over closed passes of ``alpha_p b~_p^T``
+S_bb       6     sum over closed passes of ``b~_p b~_p^T``
+n_obs      1     rays (int64)
+n_closed   1     closed passes (int64)
+n_open     1     open passes (int64, derived from the open-pass table)
+w1, w2     2     sums of the rays' weights and of their squares (``Rays.weight``: a
+                 vehicle's trust; they scale the model floor of the covariance)
+c1         1     sum over closed passes of their pull ``tr C_p`` (the rays'
+                 :func:`~hdmap.mapping.estimator.model.pull_terms`, scaled like ``A_p`` by the
+                 pass weighting; 0 unless ``EstimatorConfig.extra_sigma_pos_m`` is set)
+=========  ====  =============================================================
+
+so 69 float64 + 3 int64 = 576 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
+packed by :meth:`pack_rows`: the byte layout and its sizes are in
+:mod:`hdmap.mapping.estimator.packing`).
+
+Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
+interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
+``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance, ray weight
+sums c and c^2, holder key, held ``J``, pull: 184 bytes). A pass enters ``A``, ``b`` and the
+sandwich sums when it closes, with the
+random-effects weighting of
+:func:`hdmap.mapping.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S`` the
+configured ``pass_sigma_m`` squared: a pass brings at most ``S^-1`` of information,
+however many rays it has). :meth:`solve` includes the open passes the same way, so a
+result never depends on when a pass is closed — unless a
+ray of an already closed pass arrives, which then starts a new cluster (the covariance
+misses that pass's cross term). Eviction rule: a row keeps at most ``max_open_passes``
+open; opening one more closes the least recently active (the activity stamp is the row's
+ray count at the pass's last ray, so the rule is deterministic and survives
+:meth:`pack_rows` / :meth:`unpack_rows`). Callers close passes they know are over with
+:meth:`close_passes`.
+
+>>> import numpy as np
+>>> from hdmap.mapping.estimator.model import Rays
+>>> s = LandmarkSums(capacity=2)
+>>> rows = s.new_rows(1, np.array([[0.0, 20.0, 2.0]]))
+>>> rows.tolist(), s.bytes_per_landmark, len(s.pack_rows(rows)[0])
+([0], 576, 565)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from hdmap.mapping.estimator.model import (
+    SYM_BASIS,
+    TRI6_I,
+    TRI6_J,
+    EstimatorConfig,
+    Rays,
+    apply_matrix,
+    effective_sigmas,
+    mat_to_sym,
+    outer6_to_tri,
+    pass_weighted,
+    predicted_information,
+    pull_terms,
+    ray_terms,
+    sym_to_mat,
+    tri_to_mat6,
+)
+from hdmap.mapping.estimator.packing import OPEN_DTYPE, PACK_VERSION, decode, encode, layout
+from hdmap.mapping.estimator.solve import Solution, solve_sums
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
+_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2", "_c1")
+"""The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
+_OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2", "_o_w")
+_OPEN_ARRAYS += ("_o_w2", "_o_hold", "_o_j6", "_o_c1")
+
+
+def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
+    """``target[idx] += values`` with repeated indices summed (sort + reduceat)."""
+    if idx.size == 0:
+        return
+    order = np.argsort(idx, kind="stable")
+    s = idx[order]
+    starts = np.flatnonzero(np.concatenate(([True], s[1:] != s[:-1])))
+    target[s[starts]] += np.add.reduceat(values[order], starts, axis=0)
+
+
+class LandmarkSums:
+    """Incremental estimator state for many landmarks (one row each).
+
+    Rows grow by capacity doubling; :meth:`accumulate` is vectorised over a batch of rays of
+    many landmarks and passes, mixed and unsorted, at O(1) state per ray.
+    """
+
+    def __init__(self, config: EstimatorConfig | None = None, capacity: int = 1024):
+        self.config = config or EstimatorConfig()
+        self._n = 0
+        cap = max(int(capacity), 1)
+        self._anchor = np.zeros((cap, 3))
+        self._x_ref = np.zeros((cap, 3))
+        self._a6 = np.zeros((cap, 6))
+        self._j6 = np.zeros((cap, 6))
+        self._b = np.zeros((cap, 3))
+        self._saa = np.zeros((cap, 21))
+        self._sab = np.zeros((cap, 6, 3))
+        self._sbb = np.zeros((cap, 6))
+        self._n_obs = np.zeros(cap, np.int64)
+        self._n_closed = np.zeros(cap, np.int64)
+        self._n_open = np.zeros(cap, np.int64)
+        self._w1 = np.zeros(cap)  # sum of the rays' weights (Rays.weight, default 1)
+        self._w2 = np.zeros(cap)  # sum of their squares (the model floor's scale)
+        self._c1 = np.zeros(cap)  # closed passes' pull (model.pull_terms, pass-weighted)
+        # open (landmark, pass) partial sums; slots recycled through a free list
+        self._slot: dict[tuple[int, int], int] = {}
+        self._row_slots: dict[int, list[int]] = {}  # row -> its open slots (any order)
+        self._free: list[int] = []
+        self._o_hi = 0
+        ocap = 16
+        self._o_row = np.full(ocap, -1, np.int64)
+        self._o_cluster = np.zeros(ocap, np.int64)
+        self._o_last = np.zeros(ocap, np.int64)
+        self._o_n = np.zeros(ocap, np.int64)
+        self._o_a6 = np.zeros((ocap, 6))
+        self._o_b = np.zeros((ocap, 3))
+        self._o_s2 = np.zeros(ocap)  # sum over the pass's rays of their angular variance
+        self._o_w = np.zeros(ocap)  # sum of the rays' weights (Rays.weight, default 1)
+        self._o_w2 = np.zeros(ocap)  # sum of their squares
+        self._o_hold = np.zeros(ocap, np.int64)  # held: the holder's key (0: not held)
+        self._o_j6 = np.zeros((ocap, 6))  # held passes' predicted information
+        self._o_c1 = np.zeros(ocap)  # the pass's pull (model.pull_terms), raw
+
+    # ------------------------------------------------------------------ sizes
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def bytes_per_landmark(self) -> int:
+        """In-memory closed state per landmark, bytes (each open pass adds
+        ``open_pass_bytes``)."""
+        return int(sum(getattr(self, n)[0].nbytes for n in _ROW_ARRAYS))
+
+    @property
+    def open_pass_bytes(self) -> int:
+        """Bytes of numeric state per open pass: the size of its packed (version 5) record
+        (the in-memory arrays hold the same fields, plus the slot's row)."""
+        return OPEN_DTYPE.itemsize
+
+    @property
+    def n_open_passes(self) -> int:
+        return len(self._slot)
+
+    def open_clusters(self, row: int) -> list[int]:
+        """Cluster ids of ``row``'s open passes."""
+        return sorted(int(self._o_cluster[s]) for s in self._row_slots.get(int(row), ()))
+
+    def open_passes(self) -> list[tuple[int, int]]:
+        """The open (row, cluster) pairs, sorted.
+
+        >>> s = LandmarkSums(capacity=1)
+        >>> s.open_passes()
+        []
+        """
+        return sorted(self._slot)
+
+    def n_obs(self, rows: ArrayLike) -> IntArray:
+        """Rays summed into each row."""
+        return self._n_obs[np.asarray(rows, np.int64)].copy()
+
+    def n_passes(self, rows: ArrayLike) -> IntArray:
+        """Passes (clusters, closed and open) summed into each row."""
+        r = np.asarray(rows, np.int64)
+        return self._n_closed[r] + self._n_open[r]
+
+    def anchor(self, rows: ArrayLike) -> Array:
+        return self._anchor[np.asarray(rows, np.int64)].copy()
+
+    def reference(self, rows: ArrayLike) -> Array:
+        """Reference positions used for the weights, tile ENU."""
+        r = np.asarray(rows, np.int64)
+        return self._x_ref[r] + self._anchor[r]
+
+    def set_reference(self, rows: ArrayLike, x: ArrayLike) -> None:
+        """Override the reference positions (e.g. from a better initialiser)."""
+        r = np.asarray(rows, np.int64)
+        self._x_ref[r] = np.asarray(x, float) - self._anchor[r]
+
+    # ------------------------------------------------------------------ rows
+    def _grow(self, need: int) -> None:
+        cap = self._anchor.shape[0]
+        if need <= cap:
+            return
+        new = cap
+        while new < need:
+            new *= 2
+        for name in _ROW_ARRAYS:
+            old = getattr(self, name)
+            arr = np.zeros((new, *old.shape[1:]), old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+    def new_rows(self, k: int, x0: ArrayLike) -> IntArray:
+        """Append ``k`` landmarks at initial positions ``x0`` (k, 3); returns their rows."""
+        x0 = np.asarray(x0, float).reshape(k, 3)
+        if not np.isfinite(x0).all():
+            raise ValueError("x0 must be finite")
+        self._grow(self._n + k)
+        rows = np.arange(self._n, self._n + k, dtype=np.int64)
+        self._anchor[rows] = x0
+        self._x_ref[rows] = 0.0
+        self._n += k
+        return rows
+
+    def _check_rows(self, rows: ArrayLike) -> IntArray:
+        r = np.asarray(rows, np.int64).reshape(-1)
+        if r.size and (r.min() < 0 or r.max() >= self._n):
+            raise IndexError("row out of range")
+        return r
+
+    # ------------------------------------------------------------------ open passes
+    def _alloc_slot(self, key: tuple[int, int]) -> int:
+        if self._free:
+            s = self._free.pop()
+        else:
+            s = self._o_hi
+            self._o_hi += 1
+            if s >= self._o_row.shape[0]:
+                for name in _OPEN_ARRAYS:
+                    old = getattr(self, name)
+                    arr = np.zeros((2 * old.shape[0], *old.shape[1:]), old.dtype)
+                    arr[: old.shape[0]] = old
+                    setattr(self, name, arr)
+        self._slot[key] = s
+        self._row_slots.setdefault(key[0], []).append(s)
+        self._o_row[s], self._o_cluster[s] = key
+        self._o_last[s] = self._o_n[s] = 0
+        self._o_a6[s] = 0.0
+        self._o_b[s] = 0.0
+        self._o_s2[s] = 0.0
+        self._o_w[s] = self._o_w2[s] = 0.0
+        self._o_hold[s] = 0
+        self._o_j6[s] = 0.0
+        self._o_c1[s] = 0.0
+        self._n_open[key[0]] += 1
+        return s
+
+    def _close_slots(self, slots: IntArray) -> None:
+        if slots.size == 0:
+            return
+        rows = self._o_row[slots]
+        a6, b, c1 = self._weighted(slots)
+        _scatter_add(self._c1, rows, c1)
+        _scatter_add(self._a6, rows, a6)
+        _scatter_add(self._b, rows, b)
+        _scatter_add(self._saa, rows, outer6_to_tri(a6))
+        _scatter_add(self._sab, rows, a6[:, :, None] * b[:, None, :])
+        _scatter_add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
+        _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
+        _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
+        self._release(slots)
+
+    def _weighted(self, slots: IntArray) -> tuple[Array, Array, Array]:
+        """Open passes' raw sums -> what they add to ``A``, ``b`` and the pull
+        (:func:`pass_weighted`; passes of imprecise rays unweighted, see
+        ``pass_weighting_max_sigma_rad``). The pull
+        scales with the pass's horizontal information, ``tr_h W_p / tr_h A_p``: ``C_p``
+        goes through the weighting as ``A_p`` does (``C_p ~ kappa_p A_p``)."""
+        a6, b = self._o_a6[slots].copy(), self._o_b[slots].copy()
+        c1 = self._o_c1[slots].copy()
+        n = np.maximum(self._o_n[slots], 1)
+        rms2 = self._o_s2[slots] / n
+        precise = rms2 <= self.config.pass_weighting_max_sigma_rad**2
+        if precise.any():
+            # rays weighted by c (a vehicle's trust) carry c A_p: the pass's weight is
+            # c W_p(A_p), that is W for c A_p with S / c (weighting passes, not only rays)
+            c = np.maximum(self._o_w[slots][precise] / n[precise], 1e-12)
+            sigma = np.asarray(self.config.pass_sigma_m, float)[None, :] / np.sqrt(c)[:, None]
+            raw_h = a6[precise, 0] + a6[precise, 1]
+            a6[precise], b[precise] = pass_weighted(a6[precise], b[precise], sigma)
+            if c1.any():
+                w_h = a6[precise, 0] + a6[precise, 1]
+                c1[precise] *= np.divide(w_h, raw_h, out=np.zeros_like(w_h), where=raw_h > 0)
+        return a6, b, c1
+
+    def _release(self, slots: IntArray) -> None:
+        """Forget open slots (their sums already folded or dropped); free them in order."""
+        for s, row, cl in zip(
+            slots.tolist(),
+            self._o_row[slots].tolist(),
+            self._o_cluster[slots].tolist(),
+            strict=True,
+        ):
+            del self._slot[(row, cl)]
+            mine = self._row_slots[row]
+            mine.remove(s)
+            if not mine:
+                del self._row_slots[row]
+            self._o_row[s] = -1
+            self._free.append(s)
+
+    def _open_slots(self) -> IntArray:
+        return np.flatnonzero(self._o_row[: self._o_hi] >= 0)
+
+    def _slots_of(self, rows: IntArray) -> IntArray:
+        """Open slots of ``rows``, ascending: ``_open_slots()`` filtered to ``rows``, in
+        O(their open passes) instead of O(all open passes)."""
+        get = self._row_slots.get
+        found = [s for r in np.unique(rows).tolist() for s in get(r, ())]
+        return np.sort(np.array(found, np.int64))
+
+    def close_passes(self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None) -> int:
+        """Close open passes: all (no arguments), those of ``rows``, those with a cluster id
+        in ``clusters`` (every landmark), or the pairs ``(rows[i], clusters[i])`` (both).
+        Returns how many were closed."""
+        slots = self._open_slots()
+        if rows is not None and clusters is not None:
+            keys = zip(
+                np.asarray(rows).reshape(-1).tolist(),
+                np.asarray(clusters).reshape(-1).tolist(),
+                strict=True,
+            )
+            found = [self._slot.get((int(r), int(c))) for r, c in keys]
+            slots = np.array(sorted({s for s in found if s is not None}), np.int64)
+        elif rows is not None:
+            slots = self._slots_of(np.asarray(rows, np.int64).reshape(-1))
+        elif clusters is not None:
+            slots = slots[np.isin(self._o_cluster[slots], np.asarray(clusters, np.int64))]
+        slots = slots[self._o_hold[slots] == 0]  # held passes stay apart (see hold)
+        self._close_slots(slots)
+        return int(slots.size)
+
+    def _evict(self, rows: IntArray) -> None:
+        """Close the least recently active passes of ``rows`` (unique, ascending) above
+        ``max_open_passes``: per row by (activity stamp, cluster), rows in order, in one
+        vectorised call (the same sums, in the same order, as closing row by row)."""
+        over = rows[self._n_open[rows] > self.config.max_open_passes]
+        if over.size == 0:
+            return
+        mine = self._slots_of(over)
+        mine = mine[self._o_hold[mine] == 0]  # held passes are never closed here
+        if mine.size == 0:
+            return
+        r = self._o_row[mine]
+        order = np.lexsort((self._o_cluster[mine], self._o_last[mine], r))
+        mine, r = mine[order], r[order]
+        first = np.flatnonzero(np.concatenate(([True], r[1:] != r[:-1])))
+        count = np.diff(np.append(first, r.size))
+        rank = np.arange(r.size) - np.repeat(first, count)
+        self._close_slots(mine[rank < np.repeat(count, count) - self.config.max_open_passes])
+
+    # ------------------------------------------------------------------ held passes
+    def _held(self, hold: int) -> IntArray:
+        slots = self._open_slots()
+        return slots[self._o_hold[slots] == int(hold)] if hold else slots[:0]
+
+    def release(self, hold: int, weight: float) -> IntArray:
+        """Let ``hold``'s held passes go, their rays re-weighted to ``weight`` (exactly as if
+        they had come with it: every ray term is linear in its weight); they become
+        ordinary open passes. Returns the rows that had some.
+
+        >>> import numpy as np
+        >>> from hdmap.mapping.estimator.model import Rays
+        >>> s = LandmarkSums(capacity=1)
+        >>> row = s.new_rows(1, np.zeros((1, 3)))
+        >>> from dataclasses import replace
+        >>> r = Rays.from_angles(np.zeros((2, 3)), [0.1, 0.2], [0.1, 0.1], 0.01, 0.01, 1.0, 1.0)
+        >>> rays = replace(r, weight=np.full(2, 0.05))
+        >>> s.accumulate([0, 0], [11, 11], rays, hold=[7, 7])
+        >>> s.n_held(), s.release(7, 1.0).tolist(), s.n_held(), s.release(7, 1.0).tolist()
+        (1, [0], 0, [])
+        """
+        slots = self._held(hold)
+        rows = self._o_row[slots]
+        if slots.size == 0:
+            return rows
+        n = np.maximum(self._o_n[slots], 1)
+        f = float(weight) / np.maximum(self._o_w[slots] / n, 1e-300)
+        self._o_a6[slots] *= f[:, None]
+        self._o_b[slots] *= f[:, None]
+        _scatter_add(self._j6, rows, f[:, None] * self._o_j6[slots])
+        self._o_c1[slots] *= f  # linear in the rays' weight, like A_p
+        _scatter_add(self._w1, rows, (f - 1.0) * self._o_w[slots])
+        _scatter_add(self._w2, rows, (f**2 - 1.0) * self._o_w2[slots])
+        self._o_w[slots] *= f
+        self._o_w2[slots] *= f**2
+        self._o_j6[slots] = 0.0
+        self._o_hold[slots] = 0
+        rows = np.unique(rows)
+        self._evict(rows)
+        return rows
+
+    def drop_held(self, hold: int) -> IntArray:
+        """Take ``hold``'s held passes out, as if their rays had never been added. Returns
+        the rows that had some."""
+        slots = self._held(hold)
+        rows = self._o_row[slots]
+        if slots.size == 0:
+            return rows
+        _scatter_add(self._n_obs, rows, -self._o_n[slots])
+        _scatter_add(self._w1, rows, -self._o_w[slots])
+        _scatter_add(self._w2, rows, -self._o_w2[slots])
+        _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
+        self._release(slots)
+        return np.unique(rows)
+
+    def n_held(self, rows: ArrayLike | None = None) -> int:
+        """Held passes (of ``rows``, default all)."""
+        slots = self._open_slots() if rows is None else self._slots_of(np.asarray(rows))
+        return int(np.count_nonzero(self._o_hold[slots]))
+
+    # ------------------------------------------------------------------ accumulate
+    def accumulate(
+        self, rows: ArrayLike, clusters: ArrayLike, rays: Rays, hold: ArrayLike | None = None
+    ) -> None:
+        """Add rays (``rows[j]`` is ray j's landmark, ``clusters[j]`` its pass key).
+
+        Weights use each row's reference position as it is before this call. ``hold[j]``
+        (default 0: none) puts ray j's pass *on hold* for the holder with that key (a
+        vehicle on probation): the pass stays open and separate, counts in :meth:`solve`
+        with the weight its rays have, and is later either re-weighted and let go
+        (:meth:`release`) or taken out as if never added (:meth:`drop_held`). A cluster is
+        held or not for good: use distinct cluster keys for a pass's held rays.
+        """
+        r = self._check_rows(rows)
+        n = r.size
+        if len(rays) != n:
+            raise ValueError("rows and rays differ in length")
+        if n == 0:
+            return
+        c = np.asarray(clusters, np.int64).reshape(-1)
+        if c.size != n:
+            raise ValueError("clusters and rays differ in length")
+        hk = np.zeros(n, np.int64) if hold is None else np.asarray(hold, np.int64).reshape(-1)
+        if hk.size != n:
+            raise ValueError("hold and rays differ in length")
+        held = hk != 0
+        if held.any() and not self.config.cluster_robust:
+            raise ValueError("held passes need pass-level sums (cluster_robust)")
+        origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
+        alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
+        j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
+        _scatter_add(self._j6, r[~held], j6[~held])
+        # the pull sum of an unreported pass bias: only when configured (zeros otherwise)
+        pulled = self.config.extra_sigma_pos_m > 0
+        pull = pull_terms(rays, origin_rel, self._x_ref[r], self.config) if pulled else None
+        if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
+            raise ValueError("non-finite ray terms (check directions and sigmas)")
+        _scatter_add(self._n_obs, r, np.ones(n, np.int64))
+        wr = rays.weights_or_ones()
+        _scatter_add(self._w1, r, wr)
+        _scatter_add(self._w2, r, wr**2)
+        if not self.config.cluster_robust:
+            if pull is not None:
+                _scatter_add(self._c1, r, pull)
+            _scatter_add(self._a6, r, alpha)
+            _scatter_add(self._b, r, beta)
+            _scatter_add(self._saa, r, outer6_to_tri(alpha))
+            _scatter_add(self._sab, r, alpha[:, :, None] * beta[:, None, :])
+            _scatter_add(self._sbb, r, mat_to_sym(beta[:, :, None] * beta[:, None, :]))
+            _scatter_add(self._n_closed, r, np.ones(n, np.int64))
+            return
+        order = np.lexsort((c, r))
+        rs, cs = r[order], c[order]
+        starts = np.flatnonzero(np.r_[True, (rs[1:] != rs[:-1]) | (cs[1:] != cs[:-1])])
+        g_a6 = np.add.reduceat(alpha[order], starts, axis=0)
+        g_b = np.add.reduceat(beta[order], starts, axis=0)
+        s_az, s_el = effective_sigmas(rays, self.config)
+        var = np.broadcast_to(0.5 * (s_az**2 + s_el**2), (n,))
+        g_s2 = np.add.reduceat(var[order], starts)
+        g_w = np.add.reduceat(wr[order], starts)
+        g_n = np.diff(np.r_[starts, n])
+        g_r, g_c = rs[starts], cs[starts]
+        hs = hk[order]
+        g_h = hs[starts]
+        if held.any() and np.any(
+            np.minimum.reduceat(hs, starts) != np.maximum.reduceat(hs, starts)
+        ):
+            raise ValueError("rays of one (landmark, pass) both held and not")
+        slots = np.empty(starts.size, np.int64)
+        fresh = np.zeros(starts.size, bool)
+        for i, key in enumerate(zip(g_r.tolist(), g_c.tolist(), strict=True)):
+            s = self._slot.get(key)
+            fresh[i] = s is None
+            slots[i] = self._alloc_slot(key) if s is None else s
+        if np.any(self._o_hold[slots[~fresh]] != g_h[~fresh]):
+            raise ValueError("rays of one (landmark, pass) both held and not")
+        self._o_hold[slots] = g_h
+        if held.any():
+            self._o_j6[slots] += np.add.reduceat(
+                np.where(held[:, None], j6, 0.0)[order], starts, axis=0
+            )
+        self._o_w2[slots] += np.add.reduceat((wr**2)[order], starts)
+        self._o_a6[slots] += g_a6
+        self._o_b[slots] += g_b
+        if pull is not None:
+            self._o_c1[slots] += np.add.reduceat(pull[order], starts)
+        self._o_s2[slots] += g_s2
+        self._o_w[slots] += g_w
+        self._o_n[slots] += g_n
+        self._o_last[slots] = self._n_obs[g_r]
+        self._evict(np.unique(g_r))
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, rows: ArrayLike, update_reference: bool = True) -> Solution:
+        """Estimate and covariance of ``rows`` (open passes included).
+
+        With ``update_reference``, rows whose solution is ``ok`` take it as the reference
+        position for the weights of their future rays (part of the state: the same calls
+        give the same results after :meth:`pack_rows` / :meth:`unpack_rows`).
+        """
+        r = self._check_rows(rows)
+        uniq, inv = np.unique(r, return_inverse=True)
+        saa, sab, sbb = self._saa[uniq].copy(), self._sab[uniq].copy(), self._sbb[uniq].copy()
+        a_all, b_all = self._a6[uniq].copy(), self._b[uniq].copy()
+        n_cl = self._n_closed[uniq] + self._n_open[uniq]
+        j6 = self._j6[uniq].copy()
+        c1 = self._c1[uniq].copy()
+        slots = self._slots_of(uniq)
+        if slots.size:
+            pos = np.searchsorted(uniq, self._o_row[slots])
+            _scatter_add(j6, pos, self._o_j6[slots])
+            a6, b, c1o = self._weighted(slots)
+            _scatter_add(c1, pos, c1o)
+            _scatter_add(a_all, pos, a6)
+            _scatter_add(b_all, pos, b)
+            _scatter_add(saa, pos, outer6_to_tri(a6))
+            _scatter_add(sab, pos, a6[:, :, None] * b[:, None, :])
+            _scatter_add(sbb, pos, mat_to_sym(b[:, :, None] * b[:, None, :]))
+        sol = solve_sums(
+            a_all,
+            b_all,
+            saa,
+            sab,
+            sbb,
+            self._n_obs[uniq],
+            n_cl,
+            self.config,
+            j6,
+            floor_scale=np.divide(
+                self._w2[uniq], self._w1[uniq], out=np.ones(uniq.size), where=self._w1[uniq] > 0
+            ),
+            pull=c1 if c1.any() else None,
+        )
+        if update_reference:
+            ok = sol.ok
+            self._x_ref[uniq[ok]] = sol.x[ok]
+        anchor = self._anchor[uniq]
+        out = Solution(
+            x=sol.x + anchor,
+            cov=sol.cov,
+            ok=sol.ok,
+            n_obs=sol.n_obs,
+            n_clusters=sol.n_clusters,
+            x_raw=sol.x_raw + anchor,
+            bias=sol.bias,
+            cov_sandwich=sol.cov_sandwich,
+            inflation=sol.inflation,
+            cond=sol.cond,
+            significance=sol.significance,
+            dispersion=sol.dispersion,
+        )
+        if uniq.size == r.size and np.array_equal(uniq, r):
+            return out
+        return Solution(**{k: v[inv] for k, v in out.__dict__.items()})
+
+    # ------------------------------------------------------------------ merge
+    def merge_rows(
+        self,
+        dst: int,
+        src: int,
+        rotation: ArrayLike | None = None,
+        translation: ArrayLike | None = None,
+    ) -> None:
+        """Fold row ``src`` into row ``dst`` (two landmarks found to be one); ``src`` is
+        left empty.
+
+        ``rotation`` R and ``translation`` t map ``src``'s frame to ``dst``'s (``x_dst = R
+        x_src + t``; default: the same frame). Every ray term moves exactly: ``A_j -> R A_j
+        R^T`` (a linear map T of the 6-vector) and, with ``d = R anchor_src + t -
+        anchor_dst``, ``b_j -> R b_j + A'_j d = R b_j + L(d) alpha'_j``, so per pass
+        ``alpha' = T alpha``, ``b' = R b + L alpha'`` and the sandwich sums follow:
+
+            S_AA' = T S_AA T^T,   S_Ab' = T S_Ab R^T + S_AA' L^T,
+            S_bb' = R S_bb R^T + R S_Ab^T T^T L^T + L T S_Ab R^T + L S_AA' L^T.
+
+        An open pass of ``src`` joins ``dst``'s open pass of the same cluster (one pass
+        that saw "both" landmarks is one cluster again) or becomes a new open pass. The
+        rays keep the weights they got from their own row's reference; with the same
+        reference and a rotation about the vertical (the compensation is defined in az/el
+        about the local up), the result equals one row fed every ray.
+        """
+        if dst == src:
+            raise ValueError("cannot merge a row into itself")
+        d_row, s_row = self._check_rows([dst, src]).tolist()
+        r = np.eye(3) if rotation is None else np.asarray(rotation, float).reshape(3, 3)
+        t = np.zeros(3) if translation is None else np.asarray(translation, float).reshape(3)
+        t6 = np.stack([mat_to_sym(r @ SYM_BASIS[k] @ r.T) for k in range(6)], axis=1)
+        lm = apply_matrix(r @ self._anchor[s_row] + t - self._anchor[d_row])
+
+        def move(a6: Array, b: Array) -> tuple[Array, Array]:
+            a6n = a6 @ t6.T
+            return a6n, b @ r.T + a6n @ lm.T
+
+        a6, b = move(self._a6[s_row], self._b[s_row])
+        self._a6[d_row] += a6
+        self._b[d_row] += b
+        self._j6[d_row] += self._j6[s_row] @ t6.T
+        self._c1[d_row] += self._c1[s_row]  # a trace: the same in every frame
+        saa = t6 @ tri_to_mat6(self._saa[s_row]) @ t6.T
+        sab = self._sab[s_row]
+        t_sab_r = t6 @ sab @ r.T
+        self._saa[d_row] += saa[TRI6_I, TRI6_J]
+        self._sab[d_row] += t_sab_r + saa @ lm.T
+        cross = lm @ t_sab_r
+        sbb = r @ sym_to_mat(self._sbb[s_row]) @ r.T + cross + cross.T + lm @ saa @ lm.T
+        self._sbb[d_row] += mat_to_sym(sbb)
+        self._n_obs[d_row] += self._n_obs[s_row]
+        self._w1[d_row] += self._w1[s_row]
+        self._w2[d_row] += self._w2[s_row]
+        self._n_closed[d_row] += self._n_closed[s_row]
+        mine = np.sort(np.array(self._row_slots.get(s_row, ()), np.int64))
+        for sl in mine.tolist():
+            a6o, bo = move(self._o_a6[sl], self._o_b[sl])
+            key = (d_row, int(self._o_cluster[sl]))
+            to = self._slot.get(key)
+            if to is None:
+                to = self._alloc_slot(key)
+            self._o_a6[to] += a6o
+            self._o_b[to] += bo
+            self._o_n[to] += self._o_n[sl]
+            self._o_s2[to] += self._o_s2[sl]
+            self._o_w[to] += self._o_w[sl]
+            self._o_w2[to] += self._o_w2[sl]
+            self._o_j6[to] += self._o_j6[sl] @ t6.T
+            self._o_c1[to] += self._o_c1[sl]
+            self._o_hold[to] = self._o_hold[sl]
+            self._o_last[to] = max(self._o_last[to], self._o_last[sl])
+        self._release(mine)
+        for name in _ROW_ARRAYS:
+            getattr(self, name)[s_row] = 0
+        self._evict(np.array([d_row], np.int64))
+
+    # ------------------------------------------------------------------ persistence
+    def pack_rows(self, rows: ArrayLike) -> list[bytes]:
+        """Serialise rows (closed sums, reference, open passes) to self-contained blobs.
+
+        A row without any pull (``EstimatorConfig.extra_sigma_pos_m`` unset) is written in
+        version 4, without the pull columns: 8 bytes less per row and per open pass, which
+        keeps two rows with 8 open passes in one SQLite page. Byte layout:
+        :mod:`hdmap.mapping.estimator.packing`."""
+        r = self._check_rows(rows)
+        out = []
+        for row in r.tolist():
+            mine = np.sort(np.array(self._row_slots.get(row, ()), np.int64))
+            mine = mine[np.lexsort((self._o_cluster[mine], self._o_last[mine]))]
+            pulled = bool(self._c1[row] != 0 or np.any(self._o_c1[mine] != 0))
+            lay = layout(PACK_VERSION if pulled else 4)
+            rec = np.zeros((), lay.row)
+            for f in lay.fields:
+                rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
+            rec["n_open"] = mine.size
+            op = np.zeros(mine.size, lay.open)
+            op["cluster"], op["last"], op["n"] = (
+                self._o_cluster[mine],
+                self._o_last[mine],
+                self._o_n[mine],
+            )
+            op["a6"], op["b"], op["s2"] = self._o_a6[mine], self._o_b[mine], self._o_s2[mine]
+            op["w"], op["w2"] = self._o_w[mine], self._o_w2[mine]
+            op["hold"], op["j6"] = self._o_hold[mine], self._o_j6[mine]
+            if pulled:
+                op["c1"] = self._o_c1[mine]
+            out.append(encode(lay, rec, op))
+        return out
+
+    def unpack_rows(self, blobs: Sequence[bytes], rows: ArrayLike | None = None) -> IntArray:
+        """Restore packed rows into new rows (default) or over ``rows`` (their open passes
+        are dropped first). Returns the rows."""
+        if rows is None:
+            r = self.new_rows(len(blobs), np.zeros((len(blobs), 3)))
+        else:
+            r = self._check_rows(rows)
+            if r.size != len(blobs):
+                raise ValueError("rows and blobs differ in length")
+            self._release(self._slots_of(r))
+        for row, blob in zip(r.tolist(), blobs, strict=True):
+            lay, rec, op = decode(blob)
+            v = lay.version
+            for f in lay.fields:
+                getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
+                    getattr(self, "_" + f)[row].shape
+                )
+            if v < 3:
+                self._w1[row] = self._w2[row] = float(rec["n_obs"])
+            if v < PACK_VERSION:
+                self._c1[row] = 0.0
+            old = v == 1
+            self._n_open[row] = 0
+            for o in op:
+                s = self._alloc_slot((row, int(o["cluster"])))
+                self._o_last[s], self._o_n[s] = int(o["last"]), int(o["n"])
+                self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
+                self._o_s2[s] = 0.0 if old else float(o["s2"])
+                self._o_w[s] = float(o["n"]) if v < 3 else float(o["w"])
+                if v >= 4:
+                    self._o_w2[s], self._o_hold[s] = float(o["w2"]), int(o["hold"])
+                    self._o_j6[s] = o["j6"]
+                    self._o_c1[s] = float(o["c1"]) if v == PACK_VERSION else 0.0
+                else:
+                    self._o_w2[s] = self._o_w[s] ** 2 / max(int(o["n"]), 1)
+                if old and self.config.cluster_robust:
+                    self._a6[row] -= o["a6"]
+                    self._b[row] -= o["b"]
+        return r

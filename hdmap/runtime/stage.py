@@ -1,0 +1,242 @@
+"""A service that consumes one stage log and (optionally) produces the next.
+
+The exactly-once loop of :mod:`hdmap.runtime.stream`, wired once for matcher, solver and
+publisher:
+
+1. live entries arrive on the input stage key for the region; the consumer puts
+   them in order, drops duplicates and notices gaps;
+2. on start, on a gap, when an upstream producer appears, and every
+   ``catchup_interval_s``, the consumer replays what it is missing;
+3. ``apply(entries)`` runs inside one SQLite transaction together with the
+   offsets of those entries and the output entries it appends;
+4. after the commit, the output entries are published live.
+
+Entries are applied in each producer's ``gseq`` order (live entries released from
+behind a gap are merged with the replay), never twice (an entry at or below the
+committed offset is dropped even if it is delivered again), and an entry whose apply
+raises, or breaks an SQLite constraint, is set aside (dead-lettered) alone; a failing
+storage (full, read-only) leaves the entries unapplied, to be replayed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import time
+from collections import defaultdict
+from itertools import pairwise
+
+import zenoh
+
+from hdmap.runtime.service import Item, Service, ServiceOptions
+from hdmap.runtime.store import StorageError
+from hdmap.runtime.stream import STAGE_KEYS, LogConsumer, LogServer, LogWriter
+from schemas import DecodeError, LogEntry, keys
+
+log = logging.getLogger(__name__)
+
+
+class StageService(Service):
+    """Subclasses set ``input_stage``/``upstream`` and, if they produce, ``output_stage``."""
+
+    input_stage: str = ""
+    upstream: str = ""
+    """Name of the service producing ``input_stage`` (its liveliness triggers catch-up)."""
+    output_stage: str | None = None
+
+    def __init__(self, opts: ServiceOptions):
+        super().__init__(opts)
+        self.consumer = LogConsumer(self.db, self.input_stage, self.region)
+        self.writer = (
+            LogWriter(self.db, self.output_stage, self.instance) if self.output_stage else None
+        )
+        self._log_server: LogServer | None = None
+        self._outbox: list[LogEntry] = []
+        self.db.execute(
+            "CREATE TABLE IF NOT EXISTS dead_letters "
+            "(at REAL NOT NULL, stage TEXT NOT NULL, body BLOB NOT NULL)"
+        )
+
+    # -- hooks for subclasses ----------------------------------------------------------------
+
+    def apply(self, entries: list[LogEntry]) -> None:
+        """Apply in-order input entries; append outputs with :meth:`emit` (in a transaction)."""
+        raise NotImplementedError
+
+    def after_commit(self) -> None:
+        """Publish derived state after a successful apply (beyond the output log)."""
+
+    def handle_other(self, items: list[Item]) -> None:
+        """Items that are not stage entries (queries of this service)."""
+        for it in items:
+            if it.query is not None:
+                it.query.drop()
+
+    # -- wiring -------------------------------------------------------------------------------
+
+    def setup(self) -> None:
+        for prefix in self.region or [""]:
+            self.subscribe(STAGE_KEYS[self.input_stage](keys.region(prefix)), "entry")
+        if self.output_stage:
+            self._log_server = LogServer(
+                self.session, self.db_path, self.output_stage, self.instance
+            )
+        if self.upstream:
+
+            def on_alive(sample: zenoh.Sample) -> None:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self.inbox.put(Item("producer_up", str(sample.key_expr), b""))
+
+            self.declare(
+                self.session.liveliness().declare_subscriber(
+                    keys.alive(self.upstream, "*", "*"), on_alive
+                )
+            )
+        self.every(self.opts.catchup_interval_s, lambda _now: self._mark_catchup())
+        self.inbox.put(Item("kick", "", b""))
+
+    def teardown(self) -> None:
+        if self._log_server is not None:
+            self._log_server.close()
+
+    def _mark_catchup(self) -> None:
+        # on the worker thread: a blocking put into its own full inbox would never return
+        self.consumer.need_catchup = True
+        with contextlib.suppress(queue.Full):
+            self.inbox.put_nowait(Item("kick", "", b""))
+
+    def emit(self, tile: str, body: bytes) -> LogEntry:
+        """Append an output entry (inside apply's transaction); published after commit."""
+        assert self.writer is not None
+        e = self.writer.append(tile, body)
+        self._outbox.append(e)
+        return e
+
+    def handle(self, items: list[Item]) -> None:
+        deliver: list[LogEntry] = []
+        others: list[Item] = []
+        for it in items:
+            if it.kind == "entry":
+                try:
+                    entry = LogEntry.from_bytes(it.payload)
+                except DecodeError as exc:
+                    self.reject(f"bad entry: {exc.field}")
+                    continue
+                deliver += self.consumer.offer(entry)
+            elif it.kind == "producer_up":
+                self.consumer.need_catchup = True
+            elif it.kind != "kick":
+                others.append(it)
+        if self.consumer.need_catchup:
+            try:
+                deliver += self.consumer.catch_up(self.session)
+            except zenoh.ZError as exc:
+                log.warning("catch-up failed: %s", exc)
+        deliver = self._unapplied(in_producer_order(deliver))
+        if deliver:
+            self._apply_and_publish(deliver)
+        if others:
+            self.handle_other(others)
+
+    def _unapplied(self, entries: list[LogEntry]) -> list[LogEntry]:
+        """Entries above the committed offsets. A batch that failed and was applied entry
+        by entry leaves the consumer's delivery marks behind its offsets, so the next
+        replay delivers those entries again: they must not be applied twice."""
+        done = self.consumer.offsets
+        return [e for e in entries if e.seq > done.get((e.producer, e.tile), 0)]
+
+    def _apply_and_publish(self, entries: list[LogEntry]) -> None:
+        """Apply a batch in one transaction; a batch that raises is retried entry by entry,
+        and an entry that still raises is set aside (dead-lettered, counted, logged) so one
+        poisonous entry cannot stop the stage. Storage failures are not set aside: the
+        entries stay unapplied and are replayed."""
+        try:
+            self._apply_in_transaction(entries)
+        except StorageError as exc:
+            if not exc.transient:  # SQLite refused the statement: a poison, not the disk
+                self._isolate(entries)
+                return
+            log.error("%s: %s; entries will be replayed", self.name, exc)
+            self.count("storage_errors")
+            self._outbox = []
+        except Exception:  # noqa: BLE001 - any bug in apply: isolate the entry that causes it
+            self._isolate(entries)
+
+    def _isolate(self, entries: list[LogEntry]) -> None:
+        if len(entries) > 1:
+            for e in entries:
+                self._apply_and_publish([e])
+            return
+        log.exception("%s: entry %s failed; dead-lettered", self.name, _describe(entries[0]))
+        self._dead_letter(entries[0])
+
+    def _apply_in_transaction(self, entries: list[LogEntry]) -> None:
+        participants = [self.consumer] + ([self.writer] if self.writer else [])
+        participants += self.participants()
+        self._outbox = []
+        try:
+            with self.transaction(participants):
+                self.apply(entries)
+                self.consumer.record(entries)
+                self.count("entries_applied", len(entries))
+                self.count("log_entries", len(self._outbox))
+        except BaseException:
+            self._outbox = []
+            raise
+        for e in self._outbox:
+            self.pubs.put(STAGE_KEYS[e.stage](e.tile), e.to_bytes())
+        self._outbox = []
+        self.after_commit()
+
+    def _dead_letter(self, entry: LogEntry) -> None:
+        """Keep a failing entry for inspection and mark it consumed (counted, not applied)."""
+        try:
+            with self.transaction([self.consumer]):
+                self.db.execute(
+                    "INSERT INTO dead_letters(at, stage, body) VALUES (?, ?, ?)",
+                    (time.time(), entry.stage, entry.to_bytes()),
+                )
+                self.consumer.record([entry])
+                self.count("entries_failed")
+                self.count("entries_applied")
+                self.reject(f"{entry.stage}.apply_failed")  # in Stats.rejected, by reason
+        except StorageError as exc:
+            log.error("%s: cannot dead-letter: %s", self.name, exc)
+            self.count("storage_errors")
+
+    def participants(self) -> list:
+        """Extra in-memory state that must follow the transaction's outcome."""
+        return []
+
+    def extra_counters(self) -> dict[str, float]:
+        s = self.consumer.stats
+        return {
+            "lag_entries": float(self.consumer.lag),
+            "entries_duplicate": s.duplicates,
+            "entries_gap": s.gaps,
+            "entries_replayed": s.replayed,
+            "catchups": s.catchups,
+        }
+
+
+def in_producer_order(entries: list[LogEntry]) -> list[LogEntry]:
+    """Each producer's entries in its ``gseq`` order, at the places its entries take.
+
+    The consumer releases a live entry that waited behind a gap as soon as the gap is
+    filled, ahead of replayed entries of other tiles the producer wrote before it; this
+    puts them back in the order the producer wrote them (the order of a run without the
+    gap, which the matcher's results depend on). Per (producer, tile) the order is
+    unchanged: ``seq`` grows with ``gseq``.
+    """
+    mine: dict[str, list[LogEntry]] = defaultdict(list)
+    for e in entries:
+        mine[e.producer].append(e)
+    if all(all(a.gseq < b.gseq for a, b in pairwise(v)) for v in mine.values()):
+        return entries
+    queues = {p: iter(sorted(v, key=lambda e: e.gseq)) for p, v in mine.items()}
+    return [next(queues[e.producer]) for e in entries]
+
+
+def _describe(e: LogEntry) -> str:
+    return f"{e.stage}/{e.producer}/{e.tile}#{e.seq}"

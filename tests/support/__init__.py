@@ -1,0 +1,18 @@
+"""Shared builders of the tests (bounded waits, scenes, service harnesses).
+
+Every test module imports its builders from here, never from another test module."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+
+def wait_until(pred: Callable[[], bool], timeout: float = 20.0, step: float = 0.05) -> bool:
+    """Poll ``pred`` until true or ``timeout`` (bounded loop); its last value."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(step)
+    return pred()

@@ -1,0 +1,93 @@
+"""schemas.keys: key shapes, and region selection checked by Zenoh's own key-expression algebra."""
+
+from __future__ import annotations
+
+import pytest
+import zenoh
+
+from schemas import keys
+
+
+def test_key_shapes() -> None:
+    assert keys.ROOT == "hdmap/v1"
+    assert keys.region("120") == "120$*"
+    assert keys.region("") == "*"
+    assert keys.upload("veh-7") == "hdmap/v1/upload/veh-7"
+    assert keys.upload("*") == "hdmap/v1/upload/*"
+    assert keys.obs("1202") == "hdmap/v1/obs/1202"
+    assert keys.assoc("1202") == "hdmap/v1/assoc/1202"
+    assert keys.update("1202") == "hdmap/v1/update/1202"
+    assert keys.map_delta("1202") == "hdmap/v1/map/1202/delta"
+    assert keys.map_snapshot("1202") == "hdmap/v1/map/1202"
+    assert keys.log("obs", "ingest-1", "1202") == "hdmap/v1/log/obs/ingest-1/1202"
+    assert keys.alive("matcher", "120+121", "m1") == "hdmap/v1/alive/matcher/120+121/m1"
+    assert keys.stats("solver", "all", "s1") == "hdmap/v1/stats/solver/all/s1"
+
+
+def test_chunk_helpers() -> None:
+    k = keys.obs("1202102332")
+    assert keys.last_chunk(k) == "1202102332"
+    assert keys.chunk(k, 3) == "1202102332"
+    assert keys.chunk(keys.map_delta("12"), 3) == "12"
+    assert keys.last_chunk(keys.map_delta("12")) == "delta"
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        keys.obs("1202"),
+        keys.obs(keys.region("120")),
+        keys.obs(keys.region("")),
+        keys.map_delta(keys.region("1")),
+        keys.upload("veh-7"),
+        keys.alive("matcher", "120+121", "m1"),
+        keys.log("assoc", "matcher-1", "0123"),
+    ],
+)
+def test_keys_are_canonical_zenoh_key_expressions(key: str) -> None:
+    assert str(zenoh.KeyExpr(key)) == key
+    assert str(zenoh.KeyExpr.autocanonize(key)) == key
+
+
+def _ke(s: str) -> zenoh.KeyExpr:
+    return zenoh.KeyExpr(s)
+
+
+def test_region_selects_tiles_under_prefix() -> None:
+    sel = _ke(keys.obs(keys.region("120")))
+    assert sel.intersects(_ke(keys.obs("1202")))
+    assert not sel.intersects(_ke(keys.obs("1302")))
+    assert sel.includes(_ke(keys.obs("1202102332")))
+    assert sel.includes(_ke(keys.obs("120")))  # $* also matches the empty suffix
+    assert not sel.intersects(_ke(keys.obs("12")))
+    assert not sel.intersects(_ke(keys.assoc("1202")))  # other stage
+    assert not sel.intersects(_ke(keys.obs("1202") + "/x"))  # one chunk only
+
+
+def test_whole_world_region() -> None:
+    sel = _ke(keys.obs(keys.region("")))
+    for qk in ("0", "1202", "3333333333333333"):
+        assert sel.includes(_ke(keys.obs(qk)))
+
+
+def test_snapshot_and_delta_keys_do_not_collide() -> None:
+    # a subscriber to deltas of a region never receives snapshots and vice versa
+    deltas = _ke(keys.map_delta(keys.region("120")))
+    snaps = _ke(keys.map_snapshot(keys.region("120")))
+    assert deltas.intersects(_ke(keys.map_delta("1202")))
+    assert not deltas.intersects(_ke(keys.map_snapshot("1202")))
+    assert snaps.intersects(_ke(keys.map_snapshot("1202")))
+    assert not snaps.intersects(_ke(keys.map_delta("1202")))
+
+
+def test_upload_queryable_covers_every_vehicle() -> None:
+    q = _ke(keys.upload("*"))
+    assert q.includes(_ke(keys.upload("veh-7")))
+    assert not q.intersects(_ke(keys.obs("1202")))
+
+
+def test_alive_and_stats_wildcards() -> None:
+    every_matcher = _ke(f"{keys.ROOT}/alive/matcher/**")
+    assert every_matcher.includes(_ke(keys.alive("matcher", "120+121", "m1")))
+    assert not every_matcher.intersects(_ke(keys.alive("solver", "all", "s1")))
+    assert _ke(keys.stats("*", "*", "*")).includes(_ke(keys.stats("solver", "all", "s1")))

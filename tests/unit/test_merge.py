@@ -1,0 +1,139 @@
+"""Landmark merge: one sign that became two landmarks becomes one again, in the matcher
+(decision, state, persistence) and in the solver (sums handed over, retired landmark
+removed from the map). In-process services on real SQLite, through their transactions.
+
+Scene: one sign 30 m north of a road origin; passes drive north along x = -2 m with a
+per-pass GNSS bias (1 m per axis) and 0.01 rad angular noise, 10 rays each.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdmap.runtime.service import ServiceOptions
+from schemas import Links, NewLandmarks, Observations
+from services.matcher.service import MatcherService, _Out
+from tests.support.services import (
+    CLS,
+    SIGN,
+    assoc_entry,
+    matcher,
+    sign_rays,
+    solver,
+    tile_of,
+    updates,
+)
+
+
+def two_copies(svc: MatcherService, covisible: bool = False, opposite: bool = False):
+    """Landmarks a and b of the one sign: passes 0-5 linked to a, 6-11 to b."""
+    rng = np.random.default_rng(3)
+    tile = tile_of(svc.opts.zoom)
+    frame = svc.frames(tile)
+    svc._out = defaultdict(_Out)
+    at = frame.to_ecef(
+        np.array([SIGN + np.array([1.0, 0.6, 0.0]), SIGN + np.array([-0.9, -0.5, 0.0])])
+    )
+    a = svc._create(tile, CLS, at[0], np.eye(3) * 4.0)
+    b = svc._create(tile, CLS, at[1], np.eye(3) * 4.0)
+    for p in range(12):
+        obs = sign_rays(frame, p, rng, from_north=opposite and p >= 6)
+        if covisible and p < 6:  # the same images also detected a second sign of the class
+            both = Observations.concat([obs, sign_rays(frame, p, rng, image0=500)])
+            both = Observations(**{**both.__dict__, "image": np.r_[obs.image, obs.image]})
+            svc._link(both, [a] * len(obs) + [b] * len(obs), "veh-1", p, time.time())
+        else:
+            svc._link(obs, [a if p < 6 else b] * len(obs), "veh-1", p, time.time())
+    svc._refresh([a.id, b.id])
+    return a, b
+
+
+def test_two_landmarks_of_one_sign_merge_and_the_merge_persists(tmp_path: Path) -> None:
+    svc = matcher(tmp_path)
+    a, b = two_copies(svc)
+    n_before = int(svc.sums.n_obs([a.row])[0] + svc.sums.n_obs([b.row])[0])
+    svc._merge_touched([b.id])
+    assert list(svc.state.landmarks) == [a.id]  # the older (equal rays: the lower id) stays
+    assert int(svc.sums.n_obs([a.row])[0]) == n_before == 120
+    assert svc.sums.n_passes([a.row])[0] == 12
+    assert svc._out[b.home].retired == [(b.id, a.id)]
+    assert np.linalg.norm(svc.frames(a.home).from_ecef(a.x[None])[0] - SIGN) < 1.5
+    with svc.transaction([svc]):
+        svc.state.save(svc.sums.pack_rows)
+    again = matcher(tmp_path)
+    assert list(again.state.landmarks) == [a.id]
+    assert int(again.sums.n_obs([again.state.landmarks[a.id].row])[0]) == 120
+    np.testing.assert_allclose(again.state.landmarks[a.id].view, a.view)
+    assert again.state.covis == {}
+
+
+@pytest.mark.parametrize("kind", ["covisible", "opposite"])
+def test_landmarks_seen_together_or_from_opposite_sides_stay_apart(tmp_path, kind) -> None:
+    svc = matcher(tmp_path)
+    a, b = two_copies(svc, covisible=kind == "covisible", opposite=kind == "opposite")
+    if kind == "covisible":
+        assert svc.state.covis_count(a.id, b.id) == 60
+    svc._merge_touched([a.id, b.id])
+    assert sorted(svc.state.landmarks) == sorted([a.id, b.id])
+    assert not svc._out[a.home].retired
+
+
+def test_solver_hands_the_sums_over_and_the_map_drops_the_retired(tmp_path: Path) -> None:
+    zoom = ServiceOptions().zoom
+    tile = tile_of(zoom)
+    m = matcher(tmp_path / "m")  # for ids and frames only
+    frame = m.frames(tile)
+    rng = np.random.default_rng(5)
+    obs = [sign_rays(frame, p, rng) for p in range(12)]
+    ida, idb = m.state.next_id(tile), m.state.next_id(tile)
+    lat, lon, h = frame.to_geodetic((SIGN + np.array([0.5, 0.5, 0.0]))[None])
+    created = NewLandmarks(
+        np.array([ida, idb], np.uint64), np.full(2, CLS, np.uint16), np.r_[lat, lat],
+        np.r_[lon, lon], np.r_[h, h],
+    )  # fmt: skip
+
+    def links(ids: list[int], passes: range) -> dict:
+        o = Observations.concat([obs[p] for p in passes])
+        return {
+            "vehicles": ["veh-1"],
+            "obs": o,
+            "links": Links(
+                np.repeat(np.array(ids, np.uint64), 10),
+                np.zeros(len(o), np.uint32),
+                np.repeat(np.array(list(passes), np.uint64), 10),
+                np.full(len(o), time.time()),
+                np.ones(len(o), np.float32),
+            ),
+        }
+
+    s = solver(tmp_path / "s")
+    s._apply_in_transaction(
+        [assoc_entry(1, tile, created=created, **links([ida] * 6 + [idb] * 6, range(12)))]
+    )
+    first = updates(s)
+    assert sorted(first[0].landmarks.id.tolist()) == sorted([ida, idb])  # both published
+    s._apply_in_transaction([assoc_entry(2, tile, retired=[idb], merged_into=[ida])])
+    (u,) = updates(s)
+    assert u.removed.id.tolist() == [idb]
+    assert u.landmarks.id.tolist() == [ida]
+    assert int(u.landmarks.n_obs[0]) == 120 and int(u.landmarks.n_passes[0]) == 12
+    assert sorted(s.state.landmarks) == [ida]
+    # the same rays given to one landmark from the start: the same estimate
+    one = solver(tmp_path / "one")
+    one._apply_in_transaction(
+        [assoc_entry(1, tile, created=created.take(np.array([0])), **links([ida] * 12, range(12)))]
+    )
+    (ref,) = updates(one)
+    np.testing.assert_allclose(u.landmarks.lat, ref.landmarks.lat, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(u.landmarks.lon, ref.landmarks.lon, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(u.landmarks.cov, ref.landmarks.cov, rtol=1e-8, atol=1e-12)
+    # after a restart the retired landmark is gone for good; unknown ids are rejected
+    again = solver(tmp_path / "s")
+    assert sorted(again.state.landmarks) == [ida]
+    again._apply_in_transaction([assoc_entry(3, tile, retired=[idb], merged_into=[ida])])
+    assert again.rejected["assoc.unknown_retired"] == 1

@@ -1,0 +1,40 @@
+"""Service configs from TOML tables: a nested table overrides its owner's defaults."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from hdmap.mapping.estimator import EstimatorConfig
+from hdmap.runtime.config import ConfigError, from_mapping
+from services.matcher.service import MatcherConfig
+from services.solver.service import SolverConfig
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_nested_table_keeps_the_fields_own_default() -> None:
+    # the matcher gates with the plug-in meat; a table that sets another estimator knob
+    # must not switch that back to the class default
+    cfg = from_mapping(MatcherConfig, {"estimator": {"min_clusters": 6}}, "matcher")
+    assert cfg.estimator.min_clusters == 6
+    assert cfg.estimator.integrated_meat is False
+    assert EstimatorConfig().integrated_meat is True
+    assert from_mapping(MatcherConfig, {}, "matcher") == MatcherConfig()
+
+
+def test_deploy_file_gives_the_solver_the_integrated_meat_and_the_matcher_the_plug_in() -> None:
+    with open(ROOT / "deploy" / "services.toml", "rb") as f:
+        table = tomllib.load(f)
+    solver = from_mapping(SolverConfig, table["solver"], "solver")
+    matcher = from_mapping(MatcherConfig, table["matcher"], "matcher")
+    assert solver.estimator.integrated_meat and solver.estimator.min_clusters == 5
+    assert not matcher.estimator.integrated_meat
+
+
+def test_matcher_refuses_to_close_passes_its_pending_pool_may_still_link() -> None:
+    with pytest.raises(ConfigError, match=r"matcher\.close_passes_after_s: must exceed"):
+        from_mapping(MatcherConfig, {"close_passes_after_s": 600.0}, "matcher")
+    assert from_mapping(MatcherConfig, {"close_passes_after_s": 0.0}, "matcher")
