@@ -40,7 +40,8 @@ with ``f_a1 = exp(s_az^2 / 2)``, ``f_a2 = exp(2 s_az^2)``, ``f_e2 = exp(2 s_el^2
 compensated ``Q~ = w_v (I - D) + (w_h - w_v) H~`` has ``E[Q~] = Q_t`` and the estimating
 function ``sum_j Q~_j (x - a_j)`` is unbiased at the true ``x`` (origin noise enters
 linearly and averages out). In 2D (``e = 0``, ``s_el = 0``) ``I - D = f_a2 (P - c I)`` with
-``c = (1 - exp(-2 s^2)) / 2``: the compensated projector ``P_j - c_j I`` (docs/estimator.md s.3), rescaled.
+``c = (1 - exp(-2 s^2)) / 2``: the compensated projector ``P_j - c_j I``
+(docs/estimator.md s.3), rescaled.
 
 Sums are kept relative to a per-landmark *anchor* (its first position) so that tile-frame
 coordinates of hundreds of metres never enter the products.
