@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks import bench_zenoh
 from fleetsim.loadgen import LoadConfig, build_pool, upload_payloads
-from hdmap.cli.loadtest import run_load
+from fleetsim.loadtest import run_load
 from hdmap.ops.stack import Stack
 from hdmap.runtime.bus import open_session
 

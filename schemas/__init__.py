@@ -1,35 +1,30 @@
 """Wire schemas (version 1) and the codec that validates them at the boundary.
 
-See ``schemas/README.md`` for every message, field by field.
+See ``schemas/README.md`` for every message, field by field. The messages live by concern
+in :mod:`schemas.upload`, :mod:`schemas.logs`, :mod:`schemas.map` and
+:mod:`schemas.control` (on the shared base :mod:`schemas.messages`), the tables they carry
+in :mod:`schemas.tables`; every name is importable from here.
 """
 
 from schemas.codec import VERSION, DecodeError
-from schemas.messages import (
+from schemas.control import ErrorReply, Stats
+from schemas.logs import AssocGroup, LandmarkUpdates, LogEntry, LogQuery, ObsGroup
+from schemas.map import MapDelta, MapSnapshot
+from schemas.messages import MAX_BATCH
+from schemas.tables import (
     DROP,
-    MAX_BATCH,
     RELEASE,
     STATUS_CANDIDATE,
     STATUS_CONFIRMED,
     STATUS_RETIRED,
-    AssocGroup,
-    ErrorReply,
     Landmarks,
-    LandmarkUpdates,
     Links,
-    LogEntry,
-    LogQuery,
-    MapDelta,
-    MapSnapshot,
     NewLandmarks,
-    ObservationBatch,
     Observations,
-    ObsGroup,
-    Rejection,
     Removals,
-    Stats,
     TrustChanges,
-    UploadAck,
 )
+from schemas.upload import ObservationBatch, Rejection, UploadAck
 
 __all__ = [
     "DROP",

@@ -43,17 +43,6 @@ def azimuth_elevation(d: ArrayLike) -> tuple[Array, Array]:
     return az, el
 
 
-def direction_from_angles(az: ArrayLike, el: ArrayLike) -> Array:
-    """(azimuth, elevation) rad -> unit ENU directions (..., 3).
-
-    >>> direction_from_angles(0.0, 0.0).round(12).tolist()
-    [0.0, 1.0, 0.0]
-    """
-    a, e = np.asarray(az, float), np.asarray(el, float)
-    ce = np.cos(e)
-    return np.stack([ce * np.sin(a), ce * np.cos(a), np.sin(e)], axis=-1)
-
-
 def vehicle_to_enu(heading_rad: ArrayLike) -> Array:
     """Rotation (..., 3, 3) vehicle frame (x fwd, y left, z up) -> ENU, level vehicle.
 

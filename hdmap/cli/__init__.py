@@ -32,10 +32,28 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     for name, (module, help_text) in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         if only is None or name == only:
-            mod = importlib.import_module(module)
+            try:
+                mod = importlib.import_module(module)
+            except ModuleNotFoundError as e:  # an install without the extras this one needs
+                p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+                p.set_defaults(_run=_needs_extras(name, e.name or "?"))
+                continue
             mod.add_arguments(p)
             p.set_defaults(_run=mod.run)
     return parser
+
+
+def _needs_extras(name: str, missing: str):
+    def run(_args: argparse.Namespace) -> int:
+        print(
+            f"hdmap {name}: needs {missing!r}, which this install lacks; the base install is "
+            "the onboard side: pip install 'hdmap[server]' (services, operations) or "
+            "'hdmap[sim]' (evaluations, demo)",
+            file=sys.stderr,
+        )
+        return 2
+
+    return run
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -146,3 +146,14 @@ class EnuFrame:
     ) -> Array:
         """Directions given in ENU at other origins (lat, lon) -> this frame."""
         return self.vectors_from_ecef(enu_to_ecef_vectors(v_enu, lat_deg, lon_deg))
+
+
+def direction_from_angles(az: ArrayLike, el: ArrayLike) -> Array:
+    """(azimuth, elevation) rad -> unit ENU directions (..., 3).
+
+    >>> direction_from_angles(0.0, 0.0).round(12).tolist()
+    [0.0, 1.0, 0.0]
+    """
+    a, e = np.asarray(az, float), np.asarray(el, float)
+    ce = np.cos(e)
+    return np.stack([ce * np.sin(a), ce * np.cos(a), np.sin(e)], axis=-1)

@@ -93,8 +93,8 @@ class _State(Protocol):
 
 def note_open(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:
     """After a (re)load: every pass still open in ``sums`` is quiet from now on (its last
-    ray's time is not stored), so it closes ``after_s`` later unless more rays come. Without
-    this, passes open at a restart stayed open until evicted. Returns how many were noted."""
+    ray's time is not stored), so it closes ``after_s`` later unless more rays come,
+    rather than staying open until evicted. Returns how many were noted."""
     if quiet.after_s <= 0:
         return 0
     lid_of = {lm.row: lid for lid, lm in state.landmarks.items()}

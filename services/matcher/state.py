@@ -1,23 +1,25 @@
-"""The matcher's state: landmark identities with gating estimates, and the pending pool.
+"""The matcher's state in SQLite: landmark identities with gating estimates, the pending
+pool, vehicles' trust records, viewing directions and co-visibility counts.
 
-In memory as numpy struct-of-arrays; in SQLite as one row per landmark and one per
-pending ray, rewritten for what each transaction touched. ``load`` rebuilds the
-memory from the database (start, or after a failed transaction).
+In memory it is a :class:`~hdmap.mapping.landmarks.LandmarkTable` (landmarks as a dict of
+:class:`~hdmap.mapping.landmarks.Landmark` records by id, the pending pool as one columnar
+table per tile); in SQLite one row per landmark and one per pending ray, and ``save``
+rewrites what the transaction touched. ``load`` rebuilds the memory from the database
+(start, or after a failed transaction).
 """
 
 from __future__ import annotations
 
 import sqlite3
 from collections import defaultdict
-from dataclasses import dataclass, field
+from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
 
+from hdmap.mapping.landmarks import Landmark, LandmarkTable, PendingTile
 from hdmap.mapping.trust import PassOffsets, VehicleTrust
 from hdmap.runtime.store import id_from_sql, id_to_sql, u64_to_i64
 from schemas import Observations
-from schemas.ids import landmark_id, pass_key
 
 _REC = Observations.CODEC.record_dtype
 
@@ -46,197 +48,27 @@ CREATE TABLE IF NOT EXISTS covis (
 """
 
 
-def _pair(a: int, b: int) -> tuple[int, int]:
-    """Key of an unordered pair of landmark ids."""
-    return (a, b) if a < b else (b, a)
-
-
-@dataclass
-class Landmark:
-    """One landmark's matcher-side record (the numeric state lives in the sums row)."""
-
-    id: int
-    cls: int
-    home: str
-    tile: str
-    x: np.ndarray
-    """Gating position, ECEF metres."""
-    cov: np.ndarray
-    """Gating covariance, local ENU, m^2."""
-    row: int
-    created_at: float
-    view: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    """Sum of the horizontal unit directions (East, North) of its rays: the side it is
-    seen from (two same-class signs back to back are never one)."""
-
-
-@dataclass
-class PendingTile:
-    """Rays routed to one tile that wait for a landmark (columnar)."""
-
-    obs: Observations = field(default_factory=Observations.empty)
-    vehicle: list[str] = field(default_factory=list)
-    pass_id: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    added_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-    received_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-    """Ingest receipt time (latency tracing)."""
-    key: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    """:func:`pass_key` of each ray's (vehicle, pass): vectorised selection of a pass."""
-
-    def __post_init__(self) -> None:
-        if self.key.size != len(self.obs):
-            self.key = np.array(
-                [pass_key(v, int(p)) for v, p in zip(self.vehicle, self.pass_id, strict=True)],
-                np.int64,
-            )
-
-    def __len__(self) -> int:
-        return len(self.obs)
-
-    def add(
-        self, obs: Observations, vehicle: str, pass_id: int, now: float, received: float
-    ) -> None:
-        self.obs = Observations.concat([self.obs, obs])
-        self.vehicle += [vehicle] * len(obs)
-        self.pass_id = np.r_[self.pass_id, np.full(len(obs), pass_id, np.int64)]
-        self.added_at = np.r_[self.added_at, np.full(len(obs), now)]
-        self.received_at = np.r_[self.received_at, np.full(len(obs), received)]
-        self.key = np.r_[self.key, np.full(len(obs), pass_key(vehicle, pass_id), np.int64)]
-
-    def keep(self, mask: NDArray[np.bool_]) -> None:
-        self.obs = self.obs.take(mask)
-        self.vehicle = [v for v, k in zip(self.vehicle, mask, strict=True) if k]
-        self.pass_id = self.pass_id[mask]
-        self.added_at = self.added_at[mask]
-        self.received_at = self.received_at[mask]
-        self.key = self.key[mask]
-
-
-class MatcherState:
-    """Landmarks (by id, by tile) and pending rays (by tile), with their persistence."""
+class MatcherState(LandmarkTable):
+    """The matcher's :class:`LandmarkTable` with its persistence: ``save`` writes what the
+    table marks as changed, ``load`` rebuilds the table from the database, and ``next_id``
+    stores each tile's id counter as it goes up."""
 
     def __init__(self, conn: sqlite3.Connection):
+        super().__init__(Observations.empty)
         self._conn = conn
         conn.executescript(SCHEMA)
-        self.landmarks: dict[int, Landmark] = {}
-        self.by_tile: dict[str, set[int]] = defaultdict(set)
-        self.pending: dict[str, PendingTile] = defaultdict(PendingTile)
-        self.counters: dict[str, int] = {}
-        self.trust: dict[str, VehicleTrust] = {}
-        self._trust_dirty: set[str] = set()
-        self._dirty: set[int] = set()
-        self._pending_dirty: set[str] = set()
-        self._removed_pending: list[tuple[str, int]] = []
-        self.covis: dict[tuple[int, int], int] = {}
-        """Images in which two landmarks of one class were both detected (a < b): then
-        they are two signs, whatever their estimates say."""
-        self._covis_of: dict[int, set[int]] = defaultdict(set)
-        self._covis_dirty: set[tuple[int, int]] = set()
-        self._deleted: set[int] = set()
-        self._indexed: dict[int, str] = {}
-        """The tile each landmark is filed under in ``by_tile``."""
-
-    # -- landmarks ------------------------------------------------------------------------
 
     def next_id(self, home: str) -> int:
-        n = self.counters.get(home, 0) + 1
-        self.counters[home] = n
-        self._conn.execute("INSERT OR REPLACE INTO id_counters(tile, n) VALUES (?, ?)", (home, n))
-        return landmark_id(home, n)
-
-    def put(self, lm: Landmark) -> None:
-        """Store ``lm`` (also after changing it in place: ``by_tile`` follows its tile)."""
-        prev = self._indexed.get(lm.id)
-        if prev is not None and prev != lm.tile:
-            self.by_tile[prev].discard(lm.id)
-        self._indexed[lm.id] = lm.tile
-        self.landmarks[lm.id] = lm
-        self.by_tile[lm.tile].add(lm.id)
-        self._dirty.add(lm.id)
-
-    def add_covis(self, a: int, b: int, n: int = 1) -> None:
-        k = _pair(a, b)
-        self.covis[k] = self.covis.get(k, 0) + n
-        self._covis_of[a].add(b)
-        self._covis_of[b].add(a)
-        self._covis_dirty.add(k)
-
-    def covis_count(self, a: int, b: int) -> int:
-        return self.covis.get(_pair(a, b), 0)
-
-    def merge(self, keep: Landmark, drop: Landmark) -> None:
-        """``drop`` becomes part of ``keep``: its view and co-visibility counts move over,
-        its record is deleted (the caller merges the sums rows)."""
-        keep.view = keep.view + drop.view
-        for other, n in self._unlist(drop).items():
-            if other != keep.id:
-                self.add_covis(keep.id, other, n)
-        self.put(keep)
-
-    def remove(self, lm: Landmark) -> None:
-        """``lm`` ends without a successor (every ray it had was taken out)."""
-        self._unlist(lm)
-
-    def _unlist(self, lm: Landmark) -> dict[int, int]:
-        """Delete ``lm``'s record; returns its co-visibility counts (other id -> images),
-        which are deleted with it."""
-        covis = {}
-        for other in sorted(self._covis_of.pop(lm.id, set())):
-            k = _pair(lm.id, other)
-            covis[other] = self.covis.pop(k)
-            self._covis_dirty.add(k)
-            self._covis_of[other].discard(lm.id)
-        self.landmarks.pop(lm.id)
-        self.by_tile[self._indexed.pop(lm.id)].discard(lm.id)
-        self._dirty.discard(lm.id)
-        self._deleted.add(lm.id)
-        return covis
-
-    def near(self, tiles: list[str]) -> list[Landmark]:
-        ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))
-        return [self.landmarks[i] for i in ids]
-
-    # -- vehicles -----------------------------------------------------------------------------
-
-    def trust_of(self, vehicle: str) -> VehicleTrust:
-        """The vehicle's record, marked to be saved (the caller is about to update it)."""
-        t = self.trust.get(vehicle)
-        if t is None:
-            t = self.trust[vehicle] = VehicleTrust()
-        self._trust_dirty.add(vehicle)
-        return t
-
-    # -- pending ----------------------------------------------------------------------------
-
-    def add_pending(
-        self,
-        tile: str,
-        obs: Observations,
-        vehicle: str,
-        pass_id: int,
-        now: float,
-        received: float,
-    ) -> None:
-        if len(obs):
-            self.pending[tile].add(obs, vehicle, pass_id, now, received)
-            self._pending_dirty.add(tile)
-
-    def drop_pending(self, tile: str, mask_remove: NDArray[np.bool_]) -> None:
-        if not mask_remove.any():
-            return
-        p = self.pending[tile]
-        ids = u64_to_i64(p.obs.obs_id[mask_remove]).tolist()
-        vehicles = [v for v, k in zip(p.vehicle, mask_remove, strict=True) if k]
-        self._removed_pending += list(zip(vehicles, ids, strict=True))
-        p.keep(~mask_remove)
-        self._pending_dirty.add(tile)
-
-    def pending_count(self) -> int:
-        return sum(len(p) for p in self.pending.values())
+        """A new landmark id of ``home``; the tile's counter is written at once."""
+        lid = super().next_id(home)
+        self._conn.execute(
+            "INSERT OR REPLACE INTO id_counters(tile, n) VALUES (?, ?)", (home, self.counters[home])
+        )
+        return lid
 
     # -- persistence --------------------------------------------------------------------------
 
-    def save(self, pack_rows) -> None:
+    def save(self, pack_rows: Callable[[np.ndarray], list[bytes]]) -> None:
         """Write what changed (inside the caller's transaction)."""
         c = self._conn
         rows = []
@@ -284,7 +116,12 @@ class MatcherState:
                 if (a, b) in self.covis
             ],
         )
-        c.executemany("DELETE FROM pending WHERE vehicle=? AND obs_id=?", self._removed_pending)
+        removed = self._removed_pending
+        sql_ids = u64_to_i64(np.array([i for _v, i in removed], np.uint64)).tolist()
+        c.executemany(
+            "DELETE FROM pending WHERE vehicle=? AND obs_id=?",
+            [(v, i) for (v, _i), i in zip(removed, sql_ids, strict=True)],
+        )
         c.executemany(
             "INSERT OR REPLACE INTO trust(vehicle, n, i_ee, i_en, i_nn, sx, sy, offered, passed) "
             "VALUES (?,?,?,?,?,?,?,?,?)",
@@ -336,15 +173,7 @@ class MatcherState:
             )
         self.clear_marks()
 
-    def clear_marks(self) -> None:
-        self._covis_dirty.clear()
-        self._deleted.clear()
-        self._trust_dirty.clear()
-        self._dirty.clear()
-        self._pending_dirty.clear()
-        self._removed_pending = []
-
-    def load(self, unpack_rows) -> None:
+    def load(self, unpack_rows: Callable[[list[bytes]], np.ndarray]) -> None:
         """Rebuild memory from SQLite; ``unpack_rows(blobs) -> rows`` restores the sums."""
         c = self._conn
         self.landmarks.clear()

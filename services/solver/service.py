@@ -59,11 +59,9 @@ class SolverConfig:
     """Standard deviation (E, N, U) of the error more passes do not average away, added to
     the published covariance: association mistakes (a neighbour's rays; a sign's rays that
     failed the gate against an estimate they would have moved) and the fleet's shared
-    calibration. The fleet evaluation measures it: re-solving from the rays the matcher
-    linked vs from every true ray of the sign, 0.87 vs 0.61 m mean error at 50+ passes,
-    about 0.3-0.5 m per axis of extra error before onboard tracks; with them 0.1 m keeps the
-    coverage from 30 passes at 0.93-0.97 (0.2 m gave 0.97-1.00; docs/estimator.md,
-    sections 12 and 15)."""
+    calibration. 0.1 m keeps the fleet evaluation's coverage from 30 passes inside
+    0.93-0.97 on four seeds; 0.2 m over-covers (0.97-1.00). docs/estimator.md, sections 12
+    and 15, has the measurement."""
     close_passes_after_s: float = 7200.0
     """Close a pass (``LandmarkSums.close_passes``) once no ray of it has come for this long
     (wall-clock seconds, :mod:`hdmap.mapping.quiet`); 0 keeps passes open until evicted
@@ -72,8 +70,8 @@ class SolverConfig:
     threefold (BENCHMARKS.md "Scale"). Twice the matcher's ``pending_ttl_s``: a ray can be
     linked long after its upload (it waits in the matcher's pending pool until a landmark is
     initiated), and a ray of a pass already closed would start a new cluster, which changes
-    the estimate (closing a vehicle's passes as soon as it uploads another did: seed 3 of
-    the fleet evaluation moved, precision 1.000 -> 0.982). The bookkeeping is in memory:
+    the estimate (closing a vehicle's passes as soon as it uploads another costs seed 3 of
+    the fleet evaluation precision, 1.000 -> 0.982). The bookkeeping is in memory:
     passes open at a restart count as quiet from then on (:func:`hdmap.mapping.quiet.note_open`)."""
 
 

@@ -14,7 +14,7 @@ import sys
 import numpy as np
 import pytest
 
-from fleetsim.evaluation.fleet_eval import (
+from fleetsim.evaluation.fleet_scoring import (
     EvalState,
     Linked,
     ObsKeys,

@@ -15,8 +15,8 @@ import json
 import pytest
 
 from fleetsim.loadgen import LoadConfig
+from fleetsim.loadtest import REPORT_KEYS, run_load
 from hdmap.cli import main as hdmap_main
-from hdmap.cli.loadtest import REPORT_KEYS, run_load
 from hdmap.runtime.bus import open_session
 
 pytestmark = pytest.mark.integration

@@ -37,7 +37,7 @@ from schemas import (
     ObsGroup,
     keys,
 )
-from schemas.messages import Removals
+from schemas.tables import Removals
 from tests.support import wait_until
 from vehicle.agent import VehicleAgent
 from vehicle.config import load_vehicle_model

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from hdmap.geo.geodesy import direction_from_angles
 from hdmap.mapping.association import (
     LocalRays,
     angles,
 )
-from vehicle.geoloc import direction_from_angles
 
 
 def rays_to(

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2 as chi2_dist
 
+from hdmap.geo.geodesy import direction_from_angles
 from hdmap.mapping.estimator import (
     EstimatorConfig,
     LandmarkSums,
@@ -24,7 +25,6 @@ from hdmap.mapping.estimator import (
 from hdmap.mapping.estimator.model import sym_to_mat
 from hdmap.mapping.estimator.solve import loewner_max, meat_matrix
 from tests.support.estimator import random_batch, true_angles
-from vehicle.geoloc import direction_from_angles
 
 
 def corridor_rays(
@@ -205,7 +205,7 @@ def test_open_passes_split_interleaved_equal_whole_and_eviction_rule():
         m = (rows == 0) & (clusters == c)
         ev.accumulate(np.zeros(m.sum(), int), np.full(m.sum(), c), r.take(m))
     assert ev.n_open_passes == 3
-    assert sorted(k[1] for k in ev._slot) == [2, 3, 4]
+    assert sorted(c for _, c in ev.open_passes()) == [2, 3, 4]
     # a late ray of a closed pass starts a new cluster
     m = np.flatnonzero((rows == 0) & (clusters == 0))[:1]
     n_before = ev.solve([0], False).n_clusters[0]

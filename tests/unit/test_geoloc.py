@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hdmap.geo.camera import Intrinsics, Mount
-from hdmap.geo.geodesy import EnuFrame
+from hdmap.geo.geodesy import EnuFrame, direction_from_angles
 from hdmap.geo.signs import CATALOG
 from vehicle.geoloc import (
     Detections,
@@ -16,7 +16,6 @@ from vehicle.geoloc import (
     VehicleModel,
     azimuth_elevation,
     box_range,
-    direction_from_angles,
     geolocate,
     vehicle_to_enu,
 )

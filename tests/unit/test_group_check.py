@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from hdmap.mapping.association import Association
+from hdmap.mapping.linking import to_local
 from hdmap.runtime.service import ServiceOptions
-from services.matcher.service import MatcherService, to_local
+from services.matcher.service import MatcherService
 from tests.support.services import SIGN, Sink, sign_rays, tile_of
 
 SIGN_A = SIGN - np.array([0.0, 12.0, 0.0])

@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hdmap.mapping.matching import AssocOutput as _Out
 from hdmap.runtime.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
-from services.matcher.service import MatcherService, _Out
+from services.matcher.service import MatcherService
 from tests.support.services import (
     CLS,
     SIGN,

@@ -12,11 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from hdmap.mapping.matching import AssocOutput as _Out
 from hdmap.mapping.trust import NEW, TrustConfig
 from hdmap.runtime.service import ServiceOptions
 from schemas import DROP, RELEASE, AssocGroup, LogEntry, ObsGroup
 from schemas.ids import hold_key
-from services.matcher.service import MatcherConfig, MatcherService, _Out
+from services.matcher.service import MatcherConfig, MatcherService
 from tests.support.services import CLS, SIGN, Sink, matcher, sign_rays, solver, tile_of, updates
 
 DAY = 86400.0

@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from hdmap.mapping.estimator.packing import OPEN_DTYPE_V4
+from hdmap.mapping.matching import AssocOutput as _Out
 from hdmap.mapping.quiet import QuietPasses
 from hdmap.mapping.trust import TrustConfig
 from hdmap.runtime.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
-from services.matcher.service import MatcherConfig, MatcherService, _Out
+from services.matcher.service import MatcherConfig, MatcherService
 from services.solver.service import SolverConfig, SolverService
 from tests.support.services import (
     CLS,

@@ -18,6 +18,7 @@ from fleetsim.noise import FLEET
 from fleetsim.osm_town import helsinki_town
 from fleetsim.pipeline import model_for
 from fleetsim.synthetic import make_observations
+from hdmap.geo.geodesy import direction_from_angles
 from hdmap.geo.tiles import quadkeys_of
 from hdmap.mapping.association import (
     GateConfig,
@@ -27,13 +28,13 @@ from hdmap.mapping.association import (
     associate,
     valid_tracks,
 )
+from hdmap.mapping.matching import AssocOutput as _Out
 from schemas import ObservationBatch, Observations, ObsGroup
-from services.matcher.service import _Out
 from tests.support.association import rays_to
 from tests.support.services import matcher
 from vehicle.agent import VehicleAgent
 from vehicle.config import load_vehicle_model
-from vehicle.geoloc import direction_from_angles, fix_outliers, geolocate
+from vehicle.geoloc import fix_outliers, geolocate
 from vehicle.tracking import TrackConfig, smooth_track, smoothed_rays, track_rays
 
 

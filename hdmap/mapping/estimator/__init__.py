@@ -4,7 +4,7 @@
 See ``docs/estimator.md`` for the model, the derivations and the measured behaviour.
 
 >>> import numpy as np
->>> from vehicle.geoloc import direction_from_angles
+>>> from hdmap.geo.geodesy import direction_from_angles
 >>> rng = np.random.default_rng(0)
 >>> x_true = np.array([5.0, 0.0, 2.5])
 >>> sums = LandmarkSums(EstimatorConfig())

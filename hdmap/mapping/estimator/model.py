@@ -427,7 +427,7 @@ def projector_terms(
 
     With ``compensate=False`` these are exactly ``P = I - d d^T`` and ``h h^T``.
 
-    >>> from vehicle.geoloc import direction_from_angles
+    >>> from hdmap.geo.geodesy import direction_from_angles
     >>> m, h = projector_terms(np.array([0.4]), np.array([0.2]), np.zeros(1), np.zeros(1),
     ...                        False)
     >>> d = direction_from_angles(0.4, 0.2)

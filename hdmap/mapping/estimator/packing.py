@@ -18,10 +18,10 @@ version  row record         open-pass record    new in this version
 So a row packs to 565 bytes plus 176 per open pass, or, where it keeps a pull
 (``EstimatorConfig.extra_sigma_pos_m`` set), 573 plus 184: ``pack_rows`` writes version 5
 only for such rows, version 4 otherwise (8 bytes less per row and per open pass, which
-keeps two rows with 8 open passes in one SQLite page). Versions 1-4 still load
-(:data:`OLD_PACK_VERSIONS` says what ``unpack_rows`` fills in). Bytes after the last open
-record are ignored; a negative ``n_open`` is refused. (Until 2026-11-30 version 2 was
-read with version 3's open record, so a version 2 blob with open passes failed to load.)
+keeps two rows with 8 open passes in one SQLite page). Versions 1-4 load as well, each
+with its own row and open-pass records (:data:`OLD_PACK_VERSIONS` says what
+``unpack_rows`` fills in). Bytes after the last open record are ignored; a negative
+``n_open`` is refused.
 
 >>> layout(4).row.itemsize, layout(4).open.itemsize
 (564, 176)

@@ -31,21 +31,11 @@ packed by :meth:`pack_rows`: the byte layout and its sizes are in
 :mod:`hdmap.mapping.estimator.packing`).
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
-interleaved with other passes, so each open (landmark, pass) keeps its partial ``A_p``,
-``b_p`` (9 floats + cluster id, ray count, activity stamp, angular variance, ray weight
-sums c and c^2, holder key, held ``J``, pull: 184 bytes). A pass enters ``A``, ``b`` and the
-sandwich sums when it closes, with the
-random-effects weighting of
-:func:`hdmap.mapping.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S`` the
-configured ``pass_sigma_m`` squared: a pass brings at most ``S^-1`` of information,
-however many rays it has). :meth:`solve` includes the open passes the same way, so a
-result never depends on when a pass is closed — unless a
-ray of an already closed pass arrives, which then starts a new cluster (the covariance
-misses that pass's cross term). Eviction rule: a row keeps at most ``max_open_passes``
-open; opening one more closes the least recently active (the activity stamp is the row's
-ray count at the pass's last ray, so the rule is deterministic and survives
-:meth:`pack_rows` / :meth:`unpack_rows`). Callers close passes they know are over with
-:meth:`close_passes`.
+interleaved with other passes, so each open (landmark, pass) keeps its partial sums in the
+open-pass table (:mod:`hdmap.mapping.estimator.open_passes`: 184 bytes a pass, the
+random-effects weighting a pass gets when it closes, the eviction rule). :meth:`solve`
+includes the open passes weighted the same way, so a result never depends on when a pass
+is closed. Callers close passes they know are over with :meth:`close_passes`.
 
 >>> import numpy as np
 >>> from hdmap.mapping.estimator.model import Rays
@@ -58,27 +48,23 @@ ray count at the pass's last ray, so the rule is deterministic and survives
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hdmap.mapping.estimator.frame_change import FrameChange
 from hdmap.mapping.estimator.model import (
-    SYM_BASIS,
-    TRI6_I,
-    TRI6_J,
     EstimatorConfig,
     Rays,
-    apply_matrix,
     effective_sigmas,
     mat_to_sym,
     outer6_to_tri,
-    pass_weighted,
     predicted_information,
     pull_terms,
     ray_terms,
-    sym_to_mat,
-    tri_to_mat6,
 )
+from hdmap.mapping.estimator.open_passes import OpenPasses
 from hdmap.mapping.estimator.packing import OPEN_DTYPE, PACK_VERSION, decode, encode, layout
 from hdmap.mapping.estimator.solve import Solution, solve_sums
 
@@ -88,8 +74,6 @@ IntArray = NDArray[np.int64]
 _ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
 _ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2", "_c1")
 """The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
-_OPEN_ARRAYS = ("_o_row", "_o_cluster", "_o_last", "_o_n", "_o_a6", "_o_b", "_o_s2", "_o_w")
-_OPEN_ARRAYS += ("_o_w2", "_o_hold", "_o_j6", "_o_c1")
 
 
 def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
@@ -127,24 +111,7 @@ class LandmarkSums:
         self._w1 = np.zeros(cap)  # sum of the rays' weights (Rays.weight, default 1)
         self._w2 = np.zeros(cap)  # sum of their squares (the model floor's scale)
         self._c1 = np.zeros(cap)  # closed passes' pull (model.pull_terms, pass-weighted)
-        # open (landmark, pass) partial sums; slots recycled through a free list
-        self._slot: dict[tuple[int, int], int] = {}
-        self._row_slots: dict[int, list[int]] = {}  # row -> its open slots (any order)
-        self._free: list[int] = []
-        self._o_hi = 0
-        ocap = 16
-        self._o_row = np.full(ocap, -1, np.int64)
-        self._o_cluster = np.zeros(ocap, np.int64)
-        self._o_last = np.zeros(ocap, np.int64)
-        self._o_n = np.zeros(ocap, np.int64)
-        self._o_a6 = np.zeros((ocap, 6))
-        self._o_b = np.zeros((ocap, 3))
-        self._o_s2 = np.zeros(ocap)  # sum over the pass's rays of their angular variance
-        self._o_w = np.zeros(ocap)  # sum of the rays' weights (Rays.weight, default 1)
-        self._o_w2 = np.zeros(ocap)  # sum of their squares
-        self._o_hold = np.zeros(ocap, np.int64)  # held: the holder's key (0: not held)
-        self._o_j6 = np.zeros((ocap, 6))  # held passes' predicted information
-        self._o_c1 = np.zeros(ocap)  # the pass's pull (model.pull_terms), raw
+        self._open = OpenPasses()  # the open (landmark, pass) partial sums
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -164,11 +131,11 @@ class LandmarkSums:
 
     @property
     def n_open_passes(self) -> int:
-        return len(self._slot)
+        return len(self._open)
 
     def open_clusters(self, row: int) -> list[int]:
         """Cluster ids of ``row``'s open passes."""
-        return sorted(int(self._o_cluster[s]) for s in self._row_slots.get(int(row), ()))
+        return self._open.clusters(row)
 
     def open_passes(self) -> list[tuple[int, int]]:
         """The open (row, cluster) pairs, sorted.
@@ -177,7 +144,7 @@ class LandmarkSums:
         >>> s.open_passes()
         []
         """
-        return sorted(self._slot)
+        return self._open.keys()
 
     def n_obs(self, rows: ArrayLike) -> IntArray:
         """Rays summed into each row."""
@@ -235,36 +202,15 @@ class LandmarkSums:
 
     # ------------------------------------------------------------------ open passes
     def _alloc_slot(self, key: tuple[int, int]) -> int:
-        if self._free:
-            s = self._free.pop()
-        else:
-            s = self._o_hi
-            self._o_hi += 1
-            if s >= self._o_row.shape[0]:
-                for name in _OPEN_ARRAYS:
-                    old = getattr(self, name)
-                    arr = np.zeros((2 * old.shape[0], *old.shape[1:]), old.dtype)
-                    arr[: old.shape[0]] = old
-                    setattr(self, name, arr)
-        self._slot[key] = s
-        self._row_slots.setdefault(key[0], []).append(s)
-        self._o_row[s], self._o_cluster[s] = key
-        self._o_last[s] = self._o_n[s] = 0
-        self._o_a6[s] = 0.0
-        self._o_b[s] = 0.0
-        self._o_s2[s] = 0.0
-        self._o_w[s] = self._o_w2[s] = 0.0
-        self._o_hold[s] = 0
-        self._o_j6[s] = 0.0
-        self._o_c1[s] = 0.0
+        s = self._open.alloc(key)
         self._n_open[key[0]] += 1
         return s
 
     def _close_slots(self, slots: IntArray) -> None:
         if slots.size == 0:
             return
-        rows = self._o_row[slots]
-        a6, b, c1 = self._weighted(slots)
+        rows = self._open.row[slots]
+        a6, b, c1 = self._open.weighted(slots, self.config)
         _scatter_add(self._c1, rows, c1)
         _scatter_add(self._a6, rows, a6)
         _scatter_add(self._b, rows, b)
@@ -273,102 +219,26 @@ class LandmarkSums:
         _scatter_add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
         _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
         _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
-        self._release(slots)
-
-    def _weighted(self, slots: IntArray) -> tuple[Array, Array, Array]:
-        """Open passes' raw sums -> what they add to ``A``, ``b`` and the pull
-        (:func:`pass_weighted`; passes of imprecise rays unweighted, see
-        ``pass_weighting_max_sigma_rad``). The pull
-        scales with the pass's horizontal information, ``tr_h W_p / tr_h A_p``: ``C_p``
-        goes through the weighting as ``A_p`` does (``C_p ~ kappa_p A_p``)."""
-        a6, b = self._o_a6[slots].copy(), self._o_b[slots].copy()
-        c1 = self._o_c1[slots].copy()
-        n = np.maximum(self._o_n[slots], 1)
-        rms2 = self._o_s2[slots] / n
-        precise = rms2 <= self.config.pass_weighting_max_sigma_rad**2
-        if precise.any():
-            # rays weighted by c (a vehicle's trust) carry c A_p: the pass's weight is
-            # c W_p(A_p), that is W for c A_p with S / c (weighting passes, not only rays)
-            c = np.maximum(self._o_w[slots][precise] / n[precise], 1e-12)
-            sigma = np.asarray(self.config.pass_sigma_m, float)[None, :] / np.sqrt(c)[:, None]
-            raw_h = a6[precise, 0] + a6[precise, 1]
-            a6[precise], b[precise] = pass_weighted(a6[precise], b[precise], sigma)
-            if c1.any():
-                w_h = a6[precise, 0] + a6[precise, 1]
-                c1[precise] *= np.divide(w_h, raw_h, out=np.zeros_like(w_h), where=raw_h > 0)
-        return a6, b, c1
-
-    def _release(self, slots: IntArray) -> None:
-        """Forget open slots (their sums already folded or dropped); free them in order."""
-        for s, row, cl in zip(
-            slots.tolist(),
-            self._o_row[slots].tolist(),
-            self._o_cluster[slots].tolist(),
-            strict=True,
-        ):
-            del self._slot[(row, cl)]
-            mine = self._row_slots[row]
-            mine.remove(s)
-            if not mine:
-                del self._row_slots[row]
-            self._o_row[s] = -1
-            self._free.append(s)
-
-    def _open_slots(self) -> IntArray:
-        return np.flatnonzero(self._o_row[: self._o_hi] >= 0)
-
-    def _slots_of(self, rows: IntArray) -> IntArray:
-        """Open slots of ``rows``, ascending: ``_open_slots()`` filtered to ``rows``, in
-        O(their open passes) instead of O(all open passes)."""
-        get = self._row_slots.get
-        found = [s for r in np.unique(rows).tolist() for s in get(r, ())]
-        return np.sort(np.array(found, np.int64))
+        self._open.release(slots)
 
     def close_passes(self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None) -> int:
         """Close open passes: all (no arguments), those of ``rows``, those with a cluster id
-        in ``clusters`` (every landmark), or the pairs ``(rows[i], clusters[i])`` (both).
-        Returns how many were closed."""
-        slots = self._open_slots()
-        if rows is not None and clusters is not None:
-            keys = zip(
-                np.asarray(rows).reshape(-1).tolist(),
-                np.asarray(clusters).reshape(-1).tolist(),
-                strict=True,
-            )
-            found = [self._slot.get((int(r), int(c))) for r, c in keys]
-            slots = np.array(sorted({s for s in found if s is not None}), np.int64)
-        elif rows is not None:
-            slots = self._slots_of(np.asarray(rows, np.int64).reshape(-1))
-        elif clusters is not None:
-            slots = slots[np.isin(self._o_cluster[slots], np.asarray(clusters, np.int64))]
-        slots = slots[self._o_hold[slots] == 0]  # held passes stay apart (see hold)
+        in ``clusters`` (every landmark), or the pairs ``(rows[i], clusters[i])`` (both);
+        held passes stay open. Returns how many were closed."""
+        slots = self._open.closable(rows, clusters)
         self._close_slots(slots)
         return int(slots.size)
 
     def _evict(self, rows: IntArray) -> None:
         """Close the least recently active passes of ``rows`` (unique, ascending) above
-        ``max_open_passes``: per row by (activity stamp, cluster), rows in order, in one
-        vectorised call (the same sums, in the same order, as closing row by row)."""
+        ``max_open_passes`` (:meth:`OpenPasses.least_active`), in one vectorised call (the
+        same sums, in the same order, as closing row by row)."""
         over = rows[self._n_open[rows] > self.config.max_open_passes]
         if over.size == 0:
             return
-        mine = self._slots_of(over)
-        mine = mine[self._o_hold[mine] == 0]  # held passes are never closed here
-        if mine.size == 0:
-            return
-        r = self._o_row[mine]
-        order = np.lexsort((self._o_cluster[mine], self._o_last[mine], r))
-        mine, r = mine[order], r[order]
-        first = np.flatnonzero(np.concatenate(([True], r[1:] != r[:-1])))
-        count = np.diff(np.append(first, r.size))
-        rank = np.arange(r.size) - np.repeat(first, count)
-        self._close_slots(mine[rank < np.repeat(count, count) - self.config.max_open_passes])
+        self._close_slots(self._open.least_active(over, self.config.max_open_passes))
 
     # ------------------------------------------------------------------ held passes
-    def _held(self, hold: int) -> IntArray:
-        slots = self._open_slots()
-        return slots[self._o_hold[slots] == int(hold)] if hold else slots[:0]
-
     def release(self, hold: int, weight: float) -> IntArray:
         """Let ``hold``'s held passes go, their rays re-weighted to ``weight`` (exactly as if
         they had come with it: every ray term is linear in its weight); they become
@@ -385,22 +255,23 @@ class LandmarkSums:
         >>> s.n_held(), s.release(7, 1.0).tolist(), s.n_held(), s.release(7, 1.0).tolist()
         (1, [0], 0, [])
         """
-        slots = self._held(hold)
-        rows = self._o_row[slots]
+        o = self._open
+        slots = o.held(hold)
+        rows = o.row[slots]
         if slots.size == 0:
             return rows
-        n = np.maximum(self._o_n[slots], 1)
-        f = float(weight) / np.maximum(self._o_w[slots] / n, 1e-300)
-        self._o_a6[slots] *= f[:, None]
-        self._o_b[slots] *= f[:, None]
-        _scatter_add(self._j6, rows, f[:, None] * self._o_j6[slots])
-        self._o_c1[slots] *= f  # linear in the rays' weight, like A_p
-        _scatter_add(self._w1, rows, (f - 1.0) * self._o_w[slots])
-        _scatter_add(self._w2, rows, (f**2 - 1.0) * self._o_w2[slots])
-        self._o_w[slots] *= f
-        self._o_w2[slots] *= f**2
-        self._o_j6[slots] = 0.0
-        self._o_hold[slots] = 0
+        n = np.maximum(o.n[slots], 1)
+        f = float(weight) / np.maximum(o.w[slots] / n, 1e-300)
+        o.a6[slots] *= f[:, None]
+        o.b[slots] *= f[:, None]
+        _scatter_add(self._j6, rows, f[:, None] * o.j6[slots])
+        o.c1[slots] *= f  # linear in the rays' weight, like A_p
+        _scatter_add(self._w1, rows, (f - 1.0) * o.w[slots])
+        _scatter_add(self._w2, rows, (f**2 - 1.0) * o.w2[slots])
+        o.w[slots] *= f
+        o.w2[slots] *= f**2
+        o.j6[slots] = 0.0
+        o.hold[slots] = 0
         rows = np.unique(rows)
         self._evict(rows)
         return rows
@@ -408,21 +279,23 @@ class LandmarkSums:
     def drop_held(self, hold: int) -> IntArray:
         """Take ``hold``'s held passes out, as if their rays had never been added. Returns
         the rows that had some."""
-        slots = self._held(hold)
-        rows = self._o_row[slots]
+        o = self._open
+        slots = o.held(hold)
+        rows = o.row[slots]
         if slots.size == 0:
             return rows
-        _scatter_add(self._n_obs, rows, -self._o_n[slots])
-        _scatter_add(self._w1, rows, -self._o_w[slots])
-        _scatter_add(self._w2, rows, -self._o_w2[slots])
+        _scatter_add(self._n_obs, rows, -o.n[slots])
+        _scatter_add(self._w1, rows, -o.w[slots])
+        _scatter_add(self._w2, rows, -o.w2[slots])
         _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
-        self._release(slots)
+        o.release(slots)
         return np.unique(rows)
 
     def n_held(self, rows: ArrayLike | None = None) -> int:
         """Held passes (of ``rows``, default all)."""
-        slots = self._open_slots() if rows is None else self._slots_of(np.asarray(rows))
-        return int(np.count_nonzero(self._o_hold[slots]))
+        o = self._open
+        slots = o.all_slots() if rows is None else o.of_rows(np.asarray(rows))
+        return int(np.count_nonzero(o.hold[slots]))
 
     # ------------------------------------------------------------------ accumulate
     def accumulate(
@@ -492,28 +365,27 @@ class LandmarkSums:
             np.minimum.reduceat(hs, starts) != np.maximum.reduceat(hs, starts)
         ):
             raise ValueError("rays of one (landmark, pass) both held and not")
+        o = self._open
         slots = np.empty(starts.size, np.int64)
         fresh = np.zeros(starts.size, bool)
         for i, key in enumerate(zip(g_r.tolist(), g_c.tolist(), strict=True)):
-            s = self._slot.get(key)
+            s = o.slot.get(key)
             fresh[i] = s is None
             slots[i] = self._alloc_slot(key) if s is None else s
-        if np.any(self._o_hold[slots[~fresh]] != g_h[~fresh]):
+        if np.any(o.hold[slots[~fresh]] != g_h[~fresh]):
             raise ValueError("rays of one (landmark, pass) both held and not")
-        self._o_hold[slots] = g_h
+        o.hold[slots] = g_h
         if held.any():
-            self._o_j6[slots] += np.add.reduceat(
-                np.where(held[:, None], j6, 0.0)[order], starts, axis=0
-            )
-        self._o_w2[slots] += np.add.reduceat((wr**2)[order], starts)
-        self._o_a6[slots] += g_a6
-        self._o_b[slots] += g_b
+            o.j6[slots] += np.add.reduceat(np.where(held[:, None], j6, 0.0)[order], starts, axis=0)
+        o.w2[slots] += np.add.reduceat((wr**2)[order], starts)
+        o.a6[slots] += g_a6
+        o.b[slots] += g_b
         if pull is not None:
-            self._o_c1[slots] += np.add.reduceat(pull[order], starts)
-        self._o_s2[slots] += g_s2
-        self._o_w[slots] += g_w
-        self._o_n[slots] += g_n
-        self._o_last[slots] = self._n_obs[g_r]
+            o.c1[slots] += np.add.reduceat(pull[order], starts)
+        o.s2[slots] += g_s2
+        o.w[slots] += g_w
+        o.n[slots] += g_n
+        o.last[slots] = self._n_obs[g_r]
         self._evict(np.unique(g_r))
 
     # ------------------------------------------------------------------ solve
@@ -531,11 +403,12 @@ class LandmarkSums:
         n_cl = self._n_closed[uniq] + self._n_open[uniq]
         j6 = self._j6[uniq].copy()
         c1 = self._c1[uniq].copy()
-        slots = self._slots_of(uniq)
+        o = self._open
+        slots = o.of_rows(uniq)
         if slots.size:
-            pos = np.searchsorted(uniq, self._o_row[slots])
-            _scatter_add(j6, pos, self._o_j6[slots])
-            a6, b, c1o = self._weighted(slots)
+            pos = np.searchsorted(uniq, o.row[slots])
+            _scatter_add(j6, pos, o.j6[slots])
+            a6, b, c1o = o.weighted(slots, self.config)
             _scatter_add(c1, pos, c1o)
             _scatter_add(a_all, pos, a6)
             _scatter_add(b_all, pos, b)
@@ -561,20 +434,7 @@ class LandmarkSums:
             ok = sol.ok
             self._x_ref[uniq[ok]] = sol.x[ok]
         anchor = self._anchor[uniq]
-        out = Solution(
-            x=sol.x + anchor,
-            cov=sol.cov,
-            ok=sol.ok,
-            n_obs=sol.n_obs,
-            n_clusters=sol.n_clusters,
-            x_raw=sol.x_raw + anchor,
-            bias=sol.bias,
-            cov_sandwich=sol.cov_sandwich,
-            inflation=sol.inflation,
-            cond=sol.cond,
-            significance=sol.significance,
-            dispersion=sol.dispersion,
-        )
+        out = replace(sol, x=sol.x + anchor, x_raw=sol.x_raw + anchor)
         if uniq.size == r.size and np.array_equal(uniq, r):
             return out
         return Solution(**{k: v[inv] for k, v in out.__dict__.items()})
@@ -591,13 +451,8 @@ class LandmarkSums:
         left empty.
 
         ``rotation`` R and ``translation`` t map ``src``'s frame to ``dst``'s (``x_dst = R
-        x_src + t``; default: the same frame). Every ray term moves exactly: ``A_j -> R A_j
-        R^T`` (a linear map T of the 6-vector) and, with ``d = R anchor_src + t -
-        anchor_dst``, ``b_j -> R b_j + A'_j d = R b_j + L(d) alpha'_j``, so per pass
-        ``alpha' = T alpha``, ``b' = R b + L alpha'`` and the sandwich sums follow:
-
-            S_AA' = T S_AA T^T,   S_Ab' = T S_Ab R^T + S_AA' L^T,
-            S_bb' = R S_bb R^T + R S_Ab^T T^T L^T + L T S_Ab R^T + L S_AA' L^T.
+        x_src + t``; default: the same frame); every ray term moves exactly
+        (:class:`~hdmap.mapping.estimator.frame_change.FrameChange`).
 
         An open pass of ``src`` joins ``dst``'s open pass of the same cluster (one pass
         that saw "both" landmarks is one cluster again) or becomes a new open pass. The
@@ -608,50 +463,30 @@ class LandmarkSums:
         if dst == src:
             raise ValueError("cannot merge a row into itself")
         d_row, s_row = self._check_rows([dst, src]).tolist()
-        r = np.eye(3) if rotation is None else np.asarray(rotation, float).reshape(3, 3)
-        t = np.zeros(3) if translation is None else np.asarray(translation, float).reshape(3)
-        t6 = np.stack([mat_to_sym(r @ SYM_BASIS[k] @ r.T) for k in range(6)], axis=1)
-        lm = apply_matrix(r @ self._anchor[s_row] + t - self._anchor[d_row])
-
-        def move(a6: Array, b: Array) -> tuple[Array, Array]:
-            a6n = a6 @ t6.T
-            return a6n, b @ r.T + a6n @ lm.T
-
-        a6, b = move(self._a6[s_row], self._b[s_row])
+        frame = FrameChange.between(self._anchor[s_row], self._anchor[d_row], rotation, translation)
+        a6, b = frame.terms(self._a6[s_row], self._b[s_row])
         self._a6[d_row] += a6
         self._b[d_row] += b
-        self._j6[d_row] += self._j6[s_row] @ t6.T
+        self._j6[d_row] += frame.information(self._j6[s_row])
         self._c1[d_row] += self._c1[s_row]  # a trace: the same in every frame
-        saa = t6 @ tri_to_mat6(self._saa[s_row]) @ t6.T
-        sab = self._sab[s_row]
-        t_sab_r = t6 @ sab @ r.T
-        self._saa[d_row] += saa[TRI6_I, TRI6_J]
-        self._sab[d_row] += t_sab_r + saa @ lm.T
-        cross = lm @ t_sab_r
-        sbb = r @ sym_to_mat(self._sbb[s_row]) @ r.T + cross + cross.T + lm @ saa @ lm.T
-        self._sbb[d_row] += mat_to_sym(sbb)
+        saa, sab, sbb = frame.sandwich(self._saa[s_row], self._sab[s_row], self._sbb[s_row])
+        self._saa[d_row] += saa
+        self._sab[d_row] += sab
+        self._sbb[d_row] += sbb
         self._n_obs[d_row] += self._n_obs[s_row]
         self._w1[d_row] += self._w1[s_row]
         self._w2[d_row] += self._w2[s_row]
         self._n_closed[d_row] += self._n_closed[s_row]
-        mine = np.sort(np.array(self._row_slots.get(s_row, ()), np.int64))
+        o = self._open
+        mine = o.of_row(s_row)
         for sl in mine.tolist():
-            a6o, bo = move(self._o_a6[sl], self._o_b[sl])
-            key = (d_row, int(self._o_cluster[sl]))
-            to = self._slot.get(key)
+            a6o, bo = frame.terms(o.a6[sl], o.b[sl])
+            key = (d_row, int(o.cluster[sl]))
+            to = o.slot.get(key)
             if to is None:
                 to = self._alloc_slot(key)
-            self._o_a6[to] += a6o
-            self._o_b[to] += bo
-            self._o_n[to] += self._o_n[sl]
-            self._o_s2[to] += self._o_s2[sl]
-            self._o_w[to] += self._o_w[sl]
-            self._o_w2[to] += self._o_w2[sl]
-            self._o_j6[to] += self._o_j6[sl] @ t6.T
-            self._o_c1[to] += self._o_c1[sl]
-            self._o_hold[to] = self._o_hold[sl]
-            self._o_last[to] = max(self._o_last[to], self._o_last[sl])
-        self._release(mine)
+            o.fold(to, sl, a6o, bo, frame.information(o.j6[sl]))
+        o.release(mine)
         for name in _ROW_ARRAYS:
             getattr(self, name)[s_row] = 0
         self._evict(np.array([d_row], np.int64))
@@ -665,27 +500,18 @@ class LandmarkSums:
         keeps two rows with 8 open passes in one SQLite page. Byte layout:
         :mod:`hdmap.mapping.estimator.packing`."""
         r = self._check_rows(rows)
+        o = self._open
         out = []
         for row in r.tolist():
-            mine = np.sort(np.array(self._row_slots.get(row, ()), np.int64))
-            mine = mine[np.lexsort((self._o_cluster[mine], self._o_last[mine]))]
-            pulled = bool(self._c1[row] != 0 or np.any(self._o_c1[mine] != 0))
+            mine = o.of_row(row)
+            mine = mine[np.lexsort((o.cluster[mine], o.last[mine]))]
+            pulled = bool(self._c1[row] != 0 or np.any(o.c1[mine] != 0))
             lay = layout(PACK_VERSION if pulled else 4)
             rec = np.zeros((), lay.row)
             for f in lay.fields:
                 rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
             rec["n_open"] = mine.size
-            op = np.zeros(mine.size, lay.open)
-            op["cluster"], op["last"], op["n"] = (
-                self._o_cluster[mine],
-                self._o_last[mine],
-                self._o_n[mine],
-            )
-            op["a6"], op["b"], op["s2"] = self._o_a6[mine], self._o_b[mine], self._o_s2[mine]
-            op["w"], op["w2"] = self._o_w[mine], self._o_w2[mine]
-            op["hold"], op["j6"] = self._o_hold[mine], self._o_j6[mine]
-            if pulled:
-                op["c1"] = self._o_c1[mine]
+            op = o.records(mine, lay)
             out.append(encode(lay, rec, op))
         return out
 
@@ -698,7 +524,7 @@ class LandmarkSums:
             r = self._check_rows(rows)
             if r.size != len(blobs):
                 raise ValueError("rows and blobs differ in length")
-            self._release(self._slots_of(r))
+            self._open.release(self._open.of_rows(r))
         for row, blob in zip(r.tolist(), blobs, strict=True):
             lay, rec, op = decode(blob)
             v = lay.version
@@ -713,17 +539,7 @@ class LandmarkSums:
             old = v == 1
             self._n_open[row] = 0
             for o in op:
-                s = self._alloc_slot((row, int(o["cluster"])))
-                self._o_last[s], self._o_n[s] = int(o["last"]), int(o["n"])
-                self._o_a6[s], self._o_b[s] = o["a6"], o["b"]
-                self._o_s2[s] = 0.0 if old else float(o["s2"])
-                self._o_w[s] = float(o["n"]) if v < 3 else float(o["w"])
-                if v >= 4:
-                    self._o_w2[s], self._o_hold[s] = float(o["w2"]), int(o["hold"])
-                    self._o_j6[s] = o["j6"]
-                    self._o_c1[s] = float(o["c1"]) if v == PACK_VERSION else 0.0
-                else:
-                    self._o_w2[s] = self._o_w[s] ** 2 / max(int(o["n"]), 1)
+                self._open.load(self._alloc_slot((row, int(o["cluster"]))), o, v)
                 if old and self.config.cluster_robust:
                     self._a6[row] -= o["a6"]
                     self._b[row] -= o["b"]

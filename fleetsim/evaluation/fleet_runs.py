@@ -1,0 +1,182 @@
+"""The fleet evaluation as a job (``hdmap eval fleet``): one seed, or several summarised.
+
+One run (:func:`fleetsim.evaluation.fleet_eval.run_fleet_eval`: central Helsinki through
+the real pipeline with the realistic fleet noise) writes ``out/fleet.json`` and the PNG
+figures and prints its table (:func:`format_fleet_table`) on stderr. With ``seeds``, each
+seed runs into ``out/seed-<s>/`` and ``out/fleet_seeds.json`` summarises them
+(:mod:`fleetsim.evaluation.fleet_seeds`); with ``jobs`` > 1 the seeds run as separate
+``hdmap eval fleet`` processes, at most ``jobs`` at once, each with its own stack.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import IO
+
+from fleetsim.evaluation.fleet_eval import FleetEvalConfig, run_fleet_eval
+from fleetsim.evaluation.fleet_plots import write_fleet_figures, write_seed_figure
+from fleetsim.evaluation.fleet_seeds import FLEET_COLUMNS, seed_row, summarise_seeds
+from fleetsim.evaluation.results import write_json, write_seed_summary
+from hdmap.runtime.orphan import PARENT_ENV
+
+SEED_RUN_TIMEOUT_S = 1800.0
+"""A seed's run that has not finished after this is stopped (and the job fails)."""
+
+
+class SeedRunError(RuntimeError):
+    """A seed's separate run failed or did not finish in time."""
+
+
+@dataclass(frozen=True)
+class FleetRunOptions:
+    out: Path
+    seed: int = 0
+    seeds: tuple[int, ...] = ()
+    """Instead of ``seed``: run each into ``out/seed-<s>/`` and summarise them."""
+    jobs: int = 1
+    """With ``seeds``: runs at once, each its own process with a router and four services."""
+    passes: int | None = None
+    """Passes in all; None: :class:`FleetEvalConfig`'s (or its ``quick``)."""
+    rounds: int | None = None
+    """Scoring rounds; None: :class:`FleetEvalConfig`'s (or its ``quick``)."""
+    box_size_sigma_px: float = 0.0
+    """Noise on the detected boxes' width and height, px."""
+    quick: bool = False
+    """A small run for the test suite."""
+
+    def run_flags(self) -> list[str]:
+        """The command-line options every seed's run shares (``--passes``, ``--rounds``,
+        ``--box-size-sigma``, ``--quick``)."""
+        flags = [f"--passes {self.passes}"] if self.passes else []
+        flags += [f"--rounds {self.rounds}"] if self.rounds else []
+        flags += [f"--box-size-sigma {self.box_size_sigma_px:g}"] if self.box_size_sigma_px else []
+        return flags + (["--quick"] if self.quick else [])
+
+
+def run_fleet_job(opts: FleetRunOptions) -> dict:
+    """One run (its result) or, with ``opts.seeds``, every seed's (the summary). Raises
+    :class:`SeedRunError` when a separate seed's run (``jobs`` > 1) fails."""
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if not opts.seeds:
+        return run_fleet_once(opts, out, opts.seed)
+    rows = run_seeds_apart(opts, out) if opts.jobs > 1 else {}
+    for k, seed in enumerate(opts.seeds, start=1):
+        if seed not in rows:
+            print(f"fleet: seed {seed} ({k}/{len(opts.seeds)})", file=sys.stderr, flush=True)
+            rows[seed] = seed_row(run_fleet_once(opts, out / f"seed-{seed}", seed))
+    summary = summarise_seeds(rows)
+    flags = [f"--out {opts.out}", f"--seeds {','.join(map(str, opts.seeds))}"]
+    flags += [f"--jobs {opts.jobs}"] if opts.jobs > 1 else []
+    summary["meta"] = {
+        "command": "hdmap eval fleet " + " ".join(flags + opts.run_flags()),
+        "figures": [write_seed_figure(summary, out).name],
+    }
+    write_seed_summary(summary, out / "fleet_seeds.json", FLEET_COLUMNS, "fleet")
+    return summary
+
+
+def run_seeds_apart(opts: FleetRunOptions, out: Path) -> dict[int, dict]:
+    """Each seed as its own ``hdmap eval fleet`` process, at most ``opts.jobs`` at once,
+    its stderr in ``out/seed-<s>.log``; their summary rows. A failed or overdue run stops
+    the others (:class:`SeedRunError` naming it). The runs watch this process
+    (hdmap.runtime.orphan)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **{PARENT_ENV: str(os.getpid())})
+    extra = [word for flag in opts.run_flags() for word in flag.split()]
+    todo = list(opts.seeds)
+    running: dict[int, tuple[subprocess.Popen, IO[bytes], float]] = {}
+    rows: dict[int, dict] = {}
+    try:
+        while todo or running:
+            while todo and len(running) < opts.jobs:
+                seed = todo.pop(0)
+                argv = [sys.executable, "-m", "hdmap.cli", "eval", "fleet"]
+                argv += ["--out", str(out / f"seed-{seed}"), "--seed", str(seed), *extra]
+                log = open(out / f"seed-{seed}.log", "wb")  # closed when the run ends
+                proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env)
+                running[seed] = (proc, log, time.monotonic())
+                print(f"fleet: seed {seed} started ({out / f'seed-{seed}.log'})", file=sys.stderr)
+            for seed, (proc, log, t0) in list(running.items()):
+                rc = proc.poll()
+                if rc is None:
+                    if time.monotonic() - t0 > SEED_RUN_TIMEOUT_S:
+                        raise SeedRunError(f"seed {seed}: no result after {SEED_RUN_TIMEOUT_S} s")
+                    continue
+                del running[seed]
+                log.close()
+                if rc != 0:
+                    tail = (out / f"seed-{seed}.log").read_text(errors="replace")[-2000:]
+                    raise SeedRunError(f"seed {seed}: exit status {rc}\n{tail}")
+                result = json.loads((out / f"seed-{seed}" / "fleet.json").read_text())
+                rows[seed] = seed_row(result)
+                print(f"fleet: seed {seed} done", file=sys.stderr, flush=True)
+            time.sleep(0.5)
+    finally:
+        for proc, log, _ in running.values():
+            proc.terminate()
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+            log.close()
+    return rows
+
+
+def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
+    """One fleet run with ``seed`` into ``out``; its result (also written there)."""
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = FleetEvalConfig.quick(out) if opts.quick else FleetEvalConfig(out)
+    if opts.passes:
+        cfg = replace(cfg, passes=opts.passes)
+    if opts.rounds:
+        cfg = replace(cfg, rounds=opts.rounds)
+    cfg = replace(cfg, seed=seed, box_size_sigma_px=opts.box_size_sigma_px)
+    result, state, final = run_fleet_eval(cfg)
+    result["meta"]["command"] = "hdmap eval fleet " + " ".join(
+        [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
+        + [f"--seed {cfg.seed}"]
+        + ([f"--box-size-sigma {cfg.box_size_sigma_px:g}"] if cfg.box_size_sigma_px else [])
+        + (["--quick"] if opts.quick else [])
+    )
+    figures = write_fleet_figures(result, state.world, final, out)
+    result["meta"]["figures"] = [f.name for f in figures]
+    path = out / "fleet.json"
+    write_json(result, path)
+    print(format_fleet_table(result), file=sys.stderr)
+    print(f"fleet: wrote {path} and {len(figures)} figures", file=sys.stderr, flush=True)
+    return result
+
+
+def format_fleet_table(result: dict) -> str:
+    """Recall, precision, duplicates, error, coverage and association per bin of passes,
+    and the verdicts at 50+ passes."""
+    head = (
+        f"{'passes':>9} {'signs':>5} {'recall':>6} {'lms':>5} {'prec':>5} {'dup':>3} "
+        f"{'mean m':>6} {'p95 m':>6} {'in95':>5} {'assoc':>6}"
+    )
+    lines = [head, "-" * len(head)]
+
+    def f(v: object, fmt: str) -> str:
+        return format(v, fmt) if isinstance(v, int | float) else "-"
+
+    for r in result["by_passes"]:
+        hi = r["passes_hi"]
+        rng = f"{r['passes_lo']}-{hi - 1}" if hi else f"{r['passes_lo']}+"
+        lines.append(
+            f"{rng:>9} {r['signs']:>5} {f(r['recall'], '.3f'):>6} {r['landmarks']:>5} "
+            f"{f(r['precision'], '.3f'):>5} {r['duplicated']:>3} {f(r['mean_err_m'], '.2f'):>6} "
+            f"{f(r['p95_err_m'], '.2f'):>6} {f(r['coverage95'], '.2f'):>5} "
+            f"{f(r['assoc_right'], '.3f'):>6}"
+        )
+    t = result.get("targets_at_50_passes", {})
+    if t.get("evaluated"):
+        verdicts = ", ".join(f"{k} {v}" for k, v in t["pass"].items())
+        lines.append(f"targets at 50+ passes: {verdicts}")
+    return "\n".join(lines)

@@ -1,0 +1,258 @@
+"""The open passes of :class:`~hdmap.mapping.estimator.sums.LandmarkSums`: one slot per open
+(landmark, pass) with the pass's partial sums.
+
+Rays of one pass may arrive split over several ``accumulate`` calls, interleaved with
+other passes, so each open (landmark, pass) keeps its partial ``A_p``, ``b_p`` (9 floats
++ cluster id, ray count, activity stamp, angular variance, ray weight sums c and c^2,
+holder key, held ``J``, pull: 184 bytes, the size of its packed record
+:data:`~hdmap.mapping.estimator.packing.OPEN_DTYPE`). A pass enters the row's ``A``, ``b``
+and sandwich sums when it closes, with the random-effects weighting of
+:func:`hdmap.mapping.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S``
+the configured ``pass_sigma_m`` squared: a pass brings at most ``S^-1`` of information,
+however many rays it has): :meth:`OpenPasses.weighted`. ``solve`` includes the open passes
+the same way, so a result never depends on when a pass is closed, unless a ray of an
+already closed pass arrives, which then starts a new cluster (the covariance misses that
+pass's cross term).
+
+Eviction rule: a row keeps at most ``max_open_passes`` open; opening one more closes the
+least recently active (:meth:`OpenPasses.least_active`; the activity stamp is the row's
+ray count at the pass's last ray, so the rule is deterministic and survives ``pack_rows``
+/ ``unpack_rows``). A *held* pass (a holder key other than 0: a vehicle on probation) is
+never closed, by eviction or by ``close_passes``, until its holder is settled.
+
+Slots are recycled through a free list; the table grows by doubling.
+
+>>> t = OpenPasses()
+>>> t.alloc((0, 7)), t.alloc((0, 3)), t.alloc((1, 7))
+(0, 1, 2)
+>>> t.release(np.array([1])); t.keys(), t.clusters(0), t.alloc((2, 5))
+([(0, 7), (1, 7)], [7], 1)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from hdmap.mapping.estimator.model import EstimatorConfig, pass_weighted
+from hdmap.mapping.estimator.packing import PACK_VERSION, Layout
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_ARRAYS = ("row", "cluster", "last", "n", "a6", "b", "s2", "w", "w2", "hold", "j6", "c1")
+"""The per-slot arrays of :class:`OpenPasses`, grown together."""
+
+
+class OpenPasses:
+    """The open (landmark row, cluster) passes and their partial sums, one slot each.
+
+    Per slot: ``row`` (-1: a free slot), ``cluster``, ``last`` (the activity stamp),
+    ``n`` (rays), ``a6`` and ``b`` (the raw ``A_p`` and ``b_p``), ``s2`` (sum of the rays'
+    angular variances), ``w`` and ``w2`` (sums of the rays' weights and of their squares),
+    ``hold`` (the holder's key, 0: not held), ``j6`` (a held pass's predicted information)
+    and ``c1`` (the pass's raw pull, :func:`~hdmap.mapping.estimator.model.pull_terms`).
+    """
+
+    def __init__(self, capacity: int = 16) -> None:
+        self.slot: dict[tuple[int, int], int] = {}
+        """(row, cluster) -> its slot."""
+        self.row_slots: dict[int, list[int]] = {}
+        """row -> its open slots (any order)."""
+        self.free: list[int] = []
+        self.hi = 0
+        """Slots ever used: every slot below is open or on the free list."""
+        cap = max(int(capacity), 1)
+        self.row = np.full(cap, -1, np.int64)
+        self.cluster = np.zeros(cap, np.int64)
+        self.last = np.zeros(cap, np.int64)
+        self.n = np.zeros(cap, np.int64)
+        self.a6 = np.zeros((cap, 6))
+        self.b = np.zeros((cap, 3))
+        self.s2 = np.zeros(cap)  # sum over the pass's rays of their angular variance
+        self.w = np.zeros(cap)  # sum of the rays' weights (Rays.weight, default 1)
+        self.w2 = np.zeros(cap)  # sum of their squares
+        self.hold = np.zeros(cap, np.int64)  # held: the holder's key (0: not held)
+        self.j6 = np.zeros((cap, 6))  # held passes' predicted information
+        self.c1 = np.zeros(cap)  # the pass's pull (model.pull_terms), raw
+
+    def __len__(self) -> int:
+        return len(self.slot)
+
+    def keys(self) -> list[tuple[int, int]]:
+        """The open (row, cluster) pairs, sorted."""
+        return sorted(self.slot)
+
+    def clusters(self, row: int) -> list[int]:
+        """Cluster ids of ``row``'s open passes, sorted."""
+        return sorted(int(self.cluster[s]) for s in self.row_slots.get(int(row), ()))
+
+    # ------------------------------------------------------------------ slots
+    def alloc(self, key: tuple[int, int]) -> int:
+        """A zeroed slot for the pass ``key`` (row, cluster), which must not be open."""
+        if self.free:
+            s = self.free.pop()
+        else:
+            s = self.hi
+            self.hi += 1
+            if s >= self.row.shape[0]:
+                for name in _ARRAYS:
+                    old = getattr(self, name)
+                    arr = np.zeros((2 * old.shape[0], *old.shape[1:]), old.dtype)
+                    arr[: old.shape[0]] = old
+                    setattr(self, name, arr)
+        self.slot[key] = s
+        self.row_slots.setdefault(key[0], []).append(s)
+        self.row[s], self.cluster[s] = key
+        self.last[s] = self.n[s] = 0
+        self.a6[s] = 0.0
+        self.b[s] = 0.0
+        self.s2[s] = 0.0
+        self.w[s] = self.w2[s] = 0.0
+        self.hold[s] = 0
+        self.j6[s] = 0.0
+        self.c1[s] = 0.0
+        return s
+
+    def release(self, slots: IntArray) -> None:
+        """Forget open slots (their sums already folded or dropped); free them in order."""
+        for s, row, cl in zip(
+            slots.tolist(),
+            self.row[slots].tolist(),
+            self.cluster[slots].tolist(),
+            strict=True,
+        ):
+            del self.slot[(row, cl)]
+            mine = self.row_slots[row]
+            mine.remove(s)
+            if not mine:
+                del self.row_slots[row]
+            self.row[s] = -1
+            self.free.append(s)
+
+    def all_slots(self) -> IntArray:
+        """Every open slot, ascending."""
+        return np.flatnonzero(self.row[: self.hi] >= 0)
+
+    def of_rows(self, rows: IntArray) -> IntArray:
+        """Open slots of ``rows``, ascending: :meth:`all_slots` filtered to ``rows``, in
+        O(their open passes) instead of O(all open passes)."""
+        get = self.row_slots.get
+        found = [s for r in np.unique(rows).tolist() for s in get(r, ())]
+        return np.sort(np.array(found, np.int64))
+
+    def of_row(self, row: int) -> IntArray:
+        """Open slots of one row, ascending."""
+        return np.sort(np.array(self.row_slots.get(row, ()), np.int64))
+
+    def held(self, hold: int) -> IntArray:
+        """Open slots held for the holder ``hold`` (none for 0), ascending."""
+        slots = self.all_slots()
+        return slots[self.hold[slots] == int(hold)] if hold else slots[:0]
+
+    def fold(self, to: int, sl: int, a6: Array, b: Array, j6: Array) -> None:
+        """Add the pass of slot ``sl`` into slot ``to``: its ``a6``, ``b`` and ``j6`` as
+        given (moved to ``to``'s frame), its other sums as they are; ``to`` takes ``sl``'s
+        holder and the later of their activity stamps."""
+        self.a6[to] += a6
+        self.b[to] += b
+        self.n[to] += self.n[sl]
+        self.s2[to] += self.s2[sl]
+        self.w[to] += self.w[sl]
+        self.w2[to] += self.w2[sl]
+        self.j6[to] += j6
+        self.c1[to] += self.c1[sl]
+        self.hold[to] = self.hold[sl]
+        self.last[to] = max(self.last[to], self.last[sl])
+
+    # ------------------------------------------------------------------ which to close
+    def closable(
+        self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None
+    ) -> IntArray:
+        """Slots not held: all (no arguments), those of ``rows``, those with a cluster id in
+        ``clusters`` (every landmark), or the pairs ``(rows[i], clusters[i])`` (both)."""
+        slots = self.all_slots()
+        if rows is not None and clusters is not None:
+            keys = zip(
+                np.asarray(rows).reshape(-1).tolist(),
+                np.asarray(clusters).reshape(-1).tolist(),
+                strict=True,
+            )
+            found = [self.slot.get((int(r), int(c))) for r, c in keys]
+            slots = np.array(sorted({s for s in found if s is not None}), np.int64)
+        elif rows is not None:
+            slots = self.of_rows(np.asarray(rows, np.int64).reshape(-1))
+        elif clusters is not None:
+            slots = slots[np.isin(self.cluster[slots], np.asarray(clusters, np.int64))]
+        return slots[self.hold[slots] == 0]  # held passes stay apart (see hold)
+
+    def least_active(self, rows: IntArray, keep: int) -> IntArray:
+        """The passes of ``rows`` (unique, ascending) to close so that each keeps ``keep``
+        open: per row the least recently active ones not held, by (activity stamp,
+        cluster), rows in order."""
+        mine = self.of_rows(rows)
+        mine = mine[self.hold[mine] == 0]  # held passes are never closed here
+        if mine.size == 0:
+            return mine
+        r = self.row[mine]
+        order = np.lexsort((self.cluster[mine], self.last[mine], r))
+        mine, r = mine[order], r[order]
+        first = np.flatnonzero(np.concatenate(([True], r[1:] != r[:-1])))
+        count = np.diff(np.append(first, r.size))
+        rank = np.arange(r.size) - np.repeat(first, count)
+        return mine[rank < np.repeat(count, count) - keep]
+
+    # ------------------------------------------------------------------ weighting
+    def weighted(self, slots: IntArray, config: EstimatorConfig) -> tuple[Array, Array, Array]:
+        """Open passes' raw sums -> what they add to ``A``, ``b`` and the pull
+        (:func:`pass_weighted`; passes of imprecise rays unweighted, see
+        ``pass_weighting_max_sigma_rad``). The pull
+        scales with the pass's horizontal information, ``tr_h W_p / tr_h A_p``: ``C_p``
+        goes through the weighting as ``A_p`` does (``C_p ~ kappa_p A_p``)."""
+        a6, b = self.a6[slots].copy(), self.b[slots].copy()
+        c1 = self.c1[slots].copy()
+        n = np.maximum(self.n[slots], 1)
+        rms2 = self.s2[slots] / n
+        precise = rms2 <= config.pass_weighting_max_sigma_rad**2
+        if precise.any():
+            # rays weighted by c (a vehicle's trust) carry c A_p: the pass's weight is
+            # c W_p(A_p), that is W for c A_p with S / c (weighting passes, not only rays)
+            c = np.maximum(self.w[slots][precise] / n[precise], 1e-12)
+            sigma = np.asarray(config.pass_sigma_m, float)[None, :] / np.sqrt(c)[:, None]
+            raw_h = a6[precise, 0] + a6[precise, 1]
+            a6[precise], b[precise] = pass_weighted(a6[precise], b[precise], sigma)
+            if c1.any():
+                w_h = a6[precise, 0] + a6[precise, 1]
+                c1[precise] *= np.divide(w_h, raw_h, out=np.zeros_like(w_h), where=raw_h > 0)
+        return a6, b, c1
+
+    # ------------------------------------------------------------------ records
+    def records(self, slots: IntArray, lay: Layout) -> np.ndarray:
+        """The packed open-pass records of ``slots`` in ``lay.open`` (version 4 or 5)."""
+        op = np.zeros(slots.size, lay.open)
+        op["cluster"], op["last"], op["n"] = (
+            self.cluster[slots],
+            self.last[slots],
+            self.n[slots],
+        )
+        op["a6"], op["b"], op["s2"] = self.a6[slots], self.b[slots], self.s2[slots]
+        op["w"], op["w2"] = self.w[slots], self.w2[slots]
+        op["hold"], op["j6"] = self.hold[slots], self.j6[slots]
+        if lay.version == PACK_VERSION:
+            op["c1"] = self.c1[slots]
+        return op
+
+    def load(self, s: int, o: np.void, version: int) -> None:
+        """Fill the fresh slot ``s`` from the open-pass record ``o`` of pack ``version``
+        (what older versions lack as :data:`~hdmap.mapping.estimator.packing.OLD_PACK_VERSIONS`
+        says)."""
+        self.last[s], self.n[s] = int(o["last"]), int(o["n"])
+        self.a6[s], self.b[s] = o["a6"], o["b"]
+        self.s2[s] = 0.0 if version == 1 else float(o["s2"])
+        self.w[s] = float(o["n"]) if version < 3 else float(o["w"])
+        if version >= 4:
+            self.w2[s], self.hold[s] = float(o["w2"]), int(o["hold"])
+            self.j6[s] = o["j6"]
+            self.c1[s] = float(o["c1"]) if version == PACK_VERSION else 0.0
+        else:
+            self.w2[s] = self.w[s] ** 2 / max(int(o["n"]), 1)

@@ -1,0 +1,247 @@
+"""The matcher's landmark table in memory: landmark records, the pending pool, vehicles'
+trust records and co-visibility counts, with marks of what changed since the last save.
+
+Landmarks are a dict of :class:`Landmark` records by id (indexed by tile); the pending
+pool is one columnar :class:`PendingTile` per tile. Persistence is not here: the
+service's store writes what the marks name and rebuilds the table from its database.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hdmap.mapping.trust import VehicleTrust
+from schemas.ids import landmark_id, pass_key
+
+
+class ObsRows(Protocol):
+    """A table of observations (one row per ray), as the matcher's domain reads it: the
+    wire ``Observations`` columns, row selection and concatenation."""
+
+    obs_id: NDArray[np.uint64]
+    lat: NDArray[np.float64]
+    lon: NDArray[np.float64]
+    h: NDArray[np.float64]
+    direction: NDArray[np.float64]
+    image: NDArray[Any]
+    sign_class: NDArray[Any]
+    track: NDArray[Any]
+
+    def __len__(self) -> int: ...
+
+    def take(self, idx: NDArray[Any]) -> Any: ...
+
+    @classmethod
+    def concat(cls, parts: list[Any]) -> Any: ...
+
+
+def _pair(a: int, b: int) -> tuple[int, int]:
+    """Key of an unordered pair of landmark ids."""
+    return (a, b) if a < b else (b, a)
+
+
+@dataclass
+class Landmark:
+    """One landmark's matcher-side record (the numeric state lives in the sums row)."""
+
+    id: int
+    cls: int
+    home: str
+    tile: str
+    x: np.ndarray
+    """Gating position, ECEF metres."""
+    cov: np.ndarray
+    """Gating covariance, local ENU, m^2."""
+    row: int
+    created_at: float
+    view: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """Sum of the horizontal unit directions (East, North) of its rays: the side it is
+    seen from (two same-class signs back to back are never one)."""
+
+
+@dataclass
+class PendingTile:
+    """Rays routed to one tile that wait for a landmark (columnar)."""
+
+    obs: Any
+    """The rays (an :class:`ObsRows` table)."""
+    vehicle: list[str] = field(default_factory=list)
+    pass_id: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    added_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    received_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    """Ingest receipt time (latency tracing)."""
+    key: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    """:func:`pass_key` of each ray's (vehicle, pass): vectorised selection of a pass."""
+
+    def __post_init__(self) -> None:
+        if self.key.size != len(self.obs):
+            self.key = np.array(
+                [pass_key(v, int(p)) for v, p in zip(self.vehicle, self.pass_id, strict=True)],
+                np.int64,
+            )
+
+    def __len__(self) -> int:
+        return len(self.obs)
+
+    def add(self, obs: Any, vehicle: str, pass_id: int, now: float, received: float) -> None:
+        """Append one pass's rays, added at ``now``, received by ingest at ``received``."""
+        self.obs = type(obs).concat([self.obs, obs])
+        self.vehicle += [vehicle] * len(obs)
+        self.pass_id = np.r_[self.pass_id, np.full(len(obs), pass_id, np.int64)]
+        self.added_at = np.r_[self.added_at, np.full(len(obs), now)]
+        self.received_at = np.r_[self.received_at, np.full(len(obs), received)]
+        self.key = np.r_[self.key, np.full(len(obs), pass_key(vehicle, pass_id), np.int64)]
+
+    def keep(self, mask: NDArray[np.bool_]) -> None:
+        """Keep only the rows ``mask`` marks."""
+        self.obs = self.obs.take(mask)
+        self.vehicle = [v for v, k in zip(self.vehicle, mask, strict=True) if k]
+        self.pass_id = self.pass_id[mask]
+        self.added_at = self.added_at[mask]
+        self.received_at = self.received_at[mask]
+        self.key = self.key[mask]
+
+
+class LandmarkTable:
+    """Landmarks (by id, by tile), pending rays (by tile), vehicles' trust and co-visibility
+    counts, with the marks of what changed (for a store to write).
+
+    ``empty_obs`` makes an empty observation table (a new tile's pending pool)."""
+
+    def __init__(self, empty_obs: Callable[[], Any]):
+        self._empty_obs = empty_obs
+        self.landmarks: dict[int, Landmark] = {}
+        self.by_tile: dict[str, set[int]] = defaultdict(set)
+        self.pending: dict[str, PendingTile] = defaultdict(self._empty_pending)
+        self.counters: dict[str, int] = {}
+        self.trust: dict[str, VehicleTrust] = {}
+        self._trust_dirty: set[str] = set()
+        self._dirty: set[int] = set()
+        self._pending_dirty: set[str] = set()
+        self._removed_pending: list[tuple[str, int]] = []
+        """(vehicle, obs id) of pending rays taken out since the last save."""
+        self.covis: dict[tuple[int, int], int] = {}
+        """Images in which two landmarks of one class were both detected (a < b): then
+        they are two signs, whatever their estimates say."""
+        self._covis_of: dict[int, set[int]] = defaultdict(set)
+        self._covis_dirty: set[tuple[int, int]] = set()
+        self._deleted: set[int] = set()
+        self._indexed: dict[int, str] = {}
+        """The tile each landmark is filed under in ``by_tile``."""
+
+    def _empty_pending(self) -> PendingTile:
+        """A tile's pending pool before its first ray."""
+        return PendingTile(self._empty_obs())
+
+    # -- landmarks ------------------------------------------------------------------------
+
+    def next_id(self, home: str) -> int:
+        """A new landmark id of home tile ``home`` (the tile's counter goes up by one)."""
+        n = self.counters.get(home, 0) + 1
+        self.counters[home] = n
+        return landmark_id(home, n)
+
+    def put(self, lm: Landmark) -> None:
+        """Store ``lm`` (also after changing it in place: ``by_tile`` follows its tile)."""
+        prev = self._indexed.get(lm.id)
+        if prev is not None and prev != lm.tile:
+            self.by_tile[prev].discard(lm.id)
+        self._indexed[lm.id] = lm.tile
+        self.landmarks[lm.id] = lm
+        self.by_tile[lm.tile].add(lm.id)
+        self._dirty.add(lm.id)
+
+    def add_covis(self, a: int, b: int, n: int = 1) -> None:
+        """Landmarks ``a`` and ``b`` were detected together in ``n`` more images."""
+        k = _pair(a, b)
+        self.covis[k] = self.covis.get(k, 0) + n
+        self._covis_of[a].add(b)
+        self._covis_of[b].add(a)
+        self._covis_dirty.add(k)
+
+    def covis_count(self, a: int, b: int) -> int:
+        """Images in which landmarks ``a`` and ``b`` were both detected."""
+        return self.covis.get(_pair(a, b), 0)
+
+    def merge(self, keep: Landmark, drop: Landmark) -> None:
+        """``drop`` becomes part of ``keep``: its view and co-visibility counts move over,
+        its record is deleted (the caller merges the sums rows)."""
+        keep.view = keep.view + drop.view
+        for other, n in self._unlist(drop).items():
+            if other != keep.id:
+                self.add_covis(keep.id, other, n)
+        self.put(keep)
+
+    def remove(self, lm: Landmark) -> None:
+        """``lm`` ends without a successor (every ray it had was taken out)."""
+        self._unlist(lm)
+
+    def _unlist(self, lm: Landmark) -> dict[int, int]:
+        """Delete ``lm``'s record; returns its co-visibility counts (other id -> images),
+        which are deleted with it."""
+        covis = {}
+        for other in sorted(self._covis_of.pop(lm.id, set())):
+            k = _pair(lm.id, other)
+            covis[other] = self.covis.pop(k)
+            self._covis_dirty.add(k)
+            self._covis_of[other].discard(lm.id)
+        self.landmarks.pop(lm.id)
+        self.by_tile[self._indexed.pop(lm.id)].discard(lm.id)
+        self._dirty.discard(lm.id)
+        self._deleted.add(lm.id)
+        return covis
+
+    def near(self, tiles: list[str]) -> list[Landmark]:
+        """The landmarks filed under ``tiles``, by id."""
+        ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))
+        return [self.landmarks[i] for i in ids]
+
+    # -- vehicles -----------------------------------------------------------------------------
+
+    def trust_of(self, vehicle: str) -> VehicleTrust:
+        """The vehicle's record, marked to be saved (the caller is about to update it)."""
+        t = self.trust.get(vehicle)
+        if t is None:
+            t = self.trust[vehicle] = VehicleTrust()
+        self._trust_dirty.add(vehicle)
+        return t
+
+    # -- pending ----------------------------------------------------------------------------
+
+    def add_pending(
+        self, tile: str, obs: Any, vehicle: str, pass_id: int, now: float, received: float
+    ) -> None:
+        """Rays of one pass wait in ``tile``'s pool (none: nothing changes)."""
+        if len(obs):
+            self.pending[tile].add(obs, vehicle, pass_id, now, received)
+            self._pending_dirty.add(tile)
+
+    def drop_pending(self, tile: str, mask_remove: NDArray[np.bool_]) -> None:
+        """Take the rows ``mask_remove`` marks out of ``tile``'s pool."""
+        if not mask_remove.any():
+            return
+        p = self.pending[tile]
+        ids = p.obs.obs_id[mask_remove].tolist()
+        vehicles = [v for v, k in zip(p.vehicle, mask_remove, strict=True) if k]
+        self._removed_pending += list(zip(vehicles, ids, strict=True))
+        p.keep(~mask_remove)
+        self._pending_dirty.add(tile)
+
+    def pending_count(self) -> int:
+        """Rays waiting in all pools."""
+        return sum(len(p) for p in self.pending.values())
+
+    def clear_marks(self) -> None:
+        """Forget what changed (after a save or a load)."""
+        self._covis_dirty.clear()
+        self._deleted.clear()
+        self._trust_dirty.clear()
+        self._dirty.clear()
+        self._pending_dirty.clear()
+        self._removed_pending = []

@@ -1,0 +1,151 @@
+"""Linking rays to landmarks in the matcher's gating sums, and the landmarks' gating
+estimates.
+
+:func:`link` adds a pass's rays to their landmarks' rows (with the vehicle's weight, held
+apart while it is on probation), notes their viewing directions and co-visibility, and
+records the links in the home tiles' output; :func:`refresh` re-solves the touched
+landmarks' gating estimates; :func:`create` makes a landmark with an empty row.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Any
+
+import numpy as np
+
+from hdmap.geo.geodesy import GEODESY
+from hdmap.geo.tiles import quadkeys_of
+from hdmap.mapping.association import LocalRays
+from hdmap.mapping.estimator import Rays
+from hdmap.mapping.estimator.provisional import prior_covariance, usable
+from hdmap.mapping.landmarks import Landmark
+from hdmap.mapping.matching import Matching
+from schemas.ids import hold_key, pass_key
+
+
+def to_local(frame: Any, obs: Any) -> LocalRays:
+    """Observations (an :class:`~hdmap.mapping.landmarks.ObsRows` table) -> rays in a
+    tile's ENU frame."""
+    return LocalRays(
+        origin=frame.from_geodetic(obs.lat, obs.lon, obs.h),
+        direction=frame.vectors_from_enu_at(obs.direction, obs.lat, obs.lon),
+        sigma_az=obs.sigma_az,
+        sigma_el=obs.sigma_el,
+        sigma_pos_h=obs.sigma_pos_h,
+        sigma_pos_v=obs.sigma_pos_v,
+        range_m=obs.range_m,
+        sigma_range_m=obs.sigma_range_m,
+        image=obs.image.astype(np.int64),
+        sign_class=obs.sign_class.astype(np.int64),
+        track=obs.track.astype(np.int64) if obs.track.any() else None,
+    )
+
+
+def to_rays(r: LocalRays, weight: np.ndarray | None = None) -> Rays:
+    """Local rays as the estimator's input (``weight`` per ray; None: all 1)."""
+    return Rays(r.origin, r.direction, r.sigma_az, r.sigma_el, r.sigma_pos_h, r.sigma_pos_v, weight)
+
+
+def link(
+    m: Matching, obs: Any, lms: list[Landmark], vehicle: str, pass_id: int, received: float
+) -> None:
+    """Record associations (ray ``k`` of ``obs`` to ``lms[k]``): gating sums now, output
+    per home tile."""
+    if not len(obs):
+        return
+    m.tally("linked", len(obs))
+    t = m.state.trust_of(vehicle)
+    weight = t.weight(m.config.trust, m.fleet_ref())
+    if weight < 1.0:
+        m.tally("downweighted", len(obs))
+    held = t.held(m.config.trust)
+    gating = weight
+    if held:
+        m.tally("held", len(obs))
+        if m.config.gate_probation_full:
+            gating = weight / m.config.trust.probation_weight
+    key = pass_key(vehicle, pass_id, held)
+    hold = np.full(len(obs), hold_key(vehicle) if held else 0, np.int64)
+    note_views(m, obs, lms)
+    by_home: dict[str, list[int]] = defaultdict(list)
+    for k, lm in enumerate(lms):
+        by_home[lm.home].append(k)
+    for home, idx in sorted(by_home.items()):
+        sel = np.array(idx)
+        sub = obs.take(sel)
+        local = to_local(m.frames(home), sub)
+        rows = np.array([lms[k].row for k in idx], np.int64)
+        rays = to_rays(local, np.full(len(idx), gating) if gating < 1.0 else None)
+        m.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays, hold[sel])
+        _, first = np.unique(rows, return_index=True)
+        m.quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
+        out = m.out[home]
+        vi = out.vehicle_index(vehicle)
+        out.links += [(lms[k].id, vi, pass_id) for k in idx]
+        out.received_at += [received] * len(idx)
+        out.weight += [weight] * len(idx)
+        out.held += [held] * len(idx)
+        if held:
+            t.held_homes.add(home)
+        out.obs.append(sub)
+
+
+def note_views(m: Matching, obs: Any, lms: list[Landmark]) -> None:
+    """Viewing directions, and same-class landmarks detected in one image (all rays
+    here are of one vehicle pass)."""
+    ids = np.array([lm.id for lm in lms], np.uint64)
+    uniq, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+    d = obs.direction[:, :2]
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    view = np.zeros((uniq.size, 2))
+    np.add.at(view, inv, np.divide(d, n, out=np.zeros_like(d), where=n > 0))
+    for j, k in enumerate(first.tolist()):
+        lms[k].view = lms[k].view + view[j]
+    if uniq.size < 2:
+        return
+    img = obs.image.astype(np.int64)
+    u, cnt = np.unique(img, return_counts=True)
+    for im in u[cnt > 1].tolist():
+        here = np.flatnonzero(img == im)
+        both = sorted({(lms[k].cls, lms[k].id) for k in here.tolist()})
+        for i, (ca, a) in enumerate(both):
+            for cb, b in both[i + 1 :]:
+                if ca == cb:
+                    m.state.add_covis(a, b)
+
+
+def create(m: Matching, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray) -> Landmark:
+    """A new landmark of class ``cls`` at ``x_ecef`` with home tile ``home``: an empty sums
+    row, and the triangulation's covariance ``cov`` plus the pass-bias prior to gate with."""
+    lid = m.state.next_id(home)
+    frame = m.frames(home)
+    row = int(m.sums.new_rows(1, frame.from_ecef(x_ecef[None]))[0])
+    bias = m.config.gate.pass_bias_sigma_m
+    gate_cov = cov + np.diag([bias**2, bias**2, m.config.gate.vertical_bias_sigma_m**2])
+    lm = Landmark(lid, cls, home, m.tile_of(x_ecef), x_ecef, gate_cov, row, m.clock())
+    m.state.put(lm)
+    return lm
+
+
+def refresh(m: Matching, ids: list[int]) -> None:
+    """Re-solve touched landmarks' gating estimates (vectorised over them)."""
+    if not ids:
+        return
+    lms = [m.state.landmarks[i] for i in ids]
+    sol = m.sums.solve(np.array([lm.row for lm in lms], np.int64), update_reference=False)
+    g = m.config.gate
+    bias = (g.pass_bias_sigma_m, g.pass_bias_sigma_m, g.vertical_bias_sigma_m)
+    good, _prov, cov = usable(sol, m.config.estimator, m.config.provisional_passes, bias)
+    if m.config.gate_bias_floor:
+        cov = cov + prior_covariance(bias, sol.n_clusters)
+    moved = [k for k in range(len(lms)) if good[k]]
+    for k in moved:
+        lms[k].x = m.frames(lms[k].home).to_ecef(sol.x[k][None])[0]
+        lms[k].cov = cov[k]
+    if moved:
+        lat, lon, _ = GEODESY.to_geodetic(np.array([lms[k].x for k in moved]))
+        for k, t in zip(moved, quadkeys_of(lat, lon, m.zoom).tolist(), strict=True):
+            lms[k].tile = str(t)
+    for lm in lms:
+        m.state.put(lm)

@@ -1,0 +1,212 @@
+"""The matcher's domain: its knobs (:class:`MatchingConfig`), its in-memory state
+(:class:`Matching`: the landmark table, the gating sums, open passes, the fleet's offsets)
+and what one batch produces for each landmark home tile (:class:`AssocOutput`).
+
+The steps that work on it are functions of a :class:`Matching`: one unit's association
+(:mod:`hdmap.mapping.unit`), linking rays and re-solving gating estimates
+(:mod:`hdmap.mapping.linking`), landmarks from pending rays (:mod:`hdmap.mapping.pending`),
+vehicles leaving probation (:mod:`hdmap.mapping.probation`) and merging landmarks of one
+sign (:mod:`hdmap.mapping.merge`). Nothing here does I/O; the clock (wall-clock seconds,
+for landmarks' and pending rays' ages) and the counters are given.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hdmap.geo.geodesy import GEODESY
+from hdmap.geo.tiles import TileFrames, neighbours, quadkeys_of
+from hdmap.mapping.association import GateConfig
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
+from hdmap.mapping.initiation import InitConfig
+from hdmap.mapping.landmarks import LandmarkTable
+from hdmap.mapping.quiet import QuietPasses, note_open
+from hdmap.mapping.trust import FleetOffsets, TrustConfig, VehicleTrust
+
+
+def gating_estimator() -> EstimatorConfig:
+    """The matcher's estimator: the solver's, with the plug-in meat
+    (``integrated_meat`` off). The gate and merge thresholds were measured with it; the
+    integrated meat widens young landmarks' gates, and on the four-seed fleet evaluation
+    that turned 0/0/0/0 duplicated landmarks into 0/0/2/0 and moved coverage from 30 passes
+    from 0.969 to 0.981 on seed 3 (docs/estimator.md section 6)."""
+    return EstimatorConfig(integrated_meat=False)
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """How the matcher gates, starts, weighs and merges landmarks."""
+
+    gate: GateConfig = field(default_factory=GateConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+    estimator: EstimatorConfig = field(default_factory=gating_estimator)
+    gate_probation_full: bool = True
+    """Rays of a vehicle on probation count in full in the matcher's own (gating) sums; the
+    solver's, which make the map, get the probation weight."""
+    pending_ttl_s: float = 3600.0
+    """Unmatched rays older than this are dropped (counted as expired)."""
+    close_passes_after_s: float = 7200.0
+    """Close a pass in the gating sums once no ray of it has been linked for this long
+    (wall-clock seconds, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above
+    ``pending_ttl_s``: a pending ray can still be linked until it expires."""
+    trust: TrustConfig = field(default_factory=TrustConfig)
+    """Per-vehicle weights from the history of its pass offsets and gate failures."""
+    gate_bias_floor: bool = True
+    """Gate with the solution's covariance plus the pass-bias prior over its passes
+    (``diag(bias^2) / G``): the between-pass covariance of a few passes is itself noisy,
+    and a gate that is too tight splits one sign into several landmarks."""
+    group_check: bool = True
+    """The rays of one unit given to one landmark must meet near it: their own
+    triangulation (origins moved by the unit's offset) against the landmark, chi-square
+    (3 dof) under both covariances and the offset's. Rays of a neighbouring sign of the
+    class pass the per-ray gate one by one, but they meet at their own sign."""
+    group_chi2: float = 16.27
+    """Largest chi-square (3 dof; 16.27 = 99.9 %) of a group's triangulation against its
+    landmark."""
+    group_min_rays: int = 2
+    """Smallest group that is checked (one ray does not triangulate)."""
+    track_drop_unlinked: bool = True
+    """Rays of a track that went to a landmark without them (outside the gate) are dropped
+    rather than left to start another landmark of the same sign."""
+    merge: bool = True
+    """Merge landmarks found to be one sign (see :mod:`hdmap.mapping.merge`)."""
+    merge_chi2: float = 16.27
+    """Largest chi-square (3 dof; 16.27 = 99.9 %) of the difference of two estimates, under
+    the sum of their gating covariances."""
+    merge_max_m: float = 10.0
+    """Largest horizontal distance between two landmarks that may merge."""
+    merge_max_covis: float = 0.2
+    """Largest share of the smaller landmark's rays in images that also detected the other.
+    Two signs seen from the same roads are detected together in most images where both are
+    in view (0.33-0.79 over the fleet evaluation's four seeds); two landmarks of one sign
+    are detected together only through the other signs' rays one of them took by mistake
+    (0.11-0.28). 0.2 lets those duplicates merge (at 0.1, seed 0's sign 130 stayed two
+    landmarks 0.1 m apart, at 0.13) and stays below the lowest share of two signs."""
+    merge_min_view_cos: float = 0.5
+    """Smallest cosine between the two landmarks' mean viewing directions."""
+    merge_min_passes: int = 2
+    """Both landmarks need this many passes (a one-pass estimate carries its pass's whole
+    bias). With onboard tracks, co-visibility tells two signs apart reliably, so two passes
+    are enough: on the four seeds, 2 rather than 5 cut the young map's duplicates at 3-4
+    passes from 13-48 to 0-5 (with ``merge_max_covis`` 0.1; 2 / 0 / 9 / 3 with 0.2).
+    A landmark looks for a partner at each of its passes up to twice this, then at every
+    third (the search is most of a unit's cost otherwise)."""
+    provisional_passes: int = 0
+    """If > 0, gating estimates follow the landmark's solution from this many passes on
+    (before the estimator's ``min_clusters``, with the pass-bias prior in the covariance;
+    see :mod:`hdmap.mapping.estimator.provisional`). Off: until ``min_clusters`` passes the gate
+    uses the initiating pass's triangulation with the full pass bias, which the fleet
+    evaluation found far safer (with 2: association right 0.51 vs 0.81 at 20-29 passes,
+    many more duplicates; a 2-4 pass sandwich covariance is too small to gate with)."""
+
+
+@dataclass
+class AssocOutput:
+    """What one batch produces for one landmark home tile (the assoc output being built)."""
+
+    vehicles: list[str] = field(default_factory=list)
+    links: list[tuple[int, int, int]] = field(default_factory=list)
+    """(landmark id, vehicle index, pass id) per linked ray."""
+    received_at: list[float] = field(default_factory=list)
+    weight: list[float] = field(default_factory=list)
+    held: list[bool] = field(default_factory=list)
+    obs: list[Any] = field(default_factory=list)
+    """The linked rays, one observation table per link call (in ``links`` order)."""
+    trust: list[tuple[int, bool, float]] = field(default_factory=list)
+    """(vehicle index, dropped, weight): vehicles leaving probation, their held passes
+    dropped or released at ``weight``."""
+    created: list[tuple[int, int, float, float, float]] = field(default_factory=list)
+    """(id, class, lat, lon, h) of new landmarks."""
+    retired: list[tuple[int, int]] = field(default_factory=list)
+    """(retired id, id it merged into)."""
+    ended: list[int] = field(default_factory=list)
+    """Retired without a successor (emptied: every ray taken out)."""
+
+    def vehicle_index(self, v: str) -> int:
+        """Index of vehicle ``v`` in ``vehicles`` (added if new)."""
+        if v not in self.vehicles:
+            self.vehicles.append(v)
+        return self.vehicles.index(v)
+
+
+def new_output() -> defaultdict[str, AssocOutput]:
+    """An empty output: one :class:`AssocOutput` per home tile, made as it is needed."""
+    return defaultdict(AssocOutput)
+
+
+class Matching:
+    """The matcher's in-memory state and what the domain steps share.
+
+    ``state`` is the landmark table, ``sums`` the gating sums (rows of ``state``'s
+    landmarks), ``quiet`` the open passes, ``fleet`` the fleet's pass offsets and ``out``
+    the output of the batch being applied. ``tally(name, n)`` counts events; ``clock``
+    gives wall-clock seconds (ages of landmarks and pending rays)."""
+
+    def __init__(
+        self,
+        config: MatchingConfig,
+        state: LandmarkTable,
+        zoom: int,
+        region: list[str],
+        tally: Callable[[str, int], None],
+        clock: Callable[[], float],
+    ):
+        self.config = config
+        self.state = state
+        self.zoom = zoom
+        self.region = region
+        self.tally = tally
+        self.clock = clock
+        self.frames = TileFrames()
+        self._areas: dict[str, list[str]] = {}
+        self.sums = LandmarkSums(config.estimator)
+        self.quiet = QuietPasses(config.close_passes_after_s)
+        self.fleet = FleetOffsets(config.trust)
+        self.flagged: dict[str, tuple[float, float]] = {}
+        """(weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
+        self.out: defaultdict[str, AssocOutput] = new_output()
+
+    def restart(self, sums: LandmarkSums) -> None:
+        """After ``state`` was (re)loaded with ``sums``: open passes are quiet from now on,
+        the fleet's offsets and the flagged vehicles follow the trust records."""
+        self.sums = sums
+        self.quiet.clear()
+        note_open(self.quiet, self.sums, self.state)
+        self.flagged = {}
+        self.fleet = FleetOffsets(self.config.trust)
+        for v, t in sorted(self.state.trust.items()):
+            self.fleet.update(v, t)
+        ref = self.fleet_ref()
+        for v, t in self.state.trust.items():
+            self.note_trust(v, t, ref)
+
+    def note_trust(self, vehicle: str, t: VehicleTrust, ref: np.ndarray | None) -> None:
+        """Keep (weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
+        w, c = t.weight(self.config.trust, ref), t.chi2(ref)
+        if w < 1.0 or c > self.config.trust.chi2_gate:
+            self.flagged[vehicle] = (w, c)
+        else:
+            self.flagged.pop(vehicle, None)
+
+    def fleet_ref(self) -> np.ndarray | None:
+        """The fleet's reference offset for the trust test (None while trust is off)."""
+        if not self.config.trust.enabled:
+            return None
+        return self.fleet.reference()
+
+    def area(self, tile: str) -> list[str]:
+        """``tile`` and its 8 neighbours (cached: mercantile costs ~0.1 ms a call)."""
+        a = self._areas.get(tile)
+        if a is None:
+            a = self._areas[tile] = [tile, *neighbours(tile)]
+        return a
+
+    def tile_of(self, x_ecef: np.ndarray) -> str:
+        """The tile (at the service's zoom) an ECEF point is in."""
+        lat, lon, _ = GEODESY.to_geodetic(x_ecef[None])
+        return str(quadkeys_of(lat, lon, self.zoom)[0])

@@ -1,0 +1,93 @@
+"""Vehicles leaving probation in the matcher: their held passes count in full (promoted),
+go (caught), or, for a vehicle that stopped driving while on probation, go in at the
+probation weight. The gating sums change here; the solvers change through the assoc
+output of every home tile the vehicle has held passes in.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from hdmap.mapping.linking import refresh
+from hdmap.mapping.matching import Matching
+from hdmap.mapping.trust import CAUGHT, VehicleTrust
+from schemas.ids import hold_key
+
+log = logging.getLogger(__name__)
+
+
+def settle(m: Matching, vehicle: str, t: VehicleTrust) -> set[int]:
+    """A vehicle leaves probation: its held passes count in full (promoted) or go
+    (caught), here and, through the assoc output of every home tile it has held passes
+    in, in the solvers. Returns the landmarks that went with them."""
+    ref = m.fleet_ref()
+    status = t.settle(m.config.trust, ref)
+    if status is None:
+        return set()
+    log.info(
+        "vehicle %s %s after %d passes (offset chi2 %.2f, mean offset %s m)",
+        vehicle,
+        "caught" if status == CAUGHT else "promoted",
+        t.passes,
+        t.chi2(ref),
+        np.round(t.mean_offset(ref), 2).tolist(),
+    )
+    if status == CAUGHT:
+        m.tally("vehicles_caught", 1)
+        return let_go(m, vehicle, t, True, 0.0)
+    m.tally("vehicles_promoted", 1)
+    return let_go(m, vehicle, t, False, t.weight(m.config.trust, ref))
+
+
+def freeze_stale(m: Matching, now: float) -> None:
+    """Vehicles on probation that stopped driving before they could be settled (none for
+    ``probation_ttl_s`` of ingest time before ``now``): their held passes go in at the
+    probation weight."""
+    cfg = m.config.trust
+    cutoff = now - cfg.probation_ttl_s
+    for v in sorted(v for v, t in m.state.trust.items() if t.held_homes):
+        t = m.state.trust[v]
+        if t.held(cfg) and t.last_seen < cutoff:
+            m.state.trust_of(v)  # marks it for saving
+            w = t.weight(cfg, m.fleet_ref())
+            local = w / cfg.probation_weight if m.config.gate_probation_full else w
+            let_go(m, v, t, False, w, local)
+            m.tally("probation_timed_out", 1)
+
+
+def let_go(
+    m: Matching,
+    vehicle: str,
+    t: VehicleTrust,
+    dropped: bool,
+    weight: float,
+    local: float | None = None,
+) -> set[int]:
+    """Settle ``vehicle``'s held passes here (dropped, or released at ``local``, default
+    ``weight``) and, through the assoc output of every home tile it has held passes in, in
+    the solvers (released at ``weight``). Returns the landmarks retired for having no rays
+    left."""
+    key = hold_key(vehicle)
+    if dropped:
+        rows = m.sums.drop_held(key)
+    else:
+        rows = m.sums.release(key, weight if local is None else local)
+    for home in sorted(t.held_homes):
+        out = m.out[home]
+        out.trust.append((out.vehicle_index(vehicle), dropped, weight))
+    t.held_homes.clear()
+    if not rows.size:
+        return set()
+    by_row = {lm.row: lm for lm in m.state.landmarks.values()}
+    lms = [by_row[r] for r in rows.tolist() if r in by_row]
+    empty = m.sums.n_obs([lm.row for lm in lms]) == 0
+    gone = {lm.id for lm, e in zip(lms, empty, strict=True) if e}
+    for lm in lms:
+        if lm.id in gone:
+            m.state.remove(lm)  # only the caught vehicle saw it
+            m.out[lm.home].ended.append(lm.id)
+            m.tally("emptied", 1)
+    refresh(m, sorted(lm.id for lm in lms if lm.id not in gone))
+    return gone

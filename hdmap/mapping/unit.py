@@ -1,0 +1,152 @@
+"""One unit through the matcher: one vehicle pass's rays for one tile.
+
+1. a suspect vehicle's origins are moved by its mean offset, its track labels checked;
+2. rays into the tile's ENU frame; candidate landmarks of the same classes from the tile
+   and its 8 neighbours (so a sign near a border is one landmark);
+3. :func:`hdmap.mapping.association.associate` (gate, per-pass offset, per-image
+   assignment), then :func:`group_check`; the pass's offset goes into the vehicle's trust
+   record, which may settle its probation (:func:`hdmap.mapping.probation.settle`);
+4. matched rays are linked (:func:`hdmap.mapping.linking.link`); unmatched rays join the
+   pending pool, where they may start landmarks (:func:`hdmap.mapping.pending.initiate`);
+5. touched landmarks are re-solved and may merge (:func:`hdmap.mapping.merge.merge_touched`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from hdmap.mapping.association import Association, LocalRays, associate, valid_tracks
+from hdmap.mapping.initiation import triangulate_groups
+from hdmap.mapping.landmarks import Landmark
+from hdmap.mapping.linking import link, refresh, to_local
+from hdmap.mapping.matching import Matching
+from hdmap.mapping.merge import merge_touched
+from hdmap.mapping.pending import initiate
+from hdmap.mapping.probation import settle
+from hdmap.mapping.trust import VehicleTrust
+
+
+def shift_origins(frame: Any, obs: Any, d_en: np.ndarray) -> Any:
+    """The same observations with origins moved by ``d_en`` (East, North metres)."""
+    x = frame.from_geodetic(obs.lat, obs.lon, obs.h)
+    x[:, :2] += np.asarray(d_en, float)[:2]
+    lat, lon, h = frame.to_geodetic(x)
+    return replace(obs, lat=lat, lon=lon, h=h)
+
+
+def _corrected(m: Matching, frame: Any, obs: Any, trust: VehicleTrust) -> tuple[Any, np.ndarray]:
+    """``obs`` with a suspect vehicle's mean offset taken out and its track labels checked;
+    also the offset taken out (East, North; zero if none)."""
+    applied = np.zeros(2)
+    ref = m.fleet_ref()
+    if trust.suspect(m.config.trust, ref):
+        applied = trust.mean_offset(ref)
+        obs = shift_origins(frame, obs, applied)
+        m.tally("shift_corrected", len(obs))
+    if obs.track.any():  # the vehicle's labels are checked once, as they come in
+        track = valid_tracks(obs.track, obs.image).astype(np.uint32)
+        m.tally("track_invalid", int((obs.track != track).sum()))
+        obs = replace(obs, track=track)
+    return obs, applied
+
+
+def _associate(
+    m: Matching,
+    frame: Any,
+    rays: LocalRays,
+    cands: list[Landmark],
+    vehicle: str,
+    pass_id: int,
+    trust: VehicleTrust,
+    applied: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rays to candidate landmarks: the landmark index of each ray (-1: none) and the rays
+    to drop (of a track that went to a landmark without them). The vehicle's trust record
+    takes the pass's gate result and offset, and may settle."""
+    x = frame.from_ecef(np.array([c.x for c in cands]))
+    cov = np.array([c.cov for c in cands])
+    cls = np.array([c.cls for c in cands], np.int64)
+    res: Association = associate(rays, x, cov, cls, m.config.gate)
+    matched = group_check(m, rays, res, x, cov)
+    drop = np.zeros(len(rays), bool)
+    if res.unlinked is not None and m.config.track_drop_unlinked:
+        drop = res.unlinked & (matched < 0)
+        m.tally("track_discarded", int(drop.sum()))
+    n_hit = int((matched >= 0).sum())
+    trust.add_gate(int(np.isin(rays.sign_class, cls).sum()), n_hit)
+    if n_hit >= m.config.gate.min_offset_rays:
+        raw = res.offset[:2] + applied  # the vehicle's own offset, before correction
+        trust.add_offset(raw, res.offset_cov, m.config.trust.bias_sigma_m, pass_id)
+    m.fleet.update(vehicle, trust)
+    m.note_trust(vehicle, trust, m.fleet_ref())
+    gone = settle(m, vehicle, trust)
+    if gone:  # emptied by the settlement: these rays wait like unmatched ones
+        out = np.array([c.id in gone for c in cands])
+        matched = np.where((matched >= 0) & out[np.maximum(matched, 0)], -1, matched)
+    return matched, drop
+
+
+def match_unit(
+    m: Matching, tile: str, vehicle: str, pass_id: int, received_at: float, obs: Any
+) -> None:
+    """Associate one unit's rays ``obs`` (an observation table) with the landmarks around
+    ``tile``, link them, pool the rest, start, refresh and merge landmarks."""
+    frame = m.frames(tile)
+    trust = m.state.trust_of(vehicle)
+    trust.last_seen = max(trust.last_seen, received_at)
+    obs, applied = _corrected(m, frame, obs, trust)
+    rays = to_local(frame, obs)
+    area = m.area(tile)
+    cands = m.state.near(area)
+    matched = np.full(len(rays), -1, np.int64)
+    drop = np.zeros(len(rays), bool)
+    if cands:
+        matched, drop = _associate(m, frame, rays, cands, vehicle, pass_id, trust, applied)
+    hit = matched >= 0
+    m.tally("received", len(rays))
+    m.tally("associated", int(hit.sum()))
+    touched: set[int] = set()
+    for i in np.flatnonzero(hit):
+        touched.add(cands[matched[i]].id)
+    link(m, obs.take(hit), [cands[k] for k in matched[hit]], vehicle, pass_id, received_at)
+    wait = ~hit & ~drop
+    m.state.add_pending(tile, obs.take(wait), vehicle, pass_id, m.clock(), received_at)
+    new_classes = np.unique(obs.sign_class[wait])
+    touched |= initiate(m, tile, area, vehicle, pass_id, new_classes)
+    refresh(m, sorted(touched))
+    merge_touched(m, sorted(touched))
+
+
+def group_check(
+    m: Matching, rays: LocalRays, res: Association, x: np.ndarray, cov: np.ndarray
+) -> np.ndarray:
+    """``res.landmark`` without the groups whose rays meet elsewhere (see
+    ``MatchingConfig.group_check``)."""
+    out = res.landmark.copy()
+    cfg = m.config
+    if not cfg.group_check:
+        return out
+    hit = np.flatnonzero(out >= 0)
+    if hit.size == 0:
+        return out
+    lms, grp, n = np.unique(out[hit], return_inverse=True, return_counts=True)
+    moved = replace(rays.take(hit), origin=rays.origin[hit] + res.offset)
+    xt, ct = triangulate_groups(moved, grp, lms.size)
+    c = ct + cov[lms] + res.offset_cov
+    d = xt - x[lms]
+    test = (n >= cfg.group_min_rays) & np.isfinite(d).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
+    test &= np.abs(np.linalg.det(np.where(test[:, None, None], c, np.eye(3)))) > 1e-12
+    chi2 = np.zeros(lms.size)
+    if test.any():
+        chi2[test] = np.einsum(
+            "ki,ki->k", d[test], np.linalg.solve(c[test], d[test][:, :, None])[:, :, 0]
+        )
+    bad = test & (chi2 > cfg.group_chi2)
+    if bad.any():
+        drop = np.isin(out, lms[bad])
+        out[drop] = -1
+        m.tally("group_rejected", int(drop.sum()))
+    return out

@@ -1,0 +1,272 @@
+"""The services' durable stage logs: the envelope of an entry (:class:`LogEntry`), a
+consumer's query (:class:`LogQuery`) and the entry bodies of the three stages:
+:class:`ObsGroup` (obs, ingest -> matcher), :class:`AssocGroup` (assoc, matcher ->
+solver) and :class:`LandmarkUpdates` (update, solver -> publisher).
+
+>>> e = LogEntry("obs", "ingest-1", "0123", 1, 1, b"body")
+>>> LogEntry.from_bytes(e.to_bytes()).tile
+'0123'
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from schemas.codec import (
+    DecodeError,
+    get_bytes,
+    get_float,
+    get_int,
+    get_list,
+    get_map,
+    get_str,
+    valid_id,
+)
+from schemas.messages import (
+    FLOAT_EPOCH_MAX,
+    MAX_TABLE_ROWS,
+    TILE_RE,
+    TILE_TEXT,
+    Message,
+    as_ids,
+    get_ids,
+    get_table,
+    put_table,
+)
+from schemas.tables import Landmarks, Links, NewLandmarks, Observations, Removals, TrustChanges
+
+_STAGE_RE = re.compile(r"obs|assoc|update")
+_STAGE = "one of obs, assoc, update"
+
+
+@dataclass(frozen=True, eq=False)
+class LogEntry(Message):
+    """Envelope of one entry of a producer's durable log (obs, assoc or update stage).
+
+    ``seq`` counts this producer's entries for this tile (1, 2, ...: a consumer
+    seeing a gap catches up); ``gseq`` counts all of this producer's entries, so
+    replayed entries can be applied in their original order.
+    """
+
+    TYPE: ClassVar[str] = "log_entry"
+    stage: str
+    producer: str
+    tile: str
+    seq: int
+    gseq: int
+    body: bytes
+
+    def _encode(self) -> dict[str, Any]:
+        return {
+            "stage": self.stage,
+            "producer": self.producer,
+            "tile": self.tile,
+            "seq": int(self.seq),
+            "gseq": int(self.gseq),
+            "body": self.body,
+        }
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> LogEntry:
+        m = cls._open(data)
+        return cls(
+            stage=get_str(m, "stage", _STAGE_RE, _STAGE),
+            producer=get_str(m, "producer"),
+            tile=get_str(m, "tile", TILE_RE, TILE_TEXT),
+            seq=get_int(m, "seq", 1),
+            gseq=get_int(m, "gseq", 1),
+            body=get_bytes(m, "body"),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class LogQuery(Message):
+    """Consumer -> producers: entries after these offsets for tiles of these prefixes."""
+
+    TYPE: ClassVar[str] = "log_query"
+    stage: str
+    offsets: dict[str, dict[str, int]]
+    """producer -> tile -> last applied seq (absent = 0)."""
+    prefixes: list[str] = field(default_factory=list)
+    """Quadkey prefixes of the consumer's region (empty = every tile)."""
+    limit: int = 1000
+    """At most this many entries per producer in one answer."""
+
+    def _encode(self) -> dict[str, Any]:
+        return {
+            "stage": self.stage,
+            "offsets": self.offsets,
+            "prefixes": list(self.prefixes),
+            "limit": int(self.limit),
+        }
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> LogQuery:
+        m = cls._open(data)
+        offsets = get_map(m, "offsets")
+        if len(offsets) > 10_000:
+            raise DecodeError("offsets", f"{len(offsets)} producers exceeds the limit of 10000")
+        for p, tiles in offsets.items():
+            if not valid_id(p) or not isinstance(tiles, dict):
+                raise DecodeError("offsets", "expected producer id -> {tile: seq}")
+            for t, s in tiles.items():
+                if (
+                    not isinstance(t, str)
+                    or not TILE_RE.fullmatch(t)
+                    or not isinstance(s, int)
+                    or isinstance(s, bool)
+                    or not 0 <= s < 2**63
+                ):
+                    raise DecodeError(f"offsets.{p}", "expected quadkey -> non-negative seq")
+        prefixes = get_list(m, "prefixes", 10_000)
+        for i, p in enumerate(prefixes):
+            if not isinstance(p, str) or (p and not TILE_RE.fullmatch(p)):
+                raise DecodeError("prefixes", "expected quadkey prefixes", i)
+        return cls(
+            stage=get_str(m, "stage", _STAGE_RE, _STAGE),
+            offsets=offsets,
+            prefixes=prefixes,
+            limit=get_int(m, "limit", 1, 100_000),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class ObsGroup(Message):
+    """Ingest -> matcher log body: one upload batch's accepted observations for one tile."""
+
+    TYPE: ClassVar[str] = "obs_group"
+    vehicle_id: str
+    pass_id: int
+    batch_id: int
+    received_at: float
+    obs: Observations
+
+    def _encode(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "vehicle_id": self.vehicle_id,
+            "pass_id": int(self.pass_id),
+            "batch_id": int(self.batch_id),
+            "received_at": float(self.received_at),
+        }
+        put_table(out, "obs", self.obs)
+        return out
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> ObsGroup:
+        m = cls._open(data)
+        return cls(
+            vehicle_id=get_str(m, "vehicle_id"),
+            pass_id=get_int(m, "pass_id"),
+            batch_id=get_int(m, "batch_id"),
+            received_at=get_float(m, "received_at", 0.0, FLOAT_EPOCH_MAX),
+            obs=get_table(m, "obs", Observations, MAX_TABLE_ROWS),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class AssocGroup(Message):
+    """Matcher -> solver log body: associations and landmark lifecycle for one tile."""
+
+    TYPE: ClassVar[str] = "assoc_group"
+    vehicles: list[str]
+    links: Links
+    obs: Observations
+    created: NewLandmarks
+    retired: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64))
+    """Landmarks that end here, after this entry's links (their rays stay in the map)."""
+    merged_into: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64))
+    """Per retired landmark, the landmark that takes over its rays (``retired[i]`` was the
+    same sign as ``merged_into[i]``); may be shorter than ``retired`` (the rest end
+    without a successor). Optional on the wire (absent = empty)."""
+    held: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    """Per link, whether its vehicle is on probation (its pass is held apart until a
+    ``trust`` change settles it); empty = none held. Optional on the wire."""
+    trust: TrustChanges = field(default_factory=lambda: TrustChanges.empty())
+    """Vehicles leaving probation, applied after this entry's links. Optional on the wire."""
+
+    def _encode(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "vehicles": list(self.vehicles),
+            "retired": as_ids(self.retired).tobytes(),
+            "merged_into": as_ids(self.merged_into).tobytes(),
+        }
+        put_table(out, "links", self.links)
+        put_table(out, "obs", self.obs)
+        put_table(out, "created", self.created)
+        if np.any(self.held):
+            out["held"] = np.ascontiguousarray(self.held, np.uint8).tobytes()
+        if len(self.trust):
+            put_table(out, "trust", self.trust)
+        return out
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> AssocGroup:
+        m = cls._open(data)
+        vehicles = get_list(m, "vehicles", MAX_TABLE_ROWS)
+        for i, v in enumerate(vehicles):
+            if not isinstance(v, str):
+                raise DecodeError("vehicles", "expected a string", i)
+        links = get_table(m, "links", Links, MAX_TABLE_ROWS)
+        obs = get_table(m, "obs", Observations, MAX_TABLE_ROWS)
+        if len(links) != len(obs):
+            raise DecodeError("links", f"{len(links)} rows but obs has {len(obs)}")
+        if len(links) and int(links.vehicle.max()) >= len(vehicles):
+            raise DecodeError("links.vehicle", "index outside vehicles")
+        retired = get_ids(m, "retired", MAX_TABLE_ROWS)
+        merged = np.zeros(0, np.uint64)
+        if "merged_into" in m:
+            merged = get_ids(m, "merged_into", MAX_TABLE_ROWS)
+        if merged.size > retired.size:
+            raise DecodeError("merged_into", f"{merged.size} ids for {retired.size} retired")
+        if np.any(merged == retired[: merged.size]):
+            raise DecodeError("merged_into", "a landmark merged into itself")
+        held = np.zeros(0, bool)
+        if "held" in m:
+            raw = np.frombuffer(get_bytes(m, "held"), np.uint8)
+            if raw.size != len(links):
+                raise DecodeError("held", f"{raw.size} flags for {len(links)} links")
+            if np.any(raw > 1):
+                raise DecodeError("held", "flags must be 0 or 1")
+            held = raw.astype(bool)
+        trust = TrustChanges.empty()
+        if "trust" in m or "n_trust" in m:
+            trust = get_table(m, "trust", TrustChanges, MAX_TABLE_ROWS)
+            if len(trust) and int(trust.vehicle.max()) >= len(vehicles):
+                raise DecodeError("trust.vehicle", "index outside vehicles")
+        return cls(
+            vehicles=vehicles,
+            links=links,
+            obs=obs,
+            created=get_table(m, "created", NewLandmarks, MAX_TABLE_ROWS),
+            retired=retired,
+            merged_into=merged,
+            held=held,
+            trust=trust,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkUpdates(Message):
+    """Solver -> publisher log body: new estimates for landmarks of one tile, and removals."""
+
+    TYPE: ClassVar[str] = "landmark_updates"
+    landmarks: Landmarks
+    removed: Removals
+
+    def _encode(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        put_table(out, "landmarks", self.landmarks)
+        put_table(out, "removed", self.removed)
+        return out
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> LandmarkUpdates:
+        m = cls._open(data)
+        return cls(
+            landmarks=get_table(m, "landmarks", Landmarks, MAX_TABLE_ROWS),
+            removed=get_table(m, "removed", Removals, MAX_TABLE_ROWS),
+        )
