@@ -12,22 +12,16 @@ the same transaction. A timer expires old pending rays.
 from __future__ import annotations
 
 import time
-from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap.mapping.association import Association, LocalRays
 from hdmap.mapping.estimator import LandmarkSums
-from hdmap.mapping.landmarks import Landmark
-from hdmap.mapping.linking import create, link, refresh
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
-from hdmap.mapping.merge import merge_touched
 from hdmap.mapping.pending import expire
-from hdmap.mapping.probation import freeze_stale, let_go
-from hdmap.mapping.quiet import QuietPasses, close_quiet
-from hdmap.mapping.trust import VehicleTrust
-from hdmap.mapping.unit import group_check, match_unit
+from hdmap.mapping.probation import freeze_stale
+from hdmap.mapping.quiet import close_quiet
+from hdmap.mapping.unit import match_unit
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.service import ServiceOptions
 from hdmap.runtime.stage import StageService
@@ -127,24 +121,6 @@ class MatcherService(StageService):
         """The gating sums."""
         return self.matching.sums
 
-    @property
-    def _quiet(self) -> QuietPasses:
-        """The open passes of the gating sums."""
-        return self.matching.quiet
-
-    @_quiet.setter
-    def _quiet(self, quiet: QuietPasses) -> None:
-        self.matching.quiet = quiet
-
-    @property
-    def _out(self) -> defaultdict[str, AssocOutput]:
-        """The output of the batch being applied, by home tile."""
-        return self.matching.out
-
-    @_out.setter
-    def _out(self, out: defaultdict[str, AssocOutput]) -> None:
-        self.matching.out = out
-
     # -- transaction participants: on failure, memory is rebuilt from the database --------
 
     def _reload(self) -> None:
@@ -174,7 +150,7 @@ class MatcherService(StageService):
     def apply(self, entries: list[LogEntry]) -> None:
         """Decode each entry, match its unit, let stale vehicles go, emit one assoc entry
         per home tile, close quiet passes and save."""
-        self._out = new_output()
+        self.matching.out = new_output()
         now = 0.0
         for e in entries:
             try:
@@ -184,10 +160,10 @@ class MatcherService(StageService):
                 continue
             self._unit(e.tile, group)
             now = max(now, group.received_at)
-        self._freeze_stale(now)
-        for home, out in sorted(self._out.items()):
+        freeze_stale(self.matching, now)
+        for home, out in sorted(self.matching.out.items()):
             self.emit(home, assoc_body(out))
-        self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
+        self.count("passes_closed", close_quiet(self.matching.quiet, self.sums, self.state))
         self.state.save(self.sums.pack_rows)
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
@@ -195,45 +171,6 @@ class MatcherService(StageService):
     def _unit(self, tile: str, g: ObsGroup) -> None:
         """One decoded unit through the domain."""
         match_unit(self.matching, tile, g.vehicle_id, g.pass_id, g.received_at, g.obs)
-
-    def _freeze_stale(self, now: float) -> None:
-        """Let go the vehicles on probation silent since ``now - probation_ttl_s``."""
-        freeze_stale(self.matching, now)
-
-    def _let_go(
-        self, vehicle: str, t: VehicleTrust, action: int, weight: float, local: float | None = None
-    ) -> set[int]:
-        """Settle ``vehicle``'s held passes with ``action`` (DROP, or RELEASE at ``weight``;
-        here at ``local``, default ``weight``); returns the landmarks emptied."""
-        return let_go(self.matching, vehicle, t, action == DROP, weight, local)
-
-    def _group_check(
-        self, rays: LocalRays, res: Association, x: np.ndarray, cov: np.ndarray
-    ) -> np.ndarray:
-        """:func:`hdmap.mapping.unit.group_check` on the service's state."""
-        return group_check(self.matching, rays, res, x, cov)
-
-    def _link(
-        self, obs: Observations, lms: list[Landmark], vehicle: str, pass_id: int, received: float
-    ) -> None:
-        """:func:`hdmap.mapping.linking.link` on the service's state."""
-        link(self.matching, obs, lms, vehicle, pass_id, received)
-
-    def _create(self, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray) -> Landmark:
-        """:func:`hdmap.mapping.linking.create` on the service's state."""
-        return create(self.matching, home, cls, x_ecef, cov)
-
-    def _refresh(self, ids: list[int]) -> None:
-        """:func:`hdmap.mapping.linking.refresh` on the service's state."""
-        refresh(self.matching, ids)
-
-    def _merge_touched(self, ids: list[int]) -> None:
-        """:func:`hdmap.mapping.merge.merge_touched` on the service's state."""
-        merge_touched(self.matching, ids)
-
-    def _assoc_body(self, out: AssocOutput) -> bytes:
-        """:func:`assoc_body`."""
-        return assoc_body(out)
 
     # -- timers and stats -----------------------------------------------------------------------
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from hdmap.mapping.association import Association
 from hdmap.mapping.linking import to_local
+from hdmap.mapping.unit import group_check
 from hdmap.runtime.service import ServiceOptions
 from services.matcher.service import MatcherService
 from tests.support.services import SIGN, Sink, sign_rays, tile_of
@@ -25,7 +26,7 @@ def check(svc: MatcherService, at: np.ndarray, seed: int) -> np.ndarray:
     frame = svc.frames(tile_of(svc.opts.zoom))
     rays = to_local(frame, sign_rays(frame, 0, np.random.default_rng(seed), at=at, n=8))
     res = Association(np.zeros(8, np.int64), np.zeros(8), np.zeros(3), np.eye(3) * 0.09)
-    return svc._group_check(rays, res, SIGN[None], np.eye(3)[None] * 0.09)
+    return group_check(svc.matching, rays, res, SIGN[None], np.eye(3)[None] * 0.09)
 
 
 def test_rays_meeting_at_another_sign_are_taken_back(tmp_path: Path) -> None:

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hdmap.mapping.linking import create, link, refresh
 from hdmap.mapping.matching import AssocOutput as _Out
+from hdmap.mapping.merge import merge_touched
 from hdmap.runtime.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
 from services.matcher.service import MatcherService
@@ -36,21 +38,21 @@ def two_copies(svc: MatcherService, covisible: bool = False, opposite: bool = Fa
     rng = np.random.default_rng(3)
     tile = tile_of(svc.opts.zoom)
     frame = svc.frames(tile)
-    svc._out = defaultdict(_Out)
+    svc.matching.out = defaultdict(_Out)
     at = frame.to_ecef(
         np.array([SIGN + np.array([1.0, 0.6, 0.0]), SIGN + np.array([-0.9, -0.5, 0.0])])
     )
-    a = svc._create(tile, CLS, at[0], np.eye(3) * 4.0)
-    b = svc._create(tile, CLS, at[1], np.eye(3) * 4.0)
+    a = create(svc.matching, tile, CLS, at[0], np.eye(3) * 4.0)
+    b = create(svc.matching, tile, CLS, at[1], np.eye(3) * 4.0)
     for p in range(12):
         obs = sign_rays(frame, p, rng, from_north=opposite and p >= 6)
         if covisible and p < 6:  # the same images also detected a second sign of the class
             both = Observations.concat([obs, sign_rays(frame, p, rng, image0=500)])
             both = Observations(**{**both.__dict__, "image": np.r_[obs.image, obs.image]})
-            svc._link(both, [a] * len(obs) + [b] * len(obs), "veh-1", p, time.time())
+            link(svc.matching, both, [a] * len(obs) + [b] * len(obs), "veh-1", p, time.time())
         else:
-            svc._link(obs, [a if p < 6 else b] * len(obs), "veh-1", p, time.time())
-    svc._refresh([a.id, b.id])
+            link(svc.matching, obs, [a if p < 6 else b] * len(obs), "veh-1", p, time.time())
+    refresh(svc.matching, [a.id, b.id])
     return a, b
 
 
@@ -58,11 +60,11 @@ def test_two_landmarks_of_one_sign_merge_and_the_merge_persists(tmp_path: Path) 
     svc = matcher(tmp_path)
     a, b = two_copies(svc)
     n_before = int(svc.sums.n_obs([a.row])[0] + svc.sums.n_obs([b.row])[0])
-    svc._merge_touched([b.id])
+    merge_touched(svc.matching, [b.id])
     assert list(svc.state.landmarks) == [a.id]  # the older (equal rays: the lower id) stays
     assert int(svc.sums.n_obs([a.row])[0]) == n_before == 120
     assert svc.sums.n_passes([a.row])[0] == 12
-    assert svc._out[b.home].retired == [(b.id, a.id)]
+    assert svc.matching.out[b.home].retired == [(b.id, a.id)]
     assert np.linalg.norm(svc.frames(a.home).from_ecef(a.x[None])[0] - SIGN) < 1.5
     with svc.transaction([svc]):
         svc.state.save(svc.sums.pack_rows)
@@ -79,9 +81,9 @@ def test_landmarks_seen_together_or_from_opposite_sides_stay_apart(tmp_path, kin
     a, b = two_copies(svc, covisible=kind == "covisible", opposite=kind == "opposite")
     if kind == "covisible":
         assert svc.state.covis_count(a.id, b.id) == 60
-    svc._merge_touched([a.id, b.id])
+    merge_touched(svc.matching, [a.id, b.id])
     assert sorted(svc.state.landmarks) == sorted([a.id, b.id])
-    assert not svc._out[a.home].retired
+    assert not svc.matching.out[a.home].retired
 
 
 def test_solver_hands_the_sums_over_and_the_map_drops_the_retired(tmp_path: Path) -> None:

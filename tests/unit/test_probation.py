@@ -12,12 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
+from hdmap.mapping.linking import create, link
 from hdmap.mapping.matching import AssocOutput as _Out
+from hdmap.mapping.probation import freeze_stale, let_go
 from hdmap.mapping.trust import NEW, TrustConfig
 from hdmap.runtime.service import ServiceOptions
 from schemas import DROP, RELEASE, AssocGroup, LogEntry, ObsGroup
 from schemas.ids import hold_key
-from services.matcher.service import MatcherConfig, MatcherService
+from services.matcher.service import MatcherConfig, MatcherService, assoc_body
 from tests.support.services import CLS, SIGN, Sink, matcher, sign_rays, solver, tile_of, updates
 
 DAY = 86400.0
@@ -27,26 +29,30 @@ def held_passes(m: MatcherService, vehicles: list[str], passes: int, t0: float) 
     """Link ``passes`` passes of each vehicle to one new landmark; returns its id."""
     tile = tile_of(m.opts.zoom)
     frame = m.frames(tile)
-    m._out = defaultdict(_Out)
-    lm = m._create(
-        tile, CLS, frame.to_ecef((SIGN + np.array([0.6, -0.4, 0.0]))[None])[0], np.eye(3)
+    m.matching.out = defaultdict(_Out)
+    lm = create(
+        m.matching,
+        tile,
+        CLS,
+        frame.to_ecef((SIGN + np.array([0.6, -0.4, 0.0]))[None])[0],
+        np.eye(3),
     )
     lat, lon, h = frame.to_geodetic(frame.from_ecef(lm.x[None]))
-    m._out[lm.home].created.append((lm.id, CLS, float(lat[0]), float(lon[0]), float(h[0])))
+    m.matching.out[lm.home].created.append((lm.id, CLS, float(lat[0]), float(lon[0]), float(h[0])))
     rng = np.random.default_rng(8)
     for k, v in enumerate(vehicles):
         m.state.trust_of(v).last_seen = t0
         for p in range(passes):
-            m._link(sign_rays(frame, 100 * k + p, rng), [lm] * 10, v, p, t0)
+            link(m.matching, sign_rays(frame, 100 * k + p, rng), [lm] * 10, v, p, t0)
     return lm.id
 
 
 def emitted(m: MatcherService) -> list[LogEntry]:
     out = [
-        LogEntry("assoc", "matcher-test", home, seq, seq, m._assoc_body(o))
-        for seq, (home, o) in enumerate(sorted(m._out.items()), start=1)
+        LogEntry("assoc", "matcher-test", home, seq, seq, assoc_body(o))
+        for seq, (home, o) in enumerate(sorted(m.matching.out.items()), start=1)
     ]
-    m._out = defaultdict(_Out)
+    m.matching.out = defaultdict(_Out)
     return out
 
 
@@ -62,8 +68,8 @@ def test_held_then_released_in_the_solver_equals_full_weight_from_the_start(tmp_
     assert s.sums.n_held() == m.sums.n_held() == 12
     updates(s)
     # veh-1 promoted, veh-2 caught: the matcher settles its own sums and tells the solver
-    m._let_go("veh-1", m.state.trust_of("veh-1"), RELEASE, 1.0)
-    m._let_go("veh-2", m.state.trust_of("veh-2"), DROP, 0.0)
+    let_go(m.matching, "veh-1", m.state.trust_of("veh-1"), False, 1.0)
+    let_go(m.matching, "veh-2", m.state.trust_of("veh-2"), True, 0.0)
     second = emitted(m)
     g2 = AssocGroup.from_bytes(second[0].body)
     assert g2.trust.action.tolist() == [RELEASE, DROP] and len(g2.links) == 0
@@ -109,9 +115,9 @@ def test_a_vehicle_that_never_settles_is_let_go_at_the_probation_weight(tmp_path
     m = matcher(tmp_path)
     held_passes(m, ["veh-3"], 4, t0)
     emitted(m)
-    m._freeze_stale(t0 + 0.5 * DAY)  # still within its time-out
-    assert m.sums.n_held() == 4 and not m._out
-    m._freeze_stale(t0 + 1.5 * DAY)
+    freeze_stale(m.matching, t0 + 0.5 * DAY)  # still within its time-out
+    assert m.sums.n_held() == 4 and not m.matching.out
+    freeze_stale(m.matching, t0 + 1.5 * DAY)
     assert m.sums.n_held() == 0
     (e,) = emitted(m)
     g = AssocGroup.from_bytes(e.body)
@@ -130,8 +136,8 @@ def test_a_vehicle_whose_rays_keep_failing_the_gate_weighs_less_in_stats(tmp_pat
     m = matcher(tmp_path)
     tile = tile_of(m.opts.zoom)
     frame = m.frames(tile)
-    m._out = defaultdict(_Out)
-    m._create(tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 0.25)
+    m.matching.out = defaultdict(_Out)
+    create(m.matching, tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 0.25)
     rng = np.random.default_rng(2)
     t0 = time.time()
     for p in range(25):  # 250 rays offered
@@ -155,7 +161,7 @@ def test_a_landmark_only_a_caught_vehicle_saw_leaves_the_map(tmp_path: Path):
     s._apply_in_transaction(emitted(m))
     (u,) = updates(s)
     assert u.landmarks.id.tolist() == [lid] and len(u.removed) == 0  # on the map
-    m._let_go("veh-9", m.state.trust_of("veh-9"), DROP, 0.0)
+    let_go(m.matching, "veh-9", m.state.trust_of("veh-9"), True, 0.0)
     assert lid not in m.state.landmarks and m.counters["emptied"] == 1  # retired, no successor
     (e,) = emitted(m)
     g = AssocGroup.from_bytes(e.body)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from hdmap.mapping.estimator.packing import OPEN_DTYPE_V4
+from hdmap.mapping.linking import create, link, refresh
 from hdmap.mapping.matching import AssocOutput as _Out
 from hdmap.mapping.quiet import QuietPasses
 from hdmap.mapping.trust import TrustConfig
@@ -134,7 +135,7 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
             trust=TrustConfig(probation_passes=0),
         )
         svc = MatcherService(ServiceOptions(data_dir=tmp_path / f"m{close}"), cfg)
-        svc._quiet = QuietPasses(cfg.close_passes_after_s, clock)
+        svc.matching.quiet = QuietPasses(cfg.close_passes_after_s, clock)
         svc.pubs = Sink()  # type: ignore[assignment]
         svcs[close] = svc
     rng = np.random.default_rng(4)
@@ -143,23 +144,25 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
     passes = [sign_rays(frame, p, rng) for p in range(12)]
     lms = {}
     for close, svc in svcs.items():
-        svc._out = defaultdict(_Out)
-        lms[close] = svc._create(tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 4.0)
+        svc.matching.out = defaultdict(_Out)
+        lms[close] = create(svc.matching, tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 4.0)
     for p, obs in enumerate(passes):  # one pass every 20 minutes
         clock.t = 1200.0 * p
         for close, svc in svcs.items():
             svc._apply_in_transaction([])  # a batch: quiet passes are closed at its end
-            svc._out = defaultdict(_Out)
-            svc._link(obs, [lms[close]] * len(obs), "veh-1", p, time.time())
-            svc._refresh([lms[close].id])  # as a unit does: re-solved, saved with the batch
+            svc.matching.out = defaultdict(_Out)
+            link(svc.matching, obs, [lms[close]] * len(obs), "veh-1", p, time.time())
+            # as a unit does: re-solved, saved with the batch
+            refresh(svc.matching, [lms[close].id])
     # the closing service saves its last pass and restarts: its open passes are quiet from
     # the restart on
     svcs[True]._apply_in_transaction([])
     restarted = MatcherService(ServiceOptions(data_dir=tmp_path / "mTrue"), svcs[True].config)
-    restarted._quiet = QuietPasses(restarted.config.close_passes_after_s, clock)
+    restarted.matching.quiet = QuietPasses(restarted.config.close_passes_after_s, clock)
     restarted._reload()
     restarted.pubs = Sink()  # type: ignore[assignment]
-    assert len(restarted._quiet) == restarted.sums.n_open_passes == svcs[True].sums.n_open_passes
+    n_open = svcs[True].sums.n_open_passes
+    assert len(restarted.matching.quiet) == restarted.sums.n_open_passes == n_open
     svcs[True].db.close()
     svcs[True] = restarted
     clock.t = 1200.0 * 11 + 7200.0 + 1.0  # two hours after the last pass

@@ -156,7 +156,7 @@ def test_a_track_with_two_rays_in_one_image_is_not_trusted(tmp_path: Path) -> No
     # the matcher checks a unit's labels as it comes in (two rays per image here): what it
     # keeps (pending, no landmark yet) has the bogus track's label dropped, the other kept
     svc = matcher(tmp_path)
-    svc._out = defaultdict(_Out)
+    svc.matching.out = defaultdict(_Out)
     tile = str(quadkeys_of(np.array([60.17]), np.array([24.94]), svc.opts.zoom)[0])
     obs = make_observations(8)
     alternating = (np.arange(8) % 2 + 1).astype(np.uint32)
