@@ -7,7 +7,7 @@ position covariance (landmark plus ray origin) through the 2x3 angle Jacobian an
 the covariance along the ray.
 This script times, side by side in one run and on the same random pairs:
 
-- ``einsum3``: ``np.einsum("kij,kjl,kml->kim", J, C, J)`` (the form used until 2026-11-30;
+- ``einsum3``: ``np.einsum("kij,kjl,kml->kim", J, C, J)`` (the alternative:
   a three-operand einsum without a contraction path, a nested loop in C);
 - ``matmul``: ``J @ C @ J^T`` (the form used now), checked equal to 1e-12 relative;
 - the whole ``pair_chi2`` at the same sizes (now), and what it took with ``einsum3``

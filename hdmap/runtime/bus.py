@@ -16,7 +16,6 @@ zenoh-python examples.
 from __future__ import annotations
 
 import json
-import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -75,36 +74,24 @@ def open_session(cfg: BusConfig) -> Iterator[zenoh.Session]:
 
 
 class Publishers:
-    """Data-path publishers, one per key, declared on first use (BLOCK + RELIABLE)."""
+    """Data-path puts with ``CongestionControl.BLOCK`` (reliable, the default), any key.
+
+    No publisher is declared per key: declaring one costs time that grows with the
+    publishers a session already holds (about 7 ms each at 20,000), under the GIL, and
+    an upload spread over many tiles would declare one per tile and keep it. A
+    ``session.put`` costs the same for a new key as for an old one (about 12 us here, one
+    subscriber matching; ``benchmarks/bench_keys.py``), and this object keeps no state
+    per key, so what it costs and holds does not grow with the keys ever written.
+    """
 
     def __init__(self, session: zenoh.Session):
         self._session = session
-        self._pubs: dict[str, zenoh.Publisher] = {}
-        self._lock = threading.Lock()
 
     def put(self, key: str, payload: bytes) -> None:
-        with self._lock:
-            pub = self._pubs.get(key)
-            if pub is None:
-                pub = self._session.declare_publisher(
-                    key,
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                    reliability=zenoh.Reliability.RELIABLE,
-                )
-                self._pubs[key] = pub
-        pub.put(payload)
-
-    def drop(self, key: str) -> None:
-        with self._lock:
-            pub = self._pubs.pop(key, None)
-        if pub is not None:
-            pub.undeclare()
+        self._session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def close(self) -> None:
-        with self._lock:
-            pubs, self._pubs = list(self._pubs.values()), {}
-        for p in pubs:
-            p.undeclare()
+        """Nothing declared, nothing to undeclare (kept for the service's shutdown path)."""
 
 
 def query(

@@ -24,7 +24,7 @@ from hdmap.runtime.stage import StageService
 from hdmap.runtime.store import StorageError
 from hdmap.runtime.stream import QueryServer
 from schemas import DecodeError, ErrorReply, LandmarkUpdates, LogEntry, keys
-from services.publisher.tilemap import TileMaps, snapshot
+from services.publisher.tilemap import TileMaps, read_snapshot
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,7 @@ class PublisherService(StageService):
             with self.transaction():
                 deltas = self.maps.flush()
                 self.count("deltas", len(deltas))
+                self.count("quarantined", self.maps.quarantined)
                 self.count("delta_upserts", sum(len(d.upserts) for d in deltas))
         except StorageError as exc:
             log.error("publisher flush: %s", exc)
@@ -90,13 +91,18 @@ class PublisherService(StageService):
             self.pubs.put(keys.map_delta(d.tile), d.to_bytes())
 
     def _answer_snapshot(self, conn: sqlite3.Connection, q: zenoh.Query) -> None:
-        tile = keys.chunk(str(q.key_expr), 3)
+        parts = str(q.key_expr).split("/")
+        tile = parts[3] if len(parts) == 4 else ""  # hdmap/v1/map/<tile>, nothing else
         if not valid_quadkey(tile) or not in_region(tile, self.region):
-            err = DecodeError("tile", f"{tile!r} is not one quadkey of this region")
+            err = DecodeError("tile", f"{str(q.key_expr)!r} names no one quadkey of this region")
             q.reply_err(ErrorReply.of(err).to_bytes())
+            self.reject("snapshot.tile")
             return
-        q.reply(keys.map_snapshot(tile), snapshot(conn, tile).to_bytes())
+        snap, withheld = read_snapshot(conn, tile)
+        q.reply(keys.map_snapshot(tile), snap.to_bytes())
         self.count("snapshots")
+        if withheld:
+            self.count("snapshot_rows_withheld", withheld)
 
     def extra_counters(self) -> dict[str, float]:
         out = super().extra_counters()

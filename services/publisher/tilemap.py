@@ -15,6 +15,7 @@ and clears ``dirty``, all inside the caller's transaction. Snapshots read
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import time
 
@@ -22,6 +23,8 @@ import numpy as np
 
 from hdmap.runtime.store import i64_to_u64, u64_to_i64
 from schemas import Landmarks, LandmarkUpdates, MapDelta, MapSnapshot, Removals
+
+log = logging.getLogger(__name__)
 
 _FIELDS = (
     "sign_class",
@@ -53,7 +56,19 @@ CREATE TABLE IF NOT EXISTS versions (tile TEXT PRIMARY KEY, version INTEGER NOT 
 CREATE TABLE IF NOT EXISTS dirty (
     tile TEXT NOT NULL, id INTEGER NOT NULL, revision INTEGER NOT NULL,
     PRIMARY KEY (tile, id)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS quarantine (
+    tile TEXT NOT NULL, id INTEGER NOT NULL, field TEXT NOT NULL, reason TEXT NOT NULL,
+    row BLOB NOT NULL, at REAL NOT NULL);
 """
+
+# integer columns of a row (index in ``_COLS`` order) and the range their wire type holds
+_INT_RANGES = {
+    1: ("sign_class", 0, 2**16 - 1),
+    6: ("status", 0, 2**8 - 1),
+    7: ("n_obs", 0, 2**32 - 1),
+    8: ("n_passes", 0, 2**32 - 1),
+    9: ("revision", 0, 2**63 - 1),
+}
 
 
 def _rows(lm: Landmarks) -> list[tuple]:
@@ -99,12 +114,43 @@ def landmarks_from_rows(rows: list[tuple]) -> Landmarks:
     )
 
 
+def split_valid(rows: list[tuple]) -> tuple[list[tuple], list[tuple[tuple, str, str]]]:
+    """Rows (as in ``_COLS``) that the wire schema accepts, and the others with the field
+    and reason that refuse them: what a vehicle would refuse is never sent (one bad row
+    would make it refuse the whole delta or snapshot, and lose the tile)."""
+    bad: list[tuple[tuple, str, str]] = []
+    typed: list[tuple] = []
+    for r in rows:
+        why = next(
+            (
+                (name, f"out of range [{lo}, {hi}]")
+                for i, (name, lo, hi) in _INT_RANGES.items()
+                if not (isinstance(r[i], int) and lo <= r[i] <= hi)
+            ),
+            None,
+        )
+        if why is None and not (isinstance(r[5], bytes) and len(r[5]) == 48):
+            why = ("cov", "not 6 float64")
+        if why is None:
+            typed.append(r)
+        else:
+            bad.append((r, *why))
+    if not typed:
+        return [], bad
+    flags, fld, reason = Landmarks.CODEC.row_errors(landmarks_from_rows(typed))
+    good = [r for r, f in zip(typed, flags, strict=True) if not f]
+    bad += [(r, str(fld[i]), str(reason[i])) for i, r in enumerate(typed) if flags[i]]
+    return good, bad
+
+
 class TileMaps:
     """The publisher's tile maps on one SQLite connection (the worker's)."""
 
     def __init__(self, conn: sqlite3.Connection):
         self._conn = conn
         conn.executescript(SCHEMA)
+        self.quarantined = 0
+        """Rows the last :meth:`flush` quarantined instead of publishing."""
 
     def apply(self, tile: str, upd: LandmarkUpdates) -> int:
         """Fold one solver entry for ``tile`` into ``current``; the number of changes."""
@@ -149,6 +195,7 @@ class TileMaps:
         now = time.time() if now is None else now
         c = self._conn
         deltas = []
+        self.quarantined = 0
         for tile in self.dirty_tiles()[:max_tiles]:
             marks = c.execute("SELECT id, revision FROM dirty WHERE tile=?", (tile,)).fetchall()
             ids = [m[0] for m in marks]
@@ -165,6 +212,8 @@ class TileMaps:
                 ).fetchone():
                     removed.append((lid, rev))
             c.executemany("DELETE FROM dirty WHERE tile=? AND id=?", [(tile, i) for i in ids])
+            upserts, bad = split_valid(upserts)
+            self._quarantine(tile, bad, now)
             if not upserts and not removed:
                 continue
             c.executemany(
@@ -187,9 +236,27 @@ class TileMaps:
             )
         return deltas
 
+    def _quarantine(self, tile: str, bad: list[tuple[tuple, str, str]], now: float) -> None:
+        """Move rows the schema refuses from ``current`` to ``quarantine`` (a later valid
+        revision of the landmark is applied as usual)."""
+        if not bad:
+            return
+        c = self._conn
+        for row, fld, why in bad:
+            log.error(
+                "publisher: landmark %d in tile %s quarantined: %s %s", row[0], tile, fld, why
+            )
+            c.execute("DELETE FROM current WHERE id=? AND tile=?", (row[0], tile))
+            c.execute(
+                "INSERT INTO quarantine(tile, id, field, reason, row, at) VALUES (?,?,?,?,?,?)",
+                (tile, row[0], fld, why, repr(row).encode(), now),
+            )
+        self.quarantined += len(bad)
+
     def counts(self) -> dict[str, int]:
         c = self._conn
         return {
+            "quarantine": c.execute("SELECT COUNT(*) FROM quarantine").fetchone()[0],
             "landmarks": c.execute("SELECT COUNT(*) FROM current").fetchone()[0],
             "tiles": c.execute("SELECT COUNT(*) FROM versions").fetchone()[0],
             "dirty": c.execute("SELECT COUNT(*) FROM dirty").fetchone()[0],
@@ -202,7 +269,14 @@ def version_of(conn: sqlite3.Connection, tile: str) -> int:
 
 
 def snapshot(conn: sqlite3.Connection, tile: str) -> MapSnapshot:
-    """The published map of one tile (any tile; an unknown one is empty at version 0).
+    """:func:`read_snapshot` without the count of withheld rows."""
+    return read_snapshot(conn, tile)[0]
+
+
+def read_snapshot(conn: sqlite3.Connection, tile: str) -> tuple[MapSnapshot, int]:
+    """The published map of one tile (any tile; an unknown one is empty at version 0) and
+    how many stored rows it withheld because the schema refuses them (a row damaged on
+    disk after it was published).
 
     Read in one transaction so the version and the rows agree.
     """
@@ -212,4 +286,5 @@ def snapshot(conn: sqlite3.Connection, tile: str) -> MapSnapshot:
         rows = conn.execute(f"SELECT {_COLS} FROM published WHERE tile=?", (tile,)).fetchall()
     finally:
         conn.execute("COMMIT")
-    return MapSnapshot(tile, version, landmarks_from_rows(rows))
+    good, bad = split_valid(rows)
+    return MapSnapshot(tile, version, landmarks_from_rows(good)), len(bad)

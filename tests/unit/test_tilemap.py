@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from hdmap.runtime.store import connect, transaction
-from schemas import Landmarks, LandmarkUpdates, Removals
-from services.publisher.tilemap import TileMaps, snapshot
+from schemas import Landmarks, LandmarkUpdates, MapDelta, MapSnapshot, Removals
+from services.publisher.tilemap import TileMaps, read_snapshot, snapshot
 
 
 def lms(ids, revs, lat=60.17, status=1) -> Landmarks:
@@ -130,3 +130,32 @@ def test_unknown_tile_snapshot_is_empty_version_zero(conn):
     TileMaps(conn)
     snap = snapshot(conn, "0123")
     assert (snap.version, len(snap.landmarks)) == (0, 0)
+
+
+def test_a_row_the_schema_refuses_is_quarantined_not_published(conn):
+    maps = TileMaps(conn)
+    maps.apply("0123", upd([1, 2, 3], [1, 1, 1]))
+    with transaction(conn):  # damage on disk: a latitude no decoder accepts, a cut blob
+        conn.execute("UPDATE current SET lat=6000 WHERE id=2")
+        conn.execute("UPDATE current SET cov=x'00' WHERE id=3")
+    (d,) = flush(conn, maps)
+    assert d.upserts.id.tolist() == [1] and maps.quarantined == 2
+    assert MapDelta.from_bytes(d.to_bytes()).upserts.id.tolist() == [1]
+    rows = conn.execute("SELECT id, field FROM quarantine ORDER BY id").fetchall()
+    assert rows == [(2, "lat"), (3, "cov")]
+    assert maps.counts()["quarantine"] == 2
+    # a later valid revision of the landmark is published as usual
+    maps.apply("0123", upd([2], [2]))
+    (d2,) = flush(conn, maps)
+    assert d2.upserts.id.tolist() == [2] and maps.quarantined == 0
+
+
+def test_a_snapshot_withholds_rows_damaged_after_publishing(conn):
+    maps = TileMaps(conn)
+    maps.apply("0123", upd([1, 2], [1, 1]))
+    flush(conn, maps)
+    with transaction(conn):
+        conn.execute("UPDATE published SET lat=6000 WHERE id=2")
+    snap, withheld = read_snapshot(conn, "0123")
+    assert withheld == 1 and snap.landmarks.id.tolist() == [1]
+    assert MapSnapshot.from_bytes(snap.to_bytes()).landmarks.id.tolist() == [1]
