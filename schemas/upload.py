@@ -111,6 +111,9 @@ class UploadAck(Message):
 
     ``accepted`` includes ``duplicates`` (ids recorded by an earlier upload).
     ``error`` is set when the whole batch was refused (then nothing is accepted).
+    ``permanent`` (only with ``error``): the refusal is not transient, resending soon
+    fails the same way (ingest's database is corrupt: it needs an operator); then
+    ``retry_after_s`` is the least a vehicle waits before it tries again.
     """
 
     TYPE: ClassVar[str] = "upload_ack"
@@ -121,9 +124,10 @@ class UploadAck(Message):
     rejected: list[Rejection] = field(default_factory=list)
     error: DecodeError | None = None
     retry_after_s: float = 0.0
+    permanent: bool = False
 
     def _encode(self) -> dict[str, Any]:
-        return {
+        out = {
             "vehicle_id": self.vehicle_id,
             "batch_id": int(self.batch_id),
             "accepted": as_ids(self.accepted).tobytes(),
@@ -132,6 +136,9 @@ class UploadAck(Message):
             "error": None if self.error is None else self.error.as_dict(),
             "retry_after_s": float(self.retry_after_s),
         }
+        if self.permanent:  # absent means false: an ack reads as an older ingest's otherwise
+            out["permanent"] = True
+        return out
 
     @classmethod
     def from_bytes(cls, data: bytes, max_rows: int = MAX_TABLE_ROWS) -> UploadAck:
@@ -162,6 +169,11 @@ class UploadAck(Message):
             idx = err.get("index")
             ok_idx = isinstance(idx, int) and not isinstance(idx, bool) and idx >= 0
             error = DecodeError(f, why, idx if ok_idx else None)
+        permanent = m.get("permanent", False)  # absent in acks of older ingests
+        if not isinstance(permanent, bool):
+            raise DecodeError("permanent", "expected a bool")
+        if permanent and error is None:
+            raise DecodeError("permanent", "set without an error")
         return cls(
             vehicle_id=get_str(m, "vehicle_id"),
             batch_id=get_int(m, "batch_id"),
@@ -170,4 +182,5 @@ class UploadAck(Message):
             rejected=rejected,
             error=error,
             retry_after_s=get_float(m, "retry_after_s", 0.0, 86400.0),
+            permanent=permanent,
         )

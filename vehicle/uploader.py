@@ -8,6 +8,15 @@ requests (one pass per batch) and deletes exactly what the ack says was recorded
 queued; ``flush`` is retried with backoff by the caller's loop. An ack with
 ``retry_after_s > 0`` (rate limit, storage trouble) also holds back the next upload:
 ``flush`` sends nothing until that delay has passed.
+
+A refusal marked ``permanent`` (ingest's database is corrupt: a server fault that needs an
+operator, nothing wrong with the observations) keeps them queued too, but the vehicle
+backs off: it waits ``retry_after_s``, at least :data:`PERMANENT_BACKOFF_MIN_S`, doubling
+with each permanent refusal in a row up to :data:`PERMANENT_BACKOFF_MAX_S`, then probes
+with one batch; :attr:`Uploader.fault` (and ``UploadResult.permanent_fault``) says why it
+waits, and the first refusal of a series is logged as an error. The first accepted
+upload ends the series. The queue is bounded only by the vehicle's disk: a long server
+outage is an operations matter (docs/operations.md).
 """
 
 from __future__ import annotations
@@ -32,6 +41,13 @@ _REC = Observations.CODEC.record_dtype
 _REC_V1 = Observations.CODEC.base_record_dtype
 
 
+PERMANENT_BACKOFF_MIN_S = 60.0
+"""The least wait after a permanent refusal (whatever its ``retry_after_s``)."""
+
+PERMANENT_BACKOFF_MAX_S = 3600.0
+"""The longest wait between probes while ingest keeps refusing permanently."""
+
+
 @dataclass
 class UploadResult:
     sent: int = 0
@@ -45,6 +61,8 @@ class UploadResult:
     """Batches with no usable answer (timeout, transport, retry-later); still queued."""
     retry_after_s: float = 0.0
     """> 0: ingest asked to wait; nothing more is sent for this long."""
+    permanent_fault: str = ""
+    """Set when ingest refused permanently (or still does: the uploader waits): why."""
 
 
 class Uploader:
@@ -69,6 +87,9 @@ class Uploader:
         self.batch_size = batch_size
         self._clock = clock
         self._retry_at = -float("inf")  # nothing is sent before this (last retry_after_s)
+        self._backoff = 0.0  # the last wait after a permanent refusal (0: none in a row)
+        self.fault: str = ""
+        """Why ingest refuses for good (a permanent refusal, until an upload is accepted)."""
         self._db = connect(queue_path)
         self._db.executescript(self.SCHEMA)
         self._next_batch = self._counter("batch_id")
@@ -139,6 +160,7 @@ class Uploader:
             wait = self._retry_at - self._clock()
             if wait > 0:
                 res.retry_after_s = wait
+                res.permanent_fault = self.fault
                 break
             nxt = self._oldest_batch()
             if nxt is None:
@@ -150,17 +172,35 @@ class Uploader:
             ack = self._send(session, batch, timeout)
             if ack is None or ack.error is not None:
                 res.failed_batches += 1
-                if ack is not None:
+                if ack is not None and ack.permanent:
+                    self._hold_after_permanent(ack, res)
+                elif ack is not None:
                     log.warning("%s: batch refused: %s", self.vehicle_id, ack.error)
                     if ack.retry_after_s > 0:
                         self._retry_at = self._clock() + ack.retry_after_s
                         res.retry_after_s = ack.retry_after_s
                 break
+            self._backoff, self.fault = 0.0, ""
             self._settle(ack)
             res.accepted += len(ack.accepted)
             res.duplicates += len(ack.duplicates)
             res.rejected += len(ack.rejected)
         return res
+
+    def _hold_after_permanent(self, ack: UploadAck, res: UploadResult) -> None:
+        """Back off after a permanent refusal (module docstring); the batch stays queued."""
+        if not self._backoff:
+            log.error(
+                "%s: ingest refuses uploads for good: %s; observations stay queued, "
+                "probing with backoff",
+                self.vehicle_id,
+                ack.error,
+            )
+        wait = max(ack.retry_after_s, PERMANENT_BACKOFF_MIN_S, 2 * self._backoff)
+        self._backoff = min(wait, PERMANENT_BACKOFF_MAX_S)
+        self._retry_at = self._clock() + self._backoff
+        self.fault = str(ack.error)
+        res.retry_after_s, res.permanent_fault = self._backoff, self.fault
 
     def _send(self, session: zenoh.Session, batch: ObservationBatch, timeout: float):
         try:

@@ -1,4 +1,9 @@
-"""``hdmap up``: a router and one instance of each service, supervised, until Ctrl-C/SIGTERM."""
+"""``hdmap up``: a router and one instance of each service, supervised, until Ctrl-C/SIGTERM.
+
+Each service is isolated: one that fails to start or stops later does not stop the
+others (:class:`hdmap.ops.stack.Supervisor`: a crash is restarted with backoff, a
+permanent fault such as a corrupt database is reported with its file and left stopped).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +12,7 @@ import signal
 import threading
 from pathlib import Path
 
-from hdmap.ops.stack import SERVICE_NAMES, Stack, tail
+from hdmap.ops.stack import SERVICE_NAMES, Stack, Supervisor
 from hdmap.runtime.bus import DEFAULT_ENDPOINT
 
 
@@ -52,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise SystemExit(f"hdmap up --secure: {exc}") from None
     with Stack(Path(args.data_dir), listen=args.listen, security=security) as stack:
-        stack.start_all(region)
+        stack.start_all(region, isolate=True)  # the supervisor below reports who did not
         print(
             f"hdmap up: router on {stack.listen}; services {', '.join(SERVICE_NAMES)}; "
             f"state in {Path(args.data_dir).resolve()}; Ctrl-C stops",
@@ -68,16 +73,10 @@ def run(args: argparse.Namespace) -> int:
                 f"  status: hdmap status --zenoh-config {op} --connect {stack.listen}",
                 flush=True,
             )
-        while not stop.wait(1.0):
-            for name, proc in list(stack.procs.items()):
-                if not proc.alive and not stop.is_set():
-                    print(
-                        f"hdmap up: {name} exited ({proc.popen.returncode if proc.popen else '?'})"
-                        f"; restarting. Last log lines:\n{tail(proc.log_path, 10)}",
-                        flush=True,
-                    )
-                    if stop.wait(min(5.0, 0.5 * (proc.restarts + 1))):
-                        break  # stopping: do not start what is about to be stopped
-                    stack.restart(name)
+        supervisor = Supervisor(stack)
+        while not stop.is_set():
+            for line in supervisor.check():
+                print(f"hdmap up: {line}", flush=True)
+            stop.wait(0.5)
         print("hdmap up: stopping", flush=True)
     return 0

@@ -158,11 +158,34 @@ def _best_per_image(idx: NDArray[np.int64], chi2: Array, images: NDArray) -> NDA
     return np.sort(idx[first])
 
 
-def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidate]:
+def seeds_of(rays: LocalRays, may_seed: NDArray[np.bool_] | None = None) -> NDArray[np.int64]:
+    """The rays :func:`propose` grows candidates from, in order: of those ``may_seed``
+    marks (None: all), the ones with a range, or all of them if none has one.
+
+    >>> r = LocalRays(*np.zeros((2, 3, 3)), *np.ones((4, 3)), np.array([0.0, 20.0, 0.0]),
+    ...               np.ones(3), np.arange(3), np.zeros(3, np.int64))
+    >>> seeds_of(r).tolist(), seeds_of(r, np.array([True, False, True])).tolist()
+    ([1], [0, 2])
+    """
+    pick = np.ones(len(rays), bool) if may_seed is None else np.asarray(may_seed, bool)
+    ranged = np.flatnonzero(pick & (rays.range_m > 0))
+    return ranged if ranged.size else np.flatnonzero(pick)
+
+
+def propose(
+    rays: LocalRays,
+    gate: GateConfig,
+    cfg: InitConfig,
+    seeds: NDArray[np.int64] | None = None,
+) -> list[Candidate]:
     """Candidates from the rays of ONE pass and ONE class (greedy, deterministic); with
-    tracks, never from two tracks in view together (``InitConfig.by_track``)."""
+    tracks, never from two tracks in view together (``InitConfig.by_track``). Candidates
+    grow from ``seeds`` (indices into ``rays``; None: :func:`seeds_of` all of them), each
+    over all of ``rays`` not taken yet: the work is ``len(seeds)`` times ``len(rays)``."""
     n = len(rays)
-    if n < cfg.min_rays:
+    if seeds is None:
+        seeds = seeds_of(rays)
+    if n < cfg.min_rays or seeds.size == 0:
         return []
     used = np.zeros(n, bool)
     track = rays.tracks
@@ -172,9 +195,6 @@ def propose(rays: LocalRays, gate: GateConfig, cfg: InitConfig) -> list[Candidat
     last = np.where(track > 0, span[:, 1], rays.image)
     white = origin_cov(rays, 0.0, 0.0)
     out: list[Candidate] = []
-    seeds = np.flatnonzero(rays.range_m > 0)
-    if seeds.size == 0:
-        seeds = np.arange(n)
     for s in seeds:
         if used[s]:
             continue

@@ -2,13 +2,14 @@
 trust records and co-visibility counts, with marks of what changed since the last save.
 
 Landmarks are a dict of :class:`Landmark` records by id (indexed by tile); the pending
-pool is one columnar :class:`PendingTile` per tile. Persistence is not here: the
-service's store writes what the marks name and rebuilds the table from its database.
+pool is one columnar :class:`PendingTile` per tile; the passes that outgrew their pending
+budget have a :class:`PassBudget` record. Persistence is not here: the service's store
+writes what the marks name and rebuilds the table from its database.
 """
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -78,13 +79,28 @@ class PendingTile:
     """Ingest receipt time (latency tracing)."""
     key: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     """:func:`pass_key` of each ray's (vehicle, pass): vectorised selection of a pass."""
+    tried: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    """The ray has been a seed of an initiation attempt (see :func:`hdmap.mapping.pending.
+    initiate`). Every ray is offered as a seed in the unit that pools it, so a pool built
+    from storage is all tried (the default for rows given without it)."""
+    saved: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    """The ray is in storage (a store writes the others; rows given without it: saved)."""
+    per_vehicle: Counter[str] = field(default_factory=Counter)
+    """Rays of each vehicle (the per-vehicle budget is checked at every upload)."""
 
     def __post_init__(self) -> None:
-        if self.key.size != len(self.obs):
+        n = len(self.obs)
+        if self.key.size != n:
             self.key = np.array(
                 [pass_key(v, int(p)) for v, p in zip(self.vehicle, self.pass_id, strict=True)],
                 np.int64,
             )
+        if self.tried.size != n:
+            self.tried = np.ones(n, bool)
+        if self.saved.size != n:
+            self.saved = np.ones(n, bool)
+        if sum(self.per_vehicle.values()) != n:
+            self.per_vehicle = Counter(self.vehicle)
 
     def __len__(self) -> int:
         return len(self.obs)
@@ -97,15 +113,44 @@ class PendingTile:
         self.added_at = np.r_[self.added_at, np.full(len(obs), now)]
         self.received_at = np.r_[self.received_at, np.full(len(obs), received)]
         self.key = np.r_[self.key, np.full(len(obs), pass_key(vehicle, pass_id), np.int64)]
+        self.tried = np.r_[self.tried, np.zeros(len(obs), bool)]
+        self.saved = np.r_[self.saved, np.zeros(len(obs), bool)]
+        self.per_vehicle[vehicle] += len(obs)
 
     def keep(self, mask: NDArray[np.bool_]) -> None:
         """Keep only the rows ``mask`` marks."""
         self.obs = self.obs.take(mask)
-        self.vehicle = [v for v, k in zip(self.vehicle, mask, strict=True) if k]
+        kept: list[str] = []
+        for v, k in zip(self.vehicle, mask, strict=True):
+            if k:
+                kept.append(v)
+            else:
+                self.per_vehicle[v] -= 1
+        self.vehicle = kept
+        self.per_vehicle = +self.per_vehicle  # vehicles without rays go
         self.pass_id = self.pass_id[mask]
         self.added_at = self.added_at[mask]
         self.received_at = self.received_at[mask]
         self.key = self.key[mask]
+        self.tried = self.tried[mask]
+        self.saved = self.saved[mask]
+
+
+@dataclass
+class PassBudget:
+    """A pass that outgrew its pending budget (``MatchingConfig.pending_max_per_pass``):
+    what it cost and whether it is quarantined (no more initiation attempts)."""
+
+    vehicle: str
+    pass_id: int
+    evicted: int = 0
+    """Rays of the pass evicted from pending pools over the budget."""
+    failed: int = 0
+    """Initiation attempts since it reached the budget that made no landmark (in a row)."""
+    quarantined: str = ""
+    """Why the pass gets no more initiation attempts ("": it does)."""
+    last_at: float = 0.0
+    """Clock of its last upload or eviction: the record goes ``pending_ttl_s`` after it."""
 
 
 class LandmarkTable:
@@ -134,6 +179,10 @@ class LandmarkTable:
         self._deleted: set[int] = set()
         self._indexed: dict[int, str] = {}
         """The tile each landmark is filed under in ``by_tile``."""
+        self.passes: dict[int, PassBudget] = {}
+        """Passes over their pending budget, by :func:`pass_key`."""
+        self._passes_dirty: set[int] = set()
+        self._passes_gone: set[tuple[str, int]] = set()
 
     def _empty_pending(self) -> PendingTile:
         """A tile's pending pool before its first ray."""
@@ -233,6 +282,24 @@ class LandmarkTable:
         p.keep(~mask_remove)
         self._pending_dirty.add(tile)
 
+    def budget_of(self, vehicle: str, pass_id: int) -> PassBudget:
+        """The pass's budget record (made if new), marked to be saved (the caller is about
+        to update it)."""
+        k = pass_key(vehicle, pass_id)
+        b = self.passes.get(k)
+        if b is None:
+            b = self.passes[k] = PassBudget(vehicle, pass_id)
+            self._passes_gone.discard((vehicle, pass_id))
+        self._passes_dirty.add(k)
+        return b
+
+    def drop_budgets(self, keys: list[int]) -> None:
+        """Forget the budget records of passes ``keys``."""
+        for k in keys:
+            b = self.passes.pop(k)
+            self._passes_dirty.discard(k)
+            self._passes_gone.add((b.vehicle, b.pass_id))
+
     def pending_count(self) -> int:
         """Rays waiting in all pools."""
         return sum(len(p) for p in self.pending.values())
@@ -245,3 +312,5 @@ class LandmarkTable:
         self._dirty.clear()
         self._pending_dirty.clear()
         self._removed_pending = []
+        self._passes_dirty.clear()
+        self._passes_gone.clear()

@@ -50,6 +50,45 @@ class MatchingConfig:
     solver's, which make the map, get the probation weight."""
     pending_ttl_s: float = 3600.0
     """Unmatched rays older than this are dropped (counted as expired)."""
+    pending_max_per_pass: int = 256
+    """Most rays of one pass left waiting in one tile's pending pool after an upload's
+    initiation attempt; past it the pass's oldest there are evicted (counted
+    ``pending_evicted``) and the pass gets a budget record (see ``quarantine_after``).
+    Initiation looks at a pass's waiting rays around the tile, so this bounds what one
+    upload makes it look at (9 tiles x this, and the upload). The budget is applied after
+    the attempt: an upload into a tile with no landmark yet pools all its rays first (more
+    than 256 in one tile in the fleet evaluation's first round). Honest passes keep few
+    rays that never make a landmark (at most 20 per pass, 13 per tile and pass, at the end
+    of the fleet evaluation); a pass held in one tile by a hostile or broken vehicle (a
+    parked car, image indices that restart in every upload) fills it. 0: no limit."""
+    pending_max_per_vehicle: int = 1024
+    """Most rays of one vehicle (all its passes) waiting in one tile's pending pool; past
+    it its oldest there are evicted (counted ``pending_evicted``): a vehicle that opens a
+    new pass with every upload is held to a budget too. Four times the per-pass budget: a
+    vehicle that crosses a tile many times within ``pending_ttl_s`` keeps a few strays
+    from each pass (at most 57 per tile at the end of the fleet evaluation, 16 passes a
+    vehicle). 0: no limit."""
+    init_reseed_max: int = 64
+    """While a pass has at most this many waiting rays of a class around the tile, all of
+    them seed candidates again at each initiation attempt (the full re-run, exact, and
+    cheap that small); above it only the rays not tried as seeds yet do (in practice the
+    ones the upload just pooled, counted ``init_new_seeds_only``), with all of them as
+    possible members: an attempt's work is then the upload's rays times the pass's, not
+    the pass's squared (the invariant is at :func:`hdmap.mapping.pending.initiate`).
+    Honest passes keep few waiting rays, and the rays of an upload into a tile with no
+    landmark yet are all new: the fleet evaluation's uploads (seed 0) replayed through the
+    matcher give the full re-run's map to the last bit (9 attempts seeded from the new
+    rays only). With new seeds only at every size they did not: the greedy
+    grows from the newest rays rather than the oldest, and that made 332 landmarks rather
+    than 321 (more merges after; 230 rather than 232 in the end). 0: no limit (every
+    attempt re-runs in full, O(P^2) in the pass's waiting rays P: the old way)."""
+    quarantine_after: int = 8
+    """A pass that reached ``pending_max_per_pass`` and then made no landmark in this many
+    initiation attempts in a row is quarantined (reason ``no_landmark_at_budget``, counted
+    ``passes_quarantined``): no more initiation attempts for it; its rays still link to
+    landmarks around them and wait for adoption by the landmarks other passes start. An
+    honest pass never reaches the budget; eight attempts leave a pass that fills it a
+    chance with the rays it sends after the eviction. 0: never."""
     close_passes_after_s: float = 7200.0
     """Close a pass in the gating sums once no ray of it has been linked for this long
     (wall-clock seconds, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above

@@ -2,6 +2,12 @@
 rays may start candidate landmarks (:func:`initiate`, with
 :func:`hdmap.mapping.initiation.propose`), new landmarks are offered the waiting rays of
 other passes (:func:`adopt`), and rays that waited too long go (:func:`expire`).
+
+Budgets (``MatchingConfig.pending_max_per_pass``, ``pending_max_per_vehicle``,
+``quarantine_after``; :func:`enforce_budget`): what one upload costs here is bounded by
+the upload's size and the budgets, not by what a pass or a vehicle accumulated. A pass
+over its budget loses its oldest waiting rays; one that then keeps making nothing is
+quarantined (no more initiation attempts; its rays still link and may be adopted).
 """
 
 from __future__ import annotations
@@ -10,11 +16,54 @@ import numpy as np
 
 from hdmap.geo.tiles import in_region, quadkeys_of
 from hdmap.mapping.association import associate, origin_cov, pair_chi2
-from hdmap.mapping.initiation import propose
-from hdmap.mapping.landmarks import Landmark
+from hdmap.mapping.initiation import propose, seeds_of
+from hdmap.mapping.landmarks import Landmark, PendingTile
 from hdmap.mapping.linking import create, link, to_local
 from hdmap.mapping.matching import Matching
 from schemas.ids import pass_key
+
+NO_LANDMARK = "no_landmark_at_budget"
+"""Quarantine reason: the pass filled its pending budget and then made no landmark in
+``quarantine_after`` initiation attempts in a row."""
+
+
+def _oldest(p: PendingTile, rows: np.ndarray, n: int) -> np.ndarray:
+    """The ``n`` oldest of ``rows`` (by the time they were pooled; rows are in pool order)."""
+    return rows[np.argsort(p.added_at[rows], kind="stable")[:n]]
+
+
+def enforce_budget(m: Matching, tile: str, vehicle: str, pass_id: int) -> int:
+    """After a unit of (``vehicle``, ``pass_id``) pooled its rays in ``tile`` and had its
+    initiation attempt (:func:`initiate`): evict the oldest waiting rays of the pass over
+    ``pending_max_per_pass`` and of the vehicle over ``pending_max_per_vehicle`` from the
+    tile's pool (counted ``pending_evicted``, and by budget ``pending_evicted.pass``,
+    ``pending_evicted.vehicle``). A pass that loses rays
+    gets a budget record (:class:`~hdmap.mapping.landmarks.PassBudget`), which its later
+    uploads keep alive. Returns the rays evicted."""
+    cfg = m.config
+    key = pass_key(vehicle, pass_id)
+    p = m.state.pending.get(tile)
+    drop = np.zeros(0 if p is None else len(p), bool)
+    if p is not None and cfg.pending_max_per_pass > 0:
+        mine = np.flatnonzero(p.key == key)
+        over = mine.size - cfg.pending_max_per_pass
+        if over > 0:
+            drop[_oldest(p, mine, over)] = True
+            m.tally("pending_evicted.pass", over)
+            m.state.budget_of(vehicle, pass_id).evicted += over
+    if p is not None and cfg.pending_max_per_vehicle > 0:
+        over = p.per_vehicle[vehicle] - int(drop.sum()) - cfg.pending_max_per_vehicle
+        if over > 0:  # found by name only when over (the count is kept as rays come and go)
+            theirs = np.flatnonzero(np.array([v == vehicle for v in p.vehicle], bool) & ~drop)
+            drop[_oldest(p, theirs, over)] = True
+            m.tally("pending_evicted.vehicle", over)
+    n = int(drop.sum())
+    if n:
+        m.state.drop_pending(tile, drop)
+        m.tally("pending_evicted", n)
+    if key in m.state.passes:
+        m.state.budget_of(vehicle, pass_id).last_at = m.clock()
+    return n
 
 
 def initiate(
@@ -22,11 +71,36 @@ def initiate(
 ) -> set[int]:
     """Candidate landmarks from this pass's pending rays around ``tile``, for the classes
     that just got new pending rays (for the others, this pass's pending rays only
-    shrank since they last failed to make a landmark). Returns the new landmarks' ids."""
+    shrank since they last failed to make a landmark). Returns the new landmarks' ids.
+
+    Seeds (``MatchingConfig.init_reseed_max``): above that many waiting rays of a class,
+    candidates grow only from the rays not tried as seeds yet, over all of the pass's
+    waiting rays (at most that many: every one seeds again). Every ray is tried in the unit
+    that pools it (its class is among ``classes``), so these are the rays this unit pooled,
+    and the work is (the upload's rays) x (the pass's: at most 9 tiles' budgets and the
+    upload, :func:`enforce_budget` runs after this). Invariant:
+    every ray of the pool has been a seed against the pool as it was then, and made
+    nothing. Since then the pass's pool changed only by (a) rays added: a candidate that
+    needs one of them contains one, and growing from any member of a cluster finds the
+    cluster (up to the greedy's order, which decides which seed's position the first gate
+    starts from); (b) rays taken out (by candidates, adoption, expiry, eviction): fewer
+    rays give a cluster no more members, images or spread, so a seed that failed does not
+    pass now (not a theorem: the re-triangulation moves with the rays; what it can miss
+    waits for adoption like any pending ray). So seeding from new rays finds what a full
+    re-run finds, without the re-run's O(P^2) per upload in the pass's pending rays P.
+
+    Counted: ``init_rays`` (rays handed to :func:`~hdmap.mapping.initiation.propose`),
+    ``init_seeds`` (seeds it grew from), ``init_new_seeds_only`` (classes seeded from the
+    new rays only), ``init_skipped_quarantined`` (attempts a
+    quarantined pass did not get), ``passes_quarantined`` (and by reason)."""
     if classes.size == 0:
         return set()
-    frame = m.frames(tile)
     key = pass_key(vehicle, pass_id)
+    budget = m.state.passes.get(key)
+    if budget is not None and budget.quarantined:
+        m.tally("init_skipped_quarantined", 1)
+        return set()
+    frame = m.frames(tile)
     where: list[tuple[str, np.ndarray]] = []  # (tile, rows of its pending pool)
     for t in area:
         p = m.state.pending.get(t)
@@ -34,15 +108,28 @@ def initiate(
             where.append((t, mine))
     if not where:
         return set()
-    parts = [m.state.pending[t].obs.take(i) for t, i in where]
-    obs = type(parts[0]).concat(parts)
-    received = max(float(m.state.pending[t].received_at[i].max()) for t, i in where)
+    pools = [(m.state.pending[t], i) for t, i in where]
+    obs = type(pools[0][0].obs).concat([p.obs.take(i) for p, i in pools])
+    received = max(float(p.received_at[i].max()) for p, i in pools)
+    fresh = np.concatenate([~p.tried[i] for p, i in pools])
+    for p, i in pools:
+        p.tried[i] = True  # every one of them is a seed now, or was before
     rays = to_local(frame, obs)
     created: set[int] = set()
+    attempted = False
     used = np.zeros(len(rays), bool)
     for cls in np.intersect1d(np.unique(rays.sign_class), classes):
         idx = np.flatnonzero(rays.sign_class == cls)
-        for cand in propose(rays.take(idx), m.config.gate, m.config.init):
+        sub = rays.take(idx)
+        cap = m.config.init_reseed_max
+        seeds = seeds_of(sub, fresh[idx] if 0 < cap < idx.size else None)
+        if 0 < cap < idx.size:
+            m.tally("init_new_seeds_only", 1)
+        if idx.size >= m.config.init.min_rays and seeds.size:
+            attempted = True
+            m.tally("init_rays", idx.size)
+            m.tally("init_seeds", seeds.size)
+        for cand in propose(sub, m.config.gate, m.config.init, seeds):
             members = idx[cand.members]
             lat, lon, h = frame.to_geodetic(cand.x[None])
             home_tile = str(quadkeys_of(lat, lon, m.zoom)[0])
@@ -55,10 +142,24 @@ def initiate(
             used[members] = True
             created.add(lm.id)
     drop_used(m, where, used)
+    if budget is not None and (created or attempted):
+        _note_attempt(m, vehicle, pass_id, bool(created))
     if created:
         m.tally("created", len(created))
         adopt(m, area, [m.state.landmarks[i] for i in sorted(created)])
     return created
+
+
+def _note_attempt(m: Matching, vehicle: str, pass_id: int, made: bool) -> None:
+    """An initiation attempt of a pass with a budget record: it made a landmark (the count
+    of failures starts again) or not (``quarantine_after`` in a row: quarantined)."""
+    b = m.state.budget_of(vehicle, pass_id)
+    b.failed = 0 if made else b.failed + 1
+    after = m.config.quarantine_after
+    if not made and after > 0 and b.failed >= after:
+        b.quarantined = NO_LANDMARK
+        m.tally("passes_quarantined", 1)
+        m.tally(f"passes_quarantined.{NO_LANDMARK}", 1)
 
 
 def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
@@ -134,3 +235,12 @@ def expire(m: Matching) -> int:
             m.state.drop_pending(t, old)
             n += int(old.sum())
     return n
+
+
+def forget_budgets(m: Matching) -> int:
+    """Drop the budget records of passes silent for ``pending_ttl_s`` (their rays have
+    expired: nothing of the pass is left to budget); returns how many."""
+    cutoff = m.clock() - m.config.pending_ttl_s
+    gone = [k for k, b in m.state.passes.items() if b.last_at < cutoff]
+    m.state.drop_budgets(gone)
+    return len(gone)

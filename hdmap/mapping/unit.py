@@ -8,6 +8,8 @@
    record, which may settle its probation (:func:`hdmap.mapping.probation.settle`);
 4. matched rays are linked (:func:`hdmap.mapping.linking.link`); unmatched rays join the
    pending pool, where they may start landmarks (:func:`hdmap.mapping.pending.initiate`);
+   what is left waiting is held to the pass's and the vehicle's budgets
+   (:func:`hdmap.mapping.pending.enforce_budget`);
 5. touched landmarks are re-solved and may merge (:func:`hdmap.mapping.merge.merge_touched`).
 """
 
@@ -24,7 +26,7 @@ from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import link, refresh, to_local
 from hdmap.mapping.matching import Matching
 from hdmap.mapping.merge import merge_touched
-from hdmap.mapping.pending import initiate
+from hdmap.mapping.pending import enforce_budget, initiate
 from hdmap.mapping.probation import settle
 from hdmap.mapping.trust import VehicleTrust
 
@@ -116,6 +118,9 @@ def match_unit(
     m.state.add_pending(tile, obs.take(wait), vehicle, pass_id, m.clock(), received_at)
     new_classes = np.unique(obs.sign_class[wait])
     touched |= initiate(m, tile, area, vehicle, pass_id, new_classes)
+    # after initiation took what it could: an honest upload's rays (all of them waiting,
+    # in a tile with no landmark yet) are not evicted before they had their chance
+    enforce_budget(m, tile, vehicle, pass_id)
     refresh(m, sorted(touched))
     merge_touched(m, sorted(touched))
 

@@ -3,6 +3,11 @@
 Every process is a child of the :class:`Stack`; leaving the ``with`` block (also on
 an exception) stops them all: SIGTERM, then SIGKILL after a grace period.
 
+A service process that exits with :data:`~hdmap.runtime.store.EXIT_CORRUPT` stopped on a
+permanent fault (its database is corrupt): :attr:`Proc.permanent`, and
+:func:`stop_reason` finds the line it logged. ``start_all(isolate=True)`` starts the
+others even so (``hdmap up``'s fault isolation).
+
 With ``security`` (a :class:`hdmap.ops.security.SecureDeployment`) the router and each
 service load their generated Zenoh config (TLS, authentication, ACL), the router
 listens on ``tls/`` and :attr:`Stack.bus` is the ``operator`` identity.
@@ -24,6 +29,7 @@ from typing import TYPE_CHECKING
 from hdmap.geo.tiles import region_label
 from hdmap.runtime.bus import BusConfig, open_session
 from hdmap.runtime.orphan import PARENT_ENV
+from hdmap.runtime.store import EXIT_CORRUPT
 from schemas import keys
 
 if TYPE_CHECKING:
@@ -55,6 +61,17 @@ class Proc:
     @property
     def alive(self) -> bool:
         return self.popen is not None and self.popen.poll() is None
+
+    @property
+    def returncode(self) -> int | None:
+        """The exit code once the process has ended (None while it runs or before it started)."""
+        return None if self.popen is None else self.popen.poll()
+
+    @property
+    def permanent(self) -> bool:
+        """Whether it ended on a permanent fault (:data:`EXIT_CORRUPT`): restarting it
+        fails the same way until an operator repairs its data."""
+        return self.returncode == EXIT_CORRUPT
 
 
 @dataclass
@@ -153,15 +170,31 @@ class Stack:
         )
         return self._spawn(p)
 
-    def start_all(self, region: tuple[str, ...] = (), timeout: float = 60.0) -> None:
+    def start_all(
+        self, region: tuple[str, ...] = (), timeout: float = 60.0, isolate: bool = False
+    ) -> list[str]:
+        """Start the router and one of each service; wait until they are ready.
+
+        A service that exits meanwhile raises :class:`RuntimeError`, unless ``isolate``:
+        then the others are still waited for, and the names of those that exited are
+        returned (the caller decides about them: ``hdmap up`` restarts a crashed one and
+        leaves one stopped on a permanent fault stopped). The router must come up.
+        """
         self.start_router()
         for name in SERVICE_NAMES:
             self.start_service(name, region)
-        self.wait_ready([self.service_key(n, region) for n in SERVICE_NAMES], timeout)
+        return self.wait_ready(
+            [self.service_key(n, region) for n in SERVICE_NAMES], timeout, isolate
+        )
 
-    def wait_ready(self, names: list[str], timeout: float = 60.0) -> None:
-        """Until each named service has its liveliness token up (bounded)."""
+    def wait_ready(
+        self, names: list[str], timeout: float = 60.0, isolate: bool = False
+    ) -> list[str]:
+        """Until each named service has its liveliness token up (bounded); the names that
+        exited instead (only with ``isolate``; without it, one exiting raises)."""
         deadline = time.monotonic() + timeout
+        exited: list[str] = []
+        names = list(names)
         with open_session(self.bus) as s:
             while True:
                 alive = {
@@ -171,11 +204,14 @@ class Stack:
                 }
                 missing = [n for n in names if n not in alive]
                 if not missing:
-                    return
+                    return exited
                 for n in missing:
                     p = self.procs.get(n)
                     if p is not None and not p.alive:
-                        raise RuntimeError(f"{n} exited: {tail(p.log_path)}")
+                        if not isolate:
+                            raise RuntimeError(f"{n} exited: {tail(p.log_path)}")
+                        exited.append(n)
+                        names.remove(n)
                 if time.monotonic() > deadline:
                     raise TimeoutError(f"services not ready after {timeout} s: {missing}")
                 time.sleep(0.1)
@@ -232,6 +268,65 @@ class Stack:
 
     def __exit__(self, *exc: object) -> None:
         self.stop_all()
+
+
+@dataclass
+class Supervisor:
+    """What ``hdmap up`` does about processes of ``stack`` that ended, one :meth:`check` at
+    a time: a process that crashed (any other exit code, a signal) is restarted after a
+    backoff of 0.5 s times (its restarts so far + 1), at most ``max_backoff_s``; one that stopped
+    on a permanent fault (:attr:`Proc.permanent`: a corrupt database) is not restarted,
+    since it would fail the same way: it is listed in :attr:`stopped` with its reason
+    until the operator repairs its data and starts ``hdmap up`` again. The others keep
+    running either way."""
+
+    stack: Stack
+    max_backoff_s: float = 5.0
+    stopped: dict[str, str] = field(default_factory=dict)
+    """Process name -> why it stopped for good (its logged error line)."""
+    _due: dict[str, float] = field(default_factory=dict, init=False, repr=False)
+    """Process name -> when to restart it (monotonic s)."""
+
+    def check(self, now: float | None = None) -> list[str]:
+        """Look at every process once: restart those whose backoff has passed; one line
+        (or a few) to report per process that ended since the last check."""
+        now = time.monotonic() if now is None else now
+        report: list[str] = []
+        for name, proc in list(self.stack.procs.items()):
+            if proc.alive or name in self.stopped:
+                continue
+            if proc.permanent:
+                self.stopped[name] = stop_reason(proc)
+                report.append(
+                    f"{name} stopped on a permanent fault (exit {EXIT_CORRUPT}; not "
+                    f"restarted, the others keep running): {self.stopped[name]}"
+                )
+                continue
+            due = self._due.get(name)
+            if due is None:
+                self._due[name] = now + min(self.max_backoff_s, 0.5 * (proc.restarts + 1))
+                report.append(
+                    f"{name} exited ({proc.returncode}); restarting. Last log lines:\n"
+                    f"{tail(proc.log_path, 10)}"
+                )
+            elif now >= due:
+                del self._due[name]
+                self.stack.restart(name)
+        return report
+
+
+def stop_reason(p: Proc) -> str:
+    """Why a process ended, in one line: the message of the last error line of its log (a
+    service stopped on a corrupt database logs one naming the file and the cause), else
+    its last line."""
+    lines = [ln for ln in tail(p.log_path, 50).splitlines() if ln.strip()]
+    errors = [ln for ln in lines if " ERROR " in ln or "Error" in ln]
+    line = (errors or lines or ["(empty log)"])[-1].strip()
+    if " ERROR " in line:  # '<time> ERROR <logger>: <message>' (hdmap.cli.common)
+        line = line.split(" ERROR ", 1)[1]
+        logger, sep, message = line.partition(": ")
+        line = message if sep and " " not in logger else line
+    return line
 
 
 def tail(path: Path, n: int = 30) -> str:

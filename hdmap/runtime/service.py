@@ -9,6 +9,12 @@ back on the producers instead of dropping data.
 Per-key state follows an explicit contract (bytewax ``StatefulLogic``-like):
 ``handle`` (on items), ``on_timer`` (periodic), and the state lives in SQLite,
 committed together with the input offsets it reflects.
+
+A corrupt database is a permanent fault: a service whose database fails its check at open
+(:func:`hdmap.runtime.store.check_integrity`) or meets corruption later logs one line naming
+the file and the cause and ends its process with
+:data:`~hdmap.runtime.store.EXIT_CORRUPT` (:class:`PermanentFault`), which ``hdmap up``
+does not restart.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import os
 import queue
 import resource
 import signal
+import sqlite3
 import threading
 import time
 import uuid
@@ -33,10 +40,42 @@ import zenoh
 
 from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
-from hdmap.runtime.store import Meta, connect, transaction
+from hdmap.runtime.store import (
+    EXIT_CORRUPT,
+    DatabaseCorrupt,
+    Meta,
+    connect,
+    is_corruption,
+    transaction,
+)
 from schemas import Stats, keys
 
 log = logging.getLogger(__name__)
+
+
+class PermanentFault(SystemExit):
+    """A service stopped on a fault no restart repairs (its database is corrupt): as an
+    uncaught exception it ends the process with :data:`EXIT_CORRUPT` and prints nothing
+    more (the line is logged where it is raised); ``fault`` is the cause."""
+
+    def __init__(self, fault: DatabaseCorrupt):
+        super().__init__(EXIT_CORRUPT)
+        self.fault = fault
+
+    def __str__(self) -> str:
+        return str(self.fault)
+
+
+def stopped_on(service: str, fault: DatabaseCorrupt) -> PermanentFault:
+    """Log the one line that says why ``service`` stops on ``fault``; the exception to raise."""
+    log.error(
+        "%s: %s; stopping (exit %d, not restarted by hdmap up): restore the file from a "
+        "backup, then start it again (docs/operations.md)",
+        service,
+        fault,
+        EXIT_CORRUPT,
+    )
+    return PermanentFault(fault)
 
 
 @dataclass(frozen=True)
@@ -80,7 +119,10 @@ class Service:
         self.data_dir = Path(opts.data_dir) / f"{self.name}-{self.region_label}"
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.db_path = self.data_dir / "state.sqlite"
-        self.db = connect(self.db_path, sync=opts.sync)
+        try:
+            self.db = connect(self.db_path, sync=opts.sync, check=True)
+        except DatabaseCorrupt as exc:
+            raise stopped_on(self.name, exc) from exc
         meta = Meta(self.db)
         self.instance = opts.instance or meta.setdefault(
             "instance",
@@ -269,7 +311,8 @@ def _wire_number(v: float) -> float:
 
 
 def run_until_signalled(service: Service) -> int:
-    """Run a service in this process until SIGTERM/SIGINT, then close cleanly."""
+    """Run a service in this process until SIGTERM/SIGINT, then close cleanly; the exit
+    code: 0, or :data:`EXIT_CORRUPT` when it stopped on a corrupt database."""
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:
@@ -278,5 +321,14 @@ def run_until_signalled(service: Service) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    service.run(stop)
+    try:
+        service.run(stop)
+    except DatabaseCorrupt as exc:  # met after the check at open, and not handled below
+        stopped_on(service.name, exc)
+        return EXIT_CORRUPT
+    except sqlite3.DatabaseError as exc:
+        if not is_corruption(exc):
+            raise
+        stopped_on(service.name, DatabaseCorrupt(service.db_path, str(exc)))
+        return EXIT_CORRUPT
     return 0

@@ -3,6 +3,11 @@
 Durability: WAL with ``synchronous=NORMAL`` (the default here) survives a process
 crash (SIGKILL) with every committed transaction; ``synchronous=FULL`` also
 survives power loss at some cost per commit (``--sync full``).
+
+Corruption is a fault of its own (:class:`DatabaseCorrupt`): no retry repairs it, an
+operator has to restore or remove the file. ``connect(..., check=True)`` looks for it when
+a service opens its database (:func:`check_integrity`), and :func:`transaction` raises it
+when SQLite meets it later.
 """
 
 from __future__ import annotations
@@ -29,6 +34,28 @@ class StorageError(RuntimeError):
         self.transient = transient
 
 
+class DatabaseCorrupt(StorageError):
+    """The database file is damaged (SQLITE_CORRUPT, SQLITE_NOTADB, a failed integrity
+    check): permanent until an operator restores or removes the file.
+
+    It is a :class:`StorageError` (``transient`` True: never the work's fault, so a stage
+    keeps its input for later instead of setting it aside), whose ``path`` is the file and
+    ``cause`` SQLite's words; ``str()`` is one line naming both.
+    """
+
+    def __init__(self, path: str | Path, cause: str):
+        cause = " ".join(cause.split())  # quick_check reports on several lines
+        super().__init__(f"{path}: database is corrupt ({cause})", transient=True)
+        self.path = str(path)
+        self.cause = cause
+
+
+EXIT_CORRUPT = 65
+"""Exit code of a service that stopped on a :class:`DatabaseCorrupt` (``EX_DATAERR`` of
+sysexits.h): a permanent fault; ``hdmap up`` does not restart such a service."""
+
+_CORRUPT_CODES = frozenset({sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB})
+
 _STORAGE_CODES = frozenset(
     {
         sqlite3.SQLITE_PERM,
@@ -53,11 +80,57 @@ def is_storage_failure(exc: sqlite3.Error) -> bool:
     return code is not None and (code & 0xFF) in _STORAGE_CODES
 
 
-def connect(path: str | Path, sync: str = "normal", readonly: bool = False) -> sqlite3.Connection:
+def is_corruption(exc: sqlite3.Error) -> bool:
+    """Whether SQLite failed because the file is damaged (malformed image, not a database)."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    return code is not None and (code & 0xFF) in _CORRUPT_CODES
+
+
+def db_file(conn: sqlite3.Connection) -> str:
+    """The file of ``conn``'s main database ('?' if SQLite cannot say; ':memory:' for none)."""
+    try:
+        for _seq, name, file in conn.execute("PRAGMA database_list"):
+            if name == "main":
+                return str(file) or ":memory:"
+    except sqlite3.Error:
+        pass
+    return "?"
+
+
+def check_integrity(conn: sqlite3.Connection, path: str | Path) -> None:
+    """Raise :class:`DatabaseCorrupt` naming ``path`` unless ``PRAGMA quick_check(1)`` says ok.
+
+    Why quick_check: it reads every page once and checks each b-tree page's structure, the
+    free list and that every page is used exactly once, which catches damaged or
+    overwritten pages anywhere in the file, without ``integrity_check``'s cross-check of
+    index contents against their tables (about 2.5 times as slow). Measured on a 100 MB
+    database shaped like ingest's (dedup table and log): 0.12 s with the file in the page
+    cache, 1 s on the first read after writing, i.e. one sequential read of the file,
+    small next to a service's start (Zenoh session, catch-up); a data dir of tens of GB
+    would make it minutes. ``(1)`` stops at the first problem: it costs the same on a
+    good file and reports one line on a bad one. Other SQLite errors (locked, I/O) are
+    raised as they are.
+    """
+    try:
+        rows = conn.execute("PRAGMA quick_check(1)").fetchall()
+    except sqlite3.Error as exc:
+        if is_corruption(exc):
+            raise DatabaseCorrupt(path, str(exc)) from exc
+        raise  # locked, I/O error...: a storage failure, not damage
+    if [tuple(r) for r in rows] != [("ok",)]:
+        found = "; ".join(str(r[0]).replace("*** in database main ***", "").strip() for r in rows)
+        raise DatabaseCorrupt(path, f"quick_check: {found}")
+
+
+def connect(
+    path: str | Path, sync: str = "normal", readonly: bool = False, check: bool = False
+) -> sqlite3.Connection:
     """A connection in autocommit mode (transactions are explicit, see :func:`transaction`).
 
     A database that cannot be opened (read-only or full data dir, a directory in its
-    place...) raises :class:`StorageError` naming the file.
+    place...) raises :class:`StorageError` naming the file; a damaged one
+    :class:`DatabaseCorrupt` (with ``check``, also damage that opening alone does not
+    meet: :func:`check_integrity`).
     """
     p = Path(path)
     conn = None
@@ -72,9 +145,15 @@ def connect(path: str | Path, sync: str = "normal", readonly: bool = False) -> s
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute(f"PRAGMA synchronous={'FULL' if sync == 'full' else 'NORMAL'}")
         conn.execute("PRAGMA busy_timeout=10000")
-    except sqlite3.Error as exc:
+        if check:
+            check_integrity(conn, p)
+    except (sqlite3.Error, DatabaseCorrupt) as exc:
         if conn is not None:
             conn.close()
+        if isinstance(exc, DatabaseCorrupt):
+            raise
+        if is_corruption(exc):
+            raise DatabaseCorrupt(p, str(exc)) from exc
         raise StorageError(
             f"{p}: cannot open the database: {exc}", is_storage_failure(exc)
         ) from exc
@@ -95,8 +174,9 @@ def transaction(
     """BEGIN IMMEDIATE ... COMMIT; participants learn the outcome.
 
     A storage failure (disk full, read-only file) is raised as :class:`StorageError`
-    after rolling back, so callers refuse the work instead of acknowledging it; any
-    other SQLite error too, with ``transient`` False. Participants learn of a rollback
+    after rolling back, so callers refuse the work instead of acknowledging it (a damaged
+    file as :class:`DatabaseCorrupt`, naming it); any other SQLite error too, with
+    ``transient`` False. Participants learn of a rollback
     also when the transaction could not even start.
     """
     try:
@@ -104,6 +184,8 @@ def transaction(
     except sqlite3.Error as exc:
         for p in participants:  # what they staged before the call will not be kept
             p.on_rollback()
+        if is_corruption(exc):
+            raise DatabaseCorrupt(db_file(conn), str(exc)) from exc
         raise StorageError(f"cannot start a transaction: {exc}") from exc  # never the work's fault
     try:
         yield
@@ -115,6 +197,8 @@ def transaction(
             pass
         for p in participants:
             p.on_rollback()
+        if isinstance(exc, sqlite3.Error) and is_corruption(exc):
+            raise DatabaseCorrupt(db_file(conn), str(exc)) from exc
         if isinstance(exc, sqlite3.Error):
             raise StorageError(f"storage failed: {exc}", is_storage_failure(exc)) from exc
         raise

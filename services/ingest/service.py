@@ -19,6 +19,15 @@ Per upload (``hdmap/v1/upload/<vehicle_id>`` queryable):
 Uploads that arrive together are committed in one transaction (one fsync for many).
 Every refused upload or row is counted in ``Stats.rejected`` by reason (``batch.<field>``,
 ``obs.<column>``, ``rate_limited``).
+
+Storage: a failed transaction (disk full, read-only) is answered ``error.field ==
+"storage"`` with ``retry_after_s`` :data:`STORAGE_RETRY_S` (transient: it passes by
+itself). A corrupt database (:class:`hdmap.runtime.store.DatabaseCorrupt`) is permanent:
+ingest stops writing to the file (more writes could spread the damage), answers this and
+every later upload with a ``storage`` refusal marked ``permanent`` and ``retry_after_s``
+:data:`CORRUPT_RETRY_S`, counts them in ``counters.corrupt_refusals`` (with gauge
+``database_corrupt`` = 1), and keeps serving stats; at its next start the check at open
+stops it (:mod:`hdmap.runtime.service`).
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ import zenoh
 
 from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, route_rays
 from hdmap.runtime.service import Item, Service, ServiceOptions
-from hdmap.runtime.store import StorageError, u64_to_i64
+from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
 from hdmap.runtime.stream import STAGE_KEYS, LogServer, LogWriter
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys
 from schemas.codec import valid_id
@@ -55,6 +64,14 @@ _NO_IDS = np.zeros(0, np.uint64)
 
 UNKNOWN_VEHICLE = "unknown"
 """``UploadAck.vehicle_id`` when the sender is not known (bad key, storage failure)."""
+
+STORAGE_RETRY_S = 5.0
+"""``retry_after_s`` of a transient storage refusal (disk full, read-only data dir)."""
+
+CORRUPT_RETRY_S = 300.0
+"""``retry_after_s`` of the permanent refusal on a corrupt database: how often a vehicle
+may probe whether an operator has repaired it (vehicles that do not read ``permanent``
+also slow down to this)."""
 
 
 @dataclass
@@ -81,6 +98,8 @@ class IngestService(Service):
         self.writer = LogWriter(self.db, "obs", self.instance)
         self._log_server: LogServer | None = None
         self.limiter = VehicleLimiter(self.config.rate_limit)
+        self.corrupt: DatabaseCorrupt | None = None
+        """Set once a transaction met corruption: nothing more is written, uploads refused."""
 
     def setup(self) -> None:
         self.serve(keys.upload(keys.ANY), "upload")
@@ -92,6 +111,9 @@ class IngestService(Service):
 
     def handle(self, items: list[Item]) -> None:
         uploads = [it for it in items if it.kind == "upload" and it.query is not None]
+        if self.corrupt is not None:
+            self._refuse_corrupt(uploads)
+            return
         staged: list[_Pending] = []
         entries = []
         try:
@@ -101,19 +123,44 @@ class IngestService(Service):
                     staged.append(_Pending(it, ack))
                     entries += new_entries
                 self.count("log_entries", len(entries))
+        except DatabaseCorrupt as exc:
+            log.error(
+                "ingest: %s; refusing every upload as permanent until the file is restored "
+                "and ingest restarted",
+                exc,
+            )
+            self.count("storage_errors")
+            self.corrupt = exc
+            self._refuse_corrupt(uploads)
+            return
         except StorageError as exc:
             log.error("ingest: %s", exc)
             self.count("storage_errors")
             err = DecodeError("storage", f"not recorded, retry later ({exc})")
             for it in uploads:
-                vehicle = keys.last_chunk(it.key)
-                vehicle = vehicle if valid_id(vehicle) else UNKNOWN_VEHICLE
-                self._reply(it, UploadAck(vehicle, 0, _NO_IDS, error=err, retry_after_s=5.0))
+                ack = UploadAck(_sender(it), 0, _NO_IDS, error=err, retry_after_s=STORAGE_RETRY_S)
+                self._reply(it, ack)
             return
         for p in staged:
             self._reply(p.item, p.ack)
         for e in entries:
             self.pubs.put(STAGE_KEYS["obs"](e.tile), e.to_bytes())
+
+    def _refuse_corrupt(self, uploads: list[Item]) -> None:
+        """Answer uploads with the permanent refusal of a corrupt database (nothing read or
+        written; the ack names the fault, not the server's file path, which is logged)."""
+        assert self.corrupt is not None
+        err = DecodeError(
+            "storage",
+            f"not recorded: ingest's database is corrupt ({self.corrupt.cause}); permanent "
+            "until an operator restores it",
+        )
+        self.count("corrupt_refusals", len(uploads))
+        for it in uploads:
+            ack = UploadAck(
+                _sender(it), 0, _NO_IDS, error=err, retry_after_s=CORRUPT_RETRY_S, permanent=True
+            )
+            self._reply(it, ack)
 
     def _reply(self, it: Item, ack: UploadAck) -> None:
         assert it.query is not None
@@ -227,4 +274,13 @@ class IngestService(Service):
         return np.fromiter((int(x) in found for x in signed), bool, signed.size)
 
     def extra_counters(self) -> dict[str, float]:
-        return {"log_head_gseq": self.writer.gseq}
+        return {
+            "log_head_gseq": self.writer.gseq,
+            "database_corrupt": int(self.corrupt is not None),
+        }
+
+
+def _sender(it: Item) -> str:
+    """The vehicle id of an upload's key (``unknown`` if it is not an id)."""
+    vehicle = keys.last_chunk(it.key)
+    return vehicle if valid_id(vehicle) else UNKNOWN_VEHICLE

@@ -6,19 +6,21 @@ Per batch of obs entries (one upload's rays for one tile each, in order; see
 probation, merge); then vehicles on probation that stopped driving are let go
 (:func:`hdmap.mapping.probation.freeze_stale`), one :class:`schemas.AssocGroup` per
 landmark home tile goes to the assoc log, quiet passes close, and the state is saved in
-the same transaction. A timer expires old pending rays.
+the same transaction. A timer expires old pending rays (and forgets the budget records of
+passes silent as long).
 """
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
 from hdmap.mapping.estimator import LandmarkSums
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
-from hdmap.mapping.pending import expire
+from hdmap.mapping.pending import expire, forget_budgets
 from hdmap.mapping.probation import freeze_stale
 from hdmap.mapping.quiet import close_quiet
 from hdmap.mapping.unit import match_unit
@@ -46,6 +48,17 @@ class MatcherConfig(MatchingConfig):
     checked as it is loaded."""
 
     def __post_init__(self) -> None:
+        budgets = ("pending_max_per_pass", "pending_max_per_vehicle", "quarantine_after")
+        for name in (*budgets, "init_reseed_max"):
+            if getattr(self, name) < 0:
+                raise ConfigError(
+                    f"matcher.{name}: must be >= 0 (0: off), got {getattr(self, name)}"
+                )
+        if 0 < self.pending_max_per_pass < self.init.min_rays:
+            raise ConfigError(
+                f"matcher.pending_max_per_pass: below init.min_rays ({self.init.min_rays}), got "
+                f"{self.pending_max_per_pass} (no pass could start a landmark); 0 is no limit"
+            )
         if 0 < self.close_passes_after_s <= self.pending_ttl_s:
             raise ConfigError(
                 "matcher.close_passes_after_s: must exceed pending_ttl_s "
@@ -178,10 +191,12 @@ class MatcherService(StageService):
         """Drop pending rays older than ``pending_ttl_s`` (saved in a transaction of their
         own) and refresh the stats counts."""
         n = expire(self.matching)
-        if n:
+        forgotten = forget_budgets(self.matching)
+        if n or forgotten:
             with self.transaction([self]):
                 self.state.save(self.sums.pack_rows)
-                self.count("expired", n)
+                if n:
+                    self.count("expired", n)
         self._snapshot_counts()
 
     def after_commit(self) -> None:
@@ -194,6 +209,11 @@ class MatcherService(StageService):
             "landmarks": len(self.state.landmarks),
             "pending": self.state.pending_count(),
         }
+        held = sorted(b.vehicle for b in self.state.passes.values() if b.quarantined)
+        self._counts["passes_in_quarantine"] = len(held)
+        by_vehicle = Counter(held)
+        for v, k in sorted(by_vehicle.items(), key=lambda vk: (-vk[1], vk[0]))[:20]:
+            self._counts[f"quarantine.{v}"] = k  # the 20 with the most, by name
         low = sorted((w, v) for v, (w, _c) in self.matching.flagged.items() if w < 1.0)
         self._counts["vehicles_downweighted"] = len(low)
         for w, v in low[:20]:  # the 20 least trusted, by name

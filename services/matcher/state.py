@@ -1,11 +1,13 @@
 """The matcher's state in SQLite: landmark identities with gating estimates, the pending
-pool, vehicles' trust records, viewing directions and co-visibility counts.
+pool, vehicles' trust records, viewing directions, co-visibility counts and the budget
+records of passes that outgrew their pending budget.
 
 In memory it is a :class:`~hdmap.mapping.landmarks.LandmarkTable` (landmarks as a dict of
 :class:`~hdmap.mapping.landmarks.Landmark` records by id, the pending pool as one columnar
 table per tile); in SQLite one row per landmark and one per pending ray, and ``save``
-rewrites what the transaction touched. ``load`` rebuilds the memory from the database
-(start, or after a failed transaction).
+writes what the transaction touched (of the pending pool: the rays added and the rays
+taken out, so a save costs what the batch changed, not what the pool holds). ``load``
+rebuilds the memory from the database (start, or after a failed transaction).
 """
 
 from __future__ import annotations
@@ -16,10 +18,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hdmap.mapping.landmarks import Landmark, LandmarkTable, PendingTile
+from hdmap.mapping.landmarks import Landmark, LandmarkTable, PassBudget, PendingTile
 from hdmap.mapping.trust import PassOffsets, VehicleTrust
 from hdmap.runtime.store import id_from_sql, id_to_sql, u64_to_i64
 from schemas import Observations
+from schemas.ids import pass_key
 
 _REC = Observations.CODEC.record_dtype
 
@@ -45,6 +48,10 @@ CREATE TABLE IF NOT EXISTS trust_status (
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS pass_budget (
+    vehicle TEXT NOT NULL, pass_id INTEGER NOT NULL, evicted INTEGER NOT NULL,
+    failed INTEGER NOT NULL, quarantined TEXT NOT NULL, last_at REAL NOT NULL,
+    PRIMARY KEY (vehicle, pass_id)) WITHOUT ROWID;
 """
 
 
@@ -150,10 +157,11 @@ class MatcherState(LandmarkTable):
         )
         for tile in sorted(self._pending_dirty):
             p = self.pending.get(tile)
-            if p is None or not len(p):
+            if p is None or p.saved.all():
                 continue
-            rec = Observations.CODEC.to_records(p.obs)
-            ids = u64_to_i64(p.obs.obs_id).tolist()
+            new = np.flatnonzero(~p.saved)  # the rows added since the last save
+            rec = Observations.CODEC.to_records(p.obs.take(new))
+            ids = u64_to_i64(p.obs.obs_id[new]).tolist()
             c.executemany(
                 "INSERT OR IGNORE INTO pending"
                 "(vehicle, obs_id, pass_id, tile, added_at, received_at, rec) "
@@ -161,16 +169,28 @@ class MatcherState(LandmarkTable):
                 [
                     (
                         p.vehicle[i],
-                        ids[i],
+                        ids[j],
                         int(p.pass_id[i]),
                         tile,
                         float(p.added_at[i]),
                         float(p.received_at[i]),
-                        rec[i].tobytes(),
+                        rec[j].tobytes(),
                     )
-                    for i in range(len(p))
+                    for j, i in enumerate(new.tolist())
                 ],
             )
+            p.saved[:] = True
+        c.executemany(
+            "DELETE FROM pass_budget WHERE vehicle=? AND pass_id=?", sorted(self._passes_gone)
+        )
+        c.executemany(
+            "INSERT OR REPLACE INTO pass_budget"
+            "(vehicle, pass_id, evicted, failed, quarantined, last_at) VALUES (?,?,?,?,?,?)",
+            [
+                (b.vehicle, b.pass_id, b.evicted, b.failed, b.quarantined, b.last_at)
+                for b in (self.passes[k] for k in sorted(self._passes_dirty))
+            ],
+        )
         self.clear_marks()
 
     def load(self, unpack_rows: Callable[[list[bytes]], np.ndarray]) -> None:
@@ -183,6 +203,12 @@ class MatcherState(LandmarkTable):
         self.covis.clear()
         self._covis_of.clear()
         self.clear_marks()
+        self.passes = {
+            pass_key(v, int(pid)): PassBudget(v, int(pid), int(ev), int(f), q, float(at))
+            for v, pid, ev, f, q, at in c.execute(
+                "SELECT vehicle, pass_id, evicted, failed, quarantined, last_at FROM pass_budget"
+            )
+        }
         self.counters = dict(c.execute("SELECT tile, n FROM id_counters").fetchall())
         self.trust = {
             r[0]: VehicleTrust(int(r[1]), *map(float, r[2:7]), int(r[7]), int(r[8]))
