@@ -17,7 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from hdmap.mapping.trust import VehicleTrust
+from hdmap.mapping.trust import SeenIndex, VehicleTrust
 from schemas.ids import landmark_id, pass_key
 
 
@@ -167,6 +167,16 @@ class LandmarkTable:
         self.counters: dict[str, int] = {}
         self.trust: dict[str, VehicleTrust] = {}
         self._trust_dirty: set[str] = set()
+        self._trust_gone: set[str] = set()
+        """Vehicles whose records were forgotten since the last save."""
+        self.held_by_seen = SeenIndex()
+        """The vehicles with held passes (``held_homes``), by when they were last seen:
+        the probation time-out looks at the ones due only."""
+        self.all_by_seen = SeenIndex()
+        """Every trust record, by when its vehicle was last seen (forgetting)."""
+        self.ingest_time = 0.0
+        """The matcher's clock: ingest time, monotone, saved with the table
+        (:meth:`hdmap.mapping.matching.Matching.entry_time`)."""
         self._dirty: set[int] = set()
         self._pending_dirty: set[str] = set()
         self._removed_pending: list[tuple[str, int]] = []
@@ -261,6 +271,43 @@ class LandmarkTable:
         self._trust_dirty.add(vehicle)
         return t
 
+    def seen(self, vehicle: str, at: float) -> VehicleTrust:
+        """The vehicle sent a unit at ``at`` (ingest time): its record (made if new, marked
+        to be saved), last seen at ``at`` at the latest, filed for forgetting."""
+        t = self.trust_of(vehicle)
+        t.last_seen = max(t.last_seen, at)
+        self.all_by_seen.add(vehicle, t.last_seen)
+        return t
+
+    def last_seen(self, vehicle: str) -> float:
+        """When the vehicle was last seen (-inf: no record)."""
+        t = self.trust.get(vehicle)
+        return float("-inf") if t is None else t.last_seen
+
+    def hold_home(self, vehicle: str, home: str) -> None:
+        """The vehicle (which has a record) has held passes in home tile ``home``."""
+        t = self.trust[vehicle]
+        t.held_homes.add(home)
+        self.held_by_seen.add(vehicle, t.last_seen)
+
+    def forget_trust(self, vehicle: str) -> None:
+        """Forget the vehicle's record (it has no held passes): it is new if it returns."""
+        self.trust.pop(vehicle)
+        self._trust_dirty.discard(vehicle)
+        self._trust_gone.add(vehicle)
+        self.held_by_seen.discard(vehicle)
+        self.all_by_seen.discard(vehicle)
+
+    def index_trust(self) -> None:
+        """File every trust record in the indexes by last seen (after ``trust`` was
+        rebuilt)."""
+        self.held_by_seen.clear()
+        self.all_by_seen.clear()
+        for v, t in self.trust.items():
+            self.all_by_seen.add(v, t.last_seen)
+            if t.held_homes:
+                self.held_by_seen.add(v, t.last_seen)
+
     # -- pending ----------------------------------------------------------------------------
 
     def add_pending(
@@ -309,6 +356,7 @@ class LandmarkTable:
         self._covis_dirty.clear()
         self._deleted.clear()
         self._trust_dirty.clear()
+        self._trust_gone.clear()
         self._dirty.clear()
         self._pending_dirty.clear()
         self._removed_pending = []

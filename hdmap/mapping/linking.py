@@ -87,7 +87,7 @@ def link(
         out.weight += [weight] * len(idx)
         out.held += [held] * len(idx)
         if held:
-            t.held_homes.add(home)
+            m.state.hold_home(vehicle, home)
         out.obs.append(sub)
 
 

@@ -8,6 +8,10 @@ The steps that work on it are functions of a :class:`Matching`: one unit's assoc
 vehicles leaving probation (:mod:`hdmap.mapping.probation`) and merging landmarks of one
 sign (:mod:`hdmap.mapping.merge`). Nothing here does I/O; the clock (wall-clock seconds,
 for landmarks' and pending rays' ages) and the counters are given.
+
+Time that changes what the map contains (probation time-outs, forgetting trust records)
+is ingest time on the matcher's own monotone clock (:meth:`Matching.entry_time`), never
+the largest time a batch carries and never the wall clock.
 """
 
 from __future__ import annotations
@@ -93,6 +97,13 @@ class MatchingConfig:
     """Close a pass in the gating sums once no ray of it has been linked for this long
     (wall-clock seconds, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above
     ``pending_ttl_s``: a pending ray can still be linked until it expires."""
+    time_tolerance_s: float = 300.0
+    """An obs entry whose ingest time (``received_at``) is more than this ahead of the
+    matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see
+    :meth:`Matching.entry_time`). Ingest stamps an entry before the matcher applies it, so
+    an honest entry is behind the matcher's wall clock by the two hosts' clock skew at
+    most; five minutes is far above the skew of clocks kept by NTP, and far below the
+    probation time-out (a day) that the clock drives."""
     trust: TrustConfig = field(default_factory=TrustConfig)
     """Per-vehicle weights from the history of its pass offsets and gate failures."""
     gate_bias_floor: bool = True
@@ -223,6 +234,44 @@ class Matching:
         ref = self.fleet_ref()
         for v, t in self.state.trust.items():
             self.note_trust(v, t, ref)
+
+    @property
+    def now(self) -> float:
+        """The matcher's clock: ingest time, monotone (:meth:`entry_time`)."""
+        return self.state.ingest_time
+
+    def entry_time(self, received_at: float) -> float:
+        """The time of an obs entry that ingest stamped ``received_at``, on the matcher's
+        clock, which it advances.
+
+        The clock (``state.ingest_time``, saved with the table, so a restart does not take
+        it back) is the largest ``received_at`` of the entries applied so far among those
+        at most ``time_tolerance_s`` ahead of the matcher's wall clock when they were
+        applied. An entry further ahead (a forged entry, an ingest with a bad clock) does
+        not move it (counted ``time_clamped``); an entry's time is the smaller of its
+        ``received_at`` and the clock, which for every entry that moved the clock is its
+        own ``received_at``.
+
+        Replays give the map live processing gave: the clock is a maximum, so it depends
+        neither on the order nor on the batching of the entries, only on which of them
+        count; an honest entry was stamped before the matcher applied it, so it is behind
+        the matcher's wall clock (up to the hosts' clock skew, far below the tolerance)
+        live and on every later replay: all honest entries count both times, and the
+        clock follows ingest's exactly. An entry stamped far ahead counts neither live
+        nor on a replay before its date: one entry cannot make the probation time-out
+        release every vehicle, live or replayed. (A statistic of the batch, its median
+        say, would make the map depend on how the entries were batched: a few at a time
+        live, hundreds in a catch-up.) What is given up: while an ingest's clock runs
+        more than the tolerance ahead, its entries move no time (time-outs come late,
+        never early), and a replay after the wall clock passed such an entry's stamp
+        counts it where live processing did not."""
+        now = self.state.ingest_time
+        if received_at > self.clock() + self.config.time_tolerance_s:
+            self.tally("time_clamped", 1)
+            return min(received_at, now)
+        if received_at > now:
+            self.state.ingest_time = received_at
+        return received_at
 
     def note_trust(self, vehicle: str, t: VehicleTrust, ref: np.ndarray | None) -> None:
         """Keep (weight, offset chi2) of the vehicles stats show: downweighted or suspect."""

@@ -41,20 +41,60 @@ def settle(m: Matching, vehicle: str, t: VehicleTrust) -> set[int]:
     return let_go(m, vehicle, t, False, t.weight(m.config.trust, ref))
 
 
-def freeze_stale(m: Matching, now: float) -> None:
+def freeze_stale(m: Matching, now: float) -> int:
     """Vehicles on probation that stopped driving before they could be settled (none for
     ``probation_ttl_s`` of ingest time before ``now``): their held passes go in at the
-    probation weight."""
+    probation weight. Looks at the vehicles with held passes due only (and at those seen
+    since they were filed, once: :class:`~hdmap.mapping.trust.SeenIndex`), not at every
+    trust record. Returns how many were let go."""
     cfg = m.config.trust
     cutoff = now - cfg.probation_ttl_s
-    for v in sorted(v for v, t in m.state.trust.items() if t.held_homes):
-        t = m.state.trust[v]
-        if t.held(cfg) and t.last_seen < cutoff:
-            m.state.trust_of(v)  # marks it for saving
-            w = t.weight(cfg, m.fleet_ref())
-            local = w / cfg.probation_weight if m.config.gate_probation_full else w
-            let_go(m, v, t, False, w, local)
-            m.tally("probation_timed_out", 1)
+    n = 0
+    for v in m.state.held_by_seen.due(cutoff, m.state.last_seen):
+        t = m.state.trust.get(v)
+        if t is None or not t.held_homes or not t.held(cfg):
+            continue  # nothing held, or settled otherwise (probation turned off)
+        m.state.trust_of(v)  # marks it for saving
+        w = t.weight(cfg, m.fleet_ref())
+        local = w / cfg.probation_weight if m.config.gate_probation_full else w
+        let_go(m, v, t, False, w, local)
+        m.tally("probation_timed_out", 1)
+        n += 1
+    return n
+
+
+def forget_quiet(m: Matching, now: float) -> int:
+    """Forget the trust records of vehicles not seen for ``forget_after_s`` of ingest time
+    before ``now`` (``TrustConfig.forget_after_s``; counted ``trust_forgotten``): one that
+    returns is new (on probation again). A vehicle with held passes keeps its record (the
+    probation time-out lets them go first) and is looked at again ``forget_after_s``
+    later. Looks at the vehicles due only. Returns how many were forgotten."""
+    after = m.config.trust.forget_after_s
+    if after <= 0:
+        return 0
+    n = 0
+    for v in m.state.all_by_seen.due(now - after, m.state.last_seen):
+        t = m.state.trust.get(v)
+        if t is None:
+            continue
+        if t.held_homes:
+            m.state.all_by_seen.add(v, now)
+            continue
+        m.state.forget_trust(v)
+        m.fleet.forget(v)
+        m.flagged.pop(v, None)
+        n += 1
+    if n:
+        m.tally("trust_forgotten", n)
+    return n
+
+
+def follow_time(m: Matching) -> None:
+    """What the matcher's clock (:attr:`Matching.now`) having moved settles: probation
+    time-outs, then forgotten records. Run after each obs entry (the work is the
+    vehicles due), so the outcome does not depend on how the entries were batched."""
+    freeze_stale(m, m.now)
+    forget_quiet(m, m.now)
 
 
 def let_go(
@@ -78,6 +118,7 @@ def let_go(
         out = m.out[home]
         out.trust.append((out.vehicle_index(vehicle), dropped, weight))
     t.held_homes.clear()
+    m.state.held_by_seen.discard(vehicle)
     if not rows.size:
         return set()
     by_row = {lm.row: lm for lm in m.state.landmarks.values()}

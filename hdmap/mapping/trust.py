@@ -70,6 +70,8 @@ that passed it; a vehicle whose rays keep failing the gate (share of failures ab
 
 from __future__ import annotations
 
+import heapq
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace  # noqa: F401 (doctests)
 
 import numpy as np
@@ -109,6 +111,16 @@ class TrustConfig:
     """A vehicle still on probation this long after its last pass (by ingest time) has its
     held passes let go at the probation weight: they then close and fold like any pass, so
     vehicles that stop driving before they are settled do not keep passes open for ever."""
+    forget_after_s: float = 2_592_000.0
+    """A vehicle not seen for this long (by ingest time) and without held passes has its
+    trust record forgotten (counted ``trust_forgotten``), so the records the matcher keeps
+    and saves are those of the vehicles that drove in this window, not of every vehicle
+    ever seen. A vehicle that comes back after that is new: on probation again (its rays
+    held at ``probation_weight`` until it is promoted, which re-weights them to its full
+    weight, or caught), its offset and gate history gone, and the fleet's reference no
+    longer counts it. Thirty days: far above ``probation_ttl_s`` (a vehicle on probation
+    is let go before it can be forgotten), and a vehicle silent for a month may have had
+    its camera or GNSS changed, so its old record says little about it. 0: kept for ever."""
     promote_chi2: float = 4.61
     """90% of chi-square with 2 dof: promotion is for good, so it asks for offsets well
     inside the honest range (an honest vehicle passes each check with probability 0.9; at
@@ -158,7 +170,9 @@ class VehicleTrust:
     """Set by :meth:`add_offset` (the configured ``bias_sigma_m``)."""
     status: int = NEW
     last_seen: float = 0.0
-    """Ingest time of its latest unit (probation time-out)."""
+    """Ingest time of its latest unit, on the matcher's trusted clock
+    (:meth:`hdmap.mapping.matching.Matching.entry_time`): probation time-out, forgetting.
+    Only grows."""
     held_homes: set[str] = field(default_factory=set)
     """Home tiles where this vehicle has held passes (where to send its settlement)."""
 
@@ -314,6 +328,11 @@ class FleetOffsets:
             self._means.pop(vehicle, None)
         self._stale = True
 
+    def forget(self, vehicle: str) -> None:
+        """The vehicle's record is gone: it no longer counts in the reference."""
+        if self._means.pop(vehicle, None) is not None:
+            self._stale = True
+
     def reference(self) -> np.ndarray | None:
         """The reference over the vehicles updated so far."""
         if self._stale:
@@ -322,3 +341,79 @@ class FleetOffsets:
             if self.cfg.relative_to_fleet and len(self._means) >= 3:
                 self._ref = np.median(np.array(list(self._means.values())), axis=0)
         return None if self._ref is None else self._ref.copy()
+
+
+class SeenIndex:
+    """Vehicles filed by a lower bound of their ``last_seen`` (a heap), so that finding
+    the ones last seen before a cutoff looks at those and few others, not at every vehicle.
+
+    A vehicle is filed under its ``last_seen`` when it is added. ``last_seen`` only grows
+    (it is a max), so the key stays a lower bound without being updated as the vehicle
+    drives: :meth:`due` pops the keys below the cutoff, looks the vehicle's ``last_seen``
+    up, hands it out if it is below the cutoff too, and otherwise files it again under its
+    ``last_seen`` (which is at or above the cutoff: looked at once per call). A call's
+    work is the vehicles due, the vehicles seen since they were filed whose key the
+    cutoff passed, and the leftover entries of vehicles taken out (each once); the heap
+    is rebuilt when leftovers outnumber the vehicles filed.
+
+    >>> seen = {"a": 10.0, "b": 20.0, "c": 30.0}
+    >>> ix = SeenIndex()
+    >>> for v in "cab":
+    ...     ix.add(v, seen[v])
+    >>> seen["a"] = 40.0                     # drove again: key 10 is now a lower bound
+    >>> ix.due(25.0, seen.__getitem__), ix.visited, len(ix)
+    (['b'], 2, 2)
+    >>> ix.due(25.0, seen.__getitem__), ix.visited  # a was filed again under 40
+    ([], 2)
+    >>> ix.discard("c"); ix.due(100.0, seen.__getitem__), len(ix)
+    (['a'], 0)
+    """
+
+    def __init__(self) -> None:
+        self._heap: list[tuple[float, str]] = []
+        self._key: dict[str, float] = {}
+        self.visited = 0
+        """Heap entries :meth:`due` looked at, over all calls (what the walks cost)."""
+
+    def __len__(self) -> int:
+        return len(self._key)
+
+    def __contains__(self, vehicle: str) -> bool:
+        return vehicle in self._key
+
+    def add(self, vehicle: str, key: float) -> None:
+        """File ``vehicle`` under ``key`` (at most its ``last_seen``); one already filed
+        keeps its key."""
+        if vehicle in self._key:
+            return
+        self._key[vehicle] = key
+        heapq.heappush(self._heap, (key, vehicle))
+
+    def discard(self, vehicle: str) -> None:
+        """Take ``vehicle`` out (if filed)."""
+        if self._key.pop(vehicle, None) is not None and len(self._heap) > 2 * len(self._key) + 64:
+            self._heap = [(k, v) for v, k in self._key.items()]
+            heapq.heapify(self._heap)
+
+    def clear(self) -> None:
+        self._heap.clear()
+        self._key.clear()
+
+    def due(self, cutoff: float, last_seen: Callable[[str], float]) -> list[str]:
+        """The vehicles filed whose ``last_seen(vehicle)`` is below ``cutoff``, taken out,
+        in name order."""
+        out = []
+        heap = self._heap
+        while heap and heap[0][0] < cutoff:
+            key, v = heapq.heappop(heap)
+            self.visited += 1
+            if self._key.get(v) != key:
+                continue  # taken out (and maybe filed again) since
+            seen = last_seen(v)
+            if seen < cutoff:
+                del self._key[v]
+                out.append(v)
+            else:
+                self._key[v] = seen
+                heapq.heappush(heap, (seen, v))
+        return sorted(out)

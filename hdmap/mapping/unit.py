@@ -97,8 +97,7 @@ def match_unit(
     """Associate one unit's rays ``obs`` (an observation table) with the landmarks around
     ``tile``, link them, pool the rest, start, refresh and merge landmarks."""
     frame = m.frames(tile)
-    trust = m.state.trust_of(vehicle)
-    trust.last_seen = max(trust.last_seen, received_at)
+    trust = m.state.seen(vehicle, received_at)
     obs, applied = _corrected(m, frame, obs, trust)
     rays = to_local(frame, obs)
     area = m.area(tile)

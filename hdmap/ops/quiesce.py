@@ -2,8 +2,10 @@
 
 The chain is quiet when every stage has applied every entry its upstream wrote
 (ingest log entries = matcher applied, matcher log entries = solver applied,
-solver log entries = publisher applied), nothing is queued, and the publisher has
-no unpublished change. Bounded in time.
+solver log entries = publisher applied), nothing is queued or being applied (``backlog``
+and ``applying`` 0 everywhere), and the publisher has no unpublished change. Bounded in
+time. The counters compared are committed ones (a transaction's counts appear at its
+commit), so a long apply that later rolls back shows as ``applying``, never as quiet.
 """
 
 from __future__ import annotations
@@ -29,12 +31,13 @@ def totals(stats: list[Stats]) -> dict[str, dict[str, float]]:
 
 
 def is_quiet(t: dict[str, dict[str, float]]) -> bool:
+    """Whether summed counters ``t`` (:func:`totals`) show a quiet chain (module docstring)."""
     for up, down in CHAIN:
         if up not in t or down not in t:
             return False
         if t[up].get("log_entries", 0) != t[down].get("entries_applied", 0):
             return False
-    if any(v.get("backlog", 0) for v in t.values()):
+    if any(v.get("backlog", 0) or v.get("applying", 0) for v in t.values()):
         return False
     return t["publisher"].get("dirty", 0) == 0
 

@@ -10,6 +10,14 @@ Per-key state follows an explicit contract (bytewax ``StatefulLogic``-like):
 ``handle`` (on items), ``on_timer`` (periodic), and the state lives in SQLite,
 committed together with the input offsets it reflects.
 
+Counters follow the transactions too: what :meth:`Service.count` adds inside
+:meth:`Service.transaction` is staged, written with the work and shown in stats only once
+the transaction commits (dropped if it rolls back), so stats never count uncommitted work;
+while a batch is handled or a transaction is open, the gauge ``applying`` is 1. A
+transaction that fails on the storage (disk full, read-only) arms :class:`Backoff`: the
+service waits before it tries again (the stage loop replays its input then), instead of
+failing in a loop.
+
 A corrupt database is a permanent fault: a service whose database fails its check at open
 (:func:`hdmap.runtime.store.check_integrity`) or meets corruption later logs one line naming
 the file and the cause and ends its process with
@@ -44,6 +52,7 @@ from hdmap.runtime.store import (
     EXIT_CORRUPT,
     DatabaseCorrupt,
     Meta,
+    StorageError,
     connect,
     is_corruption,
     transaction,
@@ -107,10 +116,81 @@ class Item:
     received: float = field(default_factory=time.monotonic)
 
 
+@dataclass
+class Backoff:
+    """When a service may try again after transactions that failed on the storage.
+
+    The first failure in a row may be retried at once (a passing lock, a blip); each
+    further one waits ``first_s``, doubling up to ``max_s``; a commit resets it. Times are
+    of the service's clock (:attr:`Service.clock`)."""
+
+    first_s: float = 0.1
+    max_s: float = 5.0
+    failures: int = 0
+    """Storage failures in a row (0 after a commit)."""
+    retry_at: float | None = None
+    """When the next try is due; None when none is owed (no failure, or the retry ran)."""
+
+    def failed(self, now: float) -> float:
+        """One more failure at ``now``: the wait before the next try (also kept)."""
+        self.failures += 1
+        delay = 0.0
+        if self.failures > 1:
+            delay = min(self.max_s, self.first_s * 2.0 ** (self.failures - 2))
+        self.retry_at = now + delay
+        return delay
+
+    def succeeded(self) -> None:
+        """A commit: no wait any more."""
+        self.failures = 0
+        self.retry_at = None
+
+    def waiting(self, now: float) -> bool:
+        """Whether a failed try is still being waited out at ``now``."""
+        return self.retry_at is not None and now < self.retry_at
+
+    def fire(self, now: float) -> bool:
+        """Whether a retry is due at ``now``; if so it is taken (not due again until the
+        next failure)."""
+        if self.retry_at is None or now < self.retry_at:
+            return False
+        self.retry_at = None
+        return True
+
+    def wait_s(self, now: float) -> float:
+        """Seconds until the retry (0 when none is waited for)."""
+        return 0.0 if self.retry_at is None else max(0.0, self.retry_at - now)
+
+
+@dataclass
+class _Staged:
+    """The counts of the transaction open on ``thread``, shown when it commits."""
+
+    thread: int
+    counters: Counter[str] = field(default_factory=Counter)
+    rejected: Counter[str] = field(default_factory=Counter)
+
+
+class _CountsOutcome:
+    """Transaction participant that makes the staged counts committed or drops them."""
+
+    def __init__(self, service: Service, staged: _Staged):
+        self._service, self._staged = service, staged
+
+    def on_commit(self) -> None:
+        self._service._merge(self._staged)
+
+    def on_rollback(self) -> None:
+        """Nothing to undo: the staged counts were never shown."""
+
+
 class Service:
     """Base class: subclasses set ``name`` and implement ``setup``/``handle``/``on_timer``."""
 
     name: ClassVar[str] = "service"
+    stops_on_corruption: ClassVar[bool] = True
+    """Whether corruption met by a transaction while running stops the service like a
+    failed check at open (ingest, which refuses uploads instead, sets it False)."""
 
     def __init__(self, opts: ServiceOptions):
         self.opts = opts
@@ -133,8 +213,19 @@ class Service:
         if stored_zoom != opts.zoom:
             raise SystemExit(f"{self.db_path}: data dir was built with zoom {stored_zoom}")
         self.counters: Counter[str] = Counter()
+        """Committed counts (what stats show); counts of an open transaction are staged."""
         self.rejected: Counter[str] = Counter()
         self._stats_lock = threading.Lock()
+        self._staged: _Staged | None = None
+        self._busy = False
+        self._corrupt_seen: DatabaseCorrupt | None = None
+        self.clock: Callable[[], float] = time.monotonic
+        """The worker's clock (monotonic seconds): timers and the backoff."""
+        self.backoff = Backoff()
+        self.txn_failures = 0
+        """Transactions rolled back on an exception, in this process."""
+        self.last_txn_error: tuple[str, float] | None = None
+        """The last one's cause (SQLite's error name, or the exception's class) and time."""
         self._load_counters()
         self.inbox: queue.Queue[Item] = queue.Queue(maxsize=opts.inbox_size)
         self.started_at = time.time()
@@ -156,29 +247,70 @@ class Service:
         """Release what setup acquired beyond declarations (threads, connections)."""
 
     def extra_counters(self) -> dict[str, float]:
+        """Gauges and per-process counts of the subclass (read on the stats thread)."""
         return {}
+
+    def retry(self) -> None:
+        """Try again what a storage failure left undone, when :attr:`backoff` says so
+        (worker thread); by default nothing (the next batch or timer tries)."""
 
     # -- helpers for subclasses -------------------------------------------------------------
 
     def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to a counter: staged until commit inside this thread's transaction,
+        at once outside one."""
         with self._stats_lock:
-            self.counters[name] += n
+            self._target()[0][name] += n
+
+    def _target(self) -> tuple[Counter[str], Counter[str]]:
+        """Where counts go now (the caller holds the stats lock)."""
+        st = self._staged
+        if st is not None and st.thread == threading.get_ident():
+            return st.counters, st.rejected
+        return self.counters, self.rejected
 
     @contextmanager
     def transaction(self, participants: Sequence[Any] = ()) -> Iterator[None]:
-        """:func:`hdmap.runtime.store.transaction` that also keeps the counters: they are written
-        with the work they count and restored if it rolls back, so the counts in stats
-        survive a restart (also SIGKILL) and never count work that was not kept."""
+        """:func:`hdmap.runtime.store.transaction` that also keeps the counters: what is
+        counted inside is written with the work and shown in stats when it commits, never
+        if it rolls back, so the counts in stats are committed ones and survive a restart
+        (also SIGKILL). A storage failure arms :attr:`backoff` (a commit resets it); a
+        corrupt database is remembered so the loop stops the service
+        (:attr:`stops_on_corruption`)."""
+        staged = _Staged(threading.get_ident())
         with self._stats_lock:
-            saved = (self.counters.copy(), self.rejected.copy())
+            outer, self._staged = self._staged, staged
         try:
-            with transaction(self.db, participants):
+            with transaction(self.db, [_CountsOutcome(self, staged), *participants]):
                 yield
-                self._save_counters()
-        except BaseException:
-            with self._stats_lock:
-                self.counters, self.rejected = saved
+                self._save_counters(staged)
+        except Exception as exc:
+            self._failed(exc)
             raise
+        else:
+            self.backoff.succeeded()
+        finally:
+            with self._stats_lock:
+                self._staged = outer
+
+    def _merge(self, staged: _Staged) -> None:
+        """A commit: its staged counts become committed ones."""
+        with self._stats_lock:
+            self.counters.update(staged.counters)
+            self.rejected.update(staged.rejected)
+            staged.counters.clear()
+            staged.rejected.clear()
+
+    def _failed(self, exc: Exception) -> None:
+        """Account for a rolled-back transaction; a storage failure arms the backoff."""
+        cause = exc.__cause__ if isinstance(exc, StorageError) else exc
+        name = getattr(cause, "sqlite_errorname", None) or type(cause or exc).__name__
+        self.txn_failures += 1
+        self.last_txn_error = (str(name), time.time())
+        if isinstance(exc, DatabaseCorrupt):
+            self._corrupt_seen = exc
+        elif isinstance(exc, StorageError) and exc.transient:
+            self.backoff.failed(self.clock())
 
     def _load_counters(self) -> None:
         self.db.execute(
@@ -189,18 +321,25 @@ class Service:
             target = self.counters if kind == "c" else self.rejected
             target[name] = int(value) if float(value).is_integer() else value
 
-    def _save_counters(self) -> None:
+    def _save_counters(self, staged: _Staged) -> None:
+        """Write the counters as they are once ``staged`` commits (inside the transaction)."""
         with self._stats_lock:
-            rows = [("c", k, float(v)) for k, v in self.counters.items()]
-            rows += [("r", k, float(v)) for k, v in self.rejected.items()]
+            counters = Counter(self.counters)
+            counters.update(staged.counters)
+            rejected = Counter(self.rejected)
+            rejected.update(staged.rejected)
+        rows = [("c", k, float(v)) for k, v in counters.items()]
+        rows += [("r", k, float(v)) for k, v in rejected.items()]
         self.db.executemany(
             "INSERT OR REPLACE INTO counters(kind, name, value) VALUES (?,?,?)", rows
         )
 
     def reject(self, reason: str, n: int = 1) -> None:
+        """Count refused input by reason (staged inside a transaction, like :meth:`count`)."""
         with self._stats_lock:
-            self.rejected[reason] += n
-            self.counters["rejected"] += n
+            counters, rejected = self._target()
+            rejected[reason] += n
+            counters["rejected"] += n
 
     def subscribe(self, key: str, kind: str) -> None:
         def cb(sample: zenoh.Sample) -> None:
@@ -218,7 +357,7 @@ class Service:
         self._declared.append(self.session.declare_queryable(key, cb))
 
     def every(self, period_s: float, fn: Callable[[float], None]) -> None:
-        self._timers.append((period_s, time.monotonic() + period_s, fn))
+        self._timers.append((period_s, self.clock() + period_s, fn))
 
     def declare(self, entity: Any) -> Any:
         """Keep a declared entity so it is undeclared before the session closes."""
@@ -232,8 +371,15 @@ class Service:
         with self._stats_lock:
             counters: dict[str, float] = dict(self.counters)
             rejected = dict(self.rejected)
+            applying = self._busy or self._staged is not None
         counters.update(self.extra_counters())
         counters["backlog"] = self.inbox.qsize()
+        counters["applying"] = int(applying)
+        counters["txn_failures"] = self.txn_failures
+        counters["txn_failing"] = self.backoff.failures
+        counters["retry_in_s"] = self.backoff.wait_s(self.clock())
+        if (last := self.last_txn_error) is not None:
+            counters[f"last_txn_error.{last[0]}"] = last[1]
         counters["cpu_s"] = cpu.user + cpu.system
         counters["rss_bytes"] = self._process.memory_info().rss
         counters["rss_peak_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
@@ -280,9 +426,11 @@ class Service:
 
     def _loop(self, stop: threading.Event) -> None:
         while not stop.is_set():
-            timeout = 0.2
-            if self._timers:
-                timeout = max(0.0, min(0.2, min(t[1] for t in self._timers) - time.monotonic()))
+            now = self.clock()
+            due = [t[1] for t in self._timers]
+            if self.backoff.retry_at is not None:
+                due.append(self.backoff.retry_at)
+            timeout = max(0.0, min([0.2, *(d - now for d in due)]))
             items: list[Item] = []
             try:
                 items.append(self.inbox.get(timeout=timeout))
@@ -290,13 +438,46 @@ class Service:
                     items.append(self.inbox.get_nowait())
             except queue.Empty:
                 pass
-            if items:
+            self.step(items)
+
+    def step(self, items: list[Item]) -> None:
+        """One turn of the worker: handle ``items``, retry what the backoff lets, run the
+        timers that are due; raise a :class:`DatabaseCorrupt` a transaction met (when
+        :attr:`stops_on_corruption`), which stops the service (exit 65)."""
+        if items:
+            with self._stats_lock:
+                self._busy = True
+            try:
                 self.handle(items)
-            now = time.monotonic()
-            for i, (period, due, fn) in enumerate(self._timers):
-                if now >= due:
-                    fn(now)
-                    self._timers[i] = (period, time.monotonic() + period, fn)
+            finally:
+                with self._stats_lock:
+                    self._busy = False
+            self._stop_if_corrupt()
+        if self.backoff.fire(self.clock()):
+            self.retry()
+            self._stop_if_corrupt()
+        now = self.clock()
+        for i, (period, due, fn) in enumerate(self._timers):
+            if now >= due:
+                self._run_timer(fn, now)
+                self._timers[i] = (period, self.clock() + period, fn)
+
+    def _run_timer(self, fn: Callable[[float], None], now: float) -> None:
+        """A timer; one whose transaction fails on the storage is tried at its next period."""
+        try:
+            fn(now)
+        except DatabaseCorrupt:
+            raise
+        except StorageError as exc:
+            if not exc.transient:
+                raise
+            log.error("%s: %s; the timer runs again at its next period", self.name, exc)
+            self.count("storage_errors")
+        self._stop_if_corrupt()
+
+    def _stop_if_corrupt(self) -> None:
+        if self.stops_on_corruption and (fault := self._corrupt_seen) is not None:
+            raise fault
 
 
 def _wire_number(v: float) -> float:

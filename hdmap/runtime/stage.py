@@ -15,7 +15,12 @@ Entries are applied in each producer's ``gseq`` order (live entries released fro
 behind a gap are merged with the replay), never twice (an entry at or below the
 committed offset is dropped even if it is delivered again), and an entry whose apply
 raises, or breaks an SQLite constraint, is set aside (dead-lettered) alone; a failing
-storage (full, read-only) leaves the entries unapplied, to be replayed.
+storage (full, read-only) leaves the entries unapplied, to be replayed: the service's
+:class:`~hdmap.runtime.service.Backoff` spaces the tries (at once, then 0.1 s doubling up
+to 5 s), and live entries that arrive meanwhile are not taken (they stay in the producer's
+log, which the retry replays). Corruption met while applying
+(:class:`~hdmap.runtime.store.DatabaseCorrupt`) stops the service, as the check at open
+does (exit 65).
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from itertools import pairwise
 import zenoh
 
 from hdmap.runtime.service import Item, Service, ServiceOptions
-from hdmap.runtime.store import StorageError
+from hdmap.runtime.store import DatabaseCorrupt, StorageError
 from hdmap.runtime.stream import STAGE_KEYS, LogConsumer, LogServer, LogWriter
 from schemas import DecodeError, LogEntry, keys
 
@@ -53,6 +58,8 @@ class StageService(Service):
         )
         self._log_server: LogServer | None = None
         self._outbox: list[LogEntry] = []
+        self._deferred = 0
+        """Live entries not taken while a storage failure is waited out (replayed later)."""
         self.db.execute(
             "CREATE TABLE IF NOT EXISTS dead_letters "
             "(at REAL NOT NULL, stage TEXT NOT NULL, body BLOB NOT NULL)"
@@ -114,6 +121,10 @@ class StageService(Service):
         return e
 
     def handle(self, items: list[Item]) -> None:
+        """Live entries, kicks and producers appearing: deliver in order and apply; while a
+        storage failure is waited out (:attr:`backoff`), nothing is applied and live
+        entries are left to the replay that follows."""
+        waiting = self.backoff.waiting(self.clock())
         deliver: list[LogEntry] = []
         others: list[Item] = []
         for it in items:
@@ -123,11 +134,25 @@ class StageService(Service):
                 except DecodeError as exc:
                     self.reject(f"bad entry: {exc.field}")
                     continue
+                if waiting:  # the rollback rewound the consumer: the retry replays it
+                    self._deferred += 1
+                    continue
                 deliver += self.consumer.offer(entry)
             elif it.kind == "producer_up":
                 self.consumer.need_catchup = True
             elif it.kind != "kick":
                 others.append(it)
+        if not waiting:
+            self._deliver(deliver)
+        if others:
+            self.handle_other(others)
+
+    def retry(self) -> None:
+        """The backoff after a storage failure is over: replay and apply what is missing."""
+        self.handle([])
+
+    def _deliver(self, deliver: list[LogEntry]) -> None:
+        """Catch up if needed, then apply what is not applied yet."""
         if self.consumer.need_catchup:
             try:
                 deliver += self.consumer.catch_up(self.session)
@@ -136,8 +161,6 @@ class StageService(Service):
         deliver = self._unapplied(in_producer_order(deliver))
         if deliver:
             self._apply_and_publish(deliver)
-        if others:
-            self.handle_other(others)
 
     def _unapplied(self, entries: list[LogEntry]) -> list[LogEntry]:
         """Entries above the committed offsets. A batch that failed and was applied entry
@@ -146,30 +169,41 @@ class StageService(Service):
         done = self.consumer.offsets
         return [e for e in entries if e.seq > done.get((e.producer, e.tile), 0)]
 
-    def _apply_and_publish(self, entries: list[LogEntry]) -> None:
+    def _apply_and_publish(self, entries: list[LogEntry]) -> bool:
         """Apply a batch in one transaction; a batch that raises is retried entry by entry,
         and an entry that still raises is set aside (dead-lettered, counted, logged) so one
         poisonous entry cannot stop the stage. Storage failures are not set aside: the
-        entries stay unapplied and are replayed."""
+        entries stay unapplied and are replayed once :attr:`backoff` allows; corruption
+        is raised (it stops the service). Whether the storage kept up (False: it failed
+        and the rest of the work waits)."""
         try:
             self._apply_in_transaction(entries)
+        except DatabaseCorrupt:
+            raise
         except StorageError as exc:
             if not exc.transient:  # SQLite refused the statement: a poison, not the disk
-                self._isolate(entries)
-                return
-            log.error("%s: %s; entries will be replayed", self.name, exc)
+                return self._isolate(entries)
+            log.error(
+                "%s: %s; entries will be replayed (failure %d in a row, next try in %.3g s)",
+                self.name,
+                exc,
+                self.backoff.failures,
+                self.backoff.wait_s(self.clock()),
+            )
             self.count("storage_errors")
             self._outbox = []
+            return False
         except Exception:  # noqa: BLE001 - any bug in apply: isolate the entry that causes it
-            self._isolate(entries)
+            return self._isolate(entries)
+        return True
 
-    def _isolate(self, entries: list[LogEntry]) -> None:
+    def _isolate(self, entries: list[LogEntry]) -> bool:
+        """Each entry in its own transaction, dead-lettering one that fails alone; stops at
+        a storage failure (the rest is replayed later). Whether the storage kept up."""
         if len(entries) > 1:
-            for e in entries:
-                self._apply_and_publish([e])
-            return
+            return all(self._apply_and_publish([e]) for e in entries)  # stops at a False
         log.exception("%s: entry %s failed; dead-lettered", self.name, _describe(entries[0]))
-        self._dead_letter(entries[0])
+        return self._dead_letter(entries[0])
 
     def _apply_in_transaction(self, entries: list[LogEntry]) -> None:
         participants = [self.consumer] + ([self.writer] if self.writer else [])
@@ -189,8 +223,9 @@ class StageService(Service):
         self._outbox = []
         self.after_commit()
 
-    def _dead_letter(self, entry: LogEntry) -> None:
-        """Keep a failing entry for inspection and mark it consumed (counted, not applied)."""
+    def _dead_letter(self, entry: LogEntry) -> bool:
+        """Keep a failing entry for inspection and mark it consumed (counted, not applied);
+        whether the storage kept it (corruption is raised)."""
         try:
             with self.transaction([self.consumer]):
                 self.db.execute(
@@ -201,9 +236,13 @@ class StageService(Service):
                 self.count("entries_failed")
                 self.count("entries_applied")
                 self.reject(f"{entry.stage}.apply_failed")  # in Stats.rejected, by reason
+        except DatabaseCorrupt:
+            raise
         except StorageError as exc:
             log.error("%s: cannot dead-letter: %s", self.name, exc)
             self.count("storage_errors")
+            return False
+        return True
 
     def participants(self) -> list:
         """Extra in-memory state that must follow the transaction's outcome."""
@@ -217,6 +256,7 @@ class StageService(Service):
             "entries_gap": s.gaps,
             "entries_replayed": s.replayed,
             "catchups": s.catchups,
+            "entries_deferred": self._deferred,
         }
 
 

@@ -175,15 +175,15 @@ def transaction(
 
     A storage failure (disk full, read-only file) is raised as :class:`StorageError`
     after rolling back, so callers refuse the work instead of acknowledging it (a damaged
-    file as :class:`DatabaseCorrupt`, naming it); any other SQLite error too, with
+    file as :class:`DatabaseCorrupt`, naming it, also when a participant meets the damage
+    while it reloads its state on the rollback); any other SQLite error too, with
     ``transient`` False. Participants learn of a rollback
     also when the transaction could not even start.
     """
     try:
         conn.execute("BEGIN IMMEDIATE")
     except sqlite3.Error as exc:
-        for p in participants:  # what they staged before the call will not be kept
-            p.on_rollback()
+        _roll_back(conn, participants)  # what they staged before the call will not be kept
         if is_corruption(exc):
             raise DatabaseCorrupt(db_file(conn), str(exc)) from exc
         raise StorageError(f"cannot start a transaction: {exc}") from exc  # never the work's fault
@@ -195,8 +195,7 @@ def transaction(
             conn.execute("ROLLBACK")
         except sqlite3.Error:
             pass
-        for p in participants:
-            p.on_rollback()
+        _roll_back(conn, participants)
         if isinstance(exc, sqlite3.Error) and is_corruption(exc):
             raise DatabaseCorrupt(db_file(conn), str(exc)) from exc
         if isinstance(exc, sqlite3.Error):
@@ -204,6 +203,21 @@ def transaction(
         raise
     for p in participants:
         p.on_commit()
+
+
+def _roll_back(conn: sqlite3.Connection, participants: Sequence[Participant]) -> None:
+    """Tell every participant of a rollback; one that meets a damaged file while it reloads
+    its state raises :class:`DatabaseCorrupt` once all were told (other errors as they are)."""
+    damage: sqlite3.Error | None = None
+    for p in participants:
+        try:
+            p.on_rollback()
+        except sqlite3.Error as exc:
+            if not is_corruption(exc):
+                raise
+            damage = damage or exc
+    if damage is not None:
+        raise DatabaseCorrupt(db_file(conn), str(damage)) from damage
 
 
 class Meta:

@@ -84,6 +84,7 @@ class _Pending:
 
 class IngestService(Service):
     name = "ingest"
+    stops_on_corruption = False  # it refuses uploads as permanent instead (module docstring)
 
     SCHEMA = """
     CREATE TABLE IF NOT EXISTS seen (

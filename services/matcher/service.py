@@ -1,17 +1,21 @@
 """Matcher: the single writer of landmark identities for its region.
 
 Per batch of obs entries (one upload's rays for one tile each, in order; see
-:mod:`hdmap.runtime.stage`): each entry is decoded and handed to the domain
+:mod:`hdmap.runtime.stage`): each entry's ingest time moves the matcher's clock
+(:meth:`hdmap.mapping.matching.Matching.entry_time`: monotone, an entry stamped far ahead
+of the wall clock does not move it), the entry is handed to the domain
 (:func:`hdmap.mapping.unit.match_unit`: association, linking, pending pool, initiation,
-probation, merge); then vehicles on probation that stopped driving are let go
-(:func:`hdmap.mapping.probation.freeze_stale`), one :class:`schemas.AssocGroup` per
-landmark home tile goes to the assoc log, quiet passes close, and the state is saved in
-the same transaction. A timer expires old pending rays (and forgets the budget records of
-passes silent as long).
+probation, merge), and what the clock's advance settles follows
+(:func:`hdmap.mapping.probation.follow_time`: vehicles on probation that stopped driving
+are let go, trust records of vehicles gone for long are forgotten); then one
+:class:`schemas.AssocGroup` per landmark home tile goes to the assoc log, quiet passes
+close, and the state (with the clock) is saved in the same transaction. A timer expires
+old pending rays (and forgets the budget records of passes silent as long).
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -21,7 +25,7 @@ import numpy as np
 from hdmap.mapping.estimator import LandmarkSums
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
 from hdmap.mapping.pending import expire, forget_budgets
-from hdmap.mapping.probation import freeze_stale
+from hdmap.mapping.probation import follow_time
 from hdmap.mapping.quiet import close_quiet
 from hdmap.mapping.unit import match_unit
 from hdmap.runtime.config import ConfigError
@@ -41,6 +45,8 @@ from schemas import (
 )
 from services.matcher.state import MatcherState
 
+log = logging.getLogger(__name__)
+
 
 @dataclass(frozen=True)
 class MatcherConfig(MatchingConfig):
@@ -58,6 +64,18 @@ class MatcherConfig(MatchingConfig):
             raise ConfigError(
                 f"matcher.pending_max_per_pass: below init.min_rays ({self.init.min_rays}), got "
                 f"{self.pending_max_per_pass} (no pass could start a landmark); 0 is no limit"
+            )
+        if not self.time_tolerance_s > 0:
+            raise ConfigError(
+                f"matcher.time_tolerance_s: must be > 0, got {self.time_tolerance_s} (no "
+                "entry stamped by an ingest whose clock is a little ahead would count)"
+            )
+        forget = self.trust.forget_after_s
+        if 0 < forget <= self.trust.probation_ttl_s:
+            raise ConfigError(
+                "matcher.trust.forget_after_s: must exceed probation_ttl_s "
+                f"({self.trust.probation_ttl_s}), got {forget} (a vehicle on probation would "
+                "be forgotten with its passes held); 0 keeps records for ever"
             )
         if 0 < self.close_passes_after_s <= self.pending_ttl_s:
             raise ConfigError(
@@ -161,19 +179,26 @@ class MatcherService(StageService):
     # -- apply -----------------------------------------------------------------------------
 
     def apply(self, entries: list[LogEntry]) -> None:
-        """Decode each entry, match its unit, let stale vehicles go, emit one assoc entry
-        per home tile, close quiet passes and save."""
+        """Decode each entry, move the clock, match its unit and settle what the clock's
+        advance settles; emit one assoc entry per home tile, close quiet passes and save."""
         self.matching.out = new_output()
-        now = 0.0
+        ahead: list[float] = []
         for e in entries:
             try:
                 group = ObsGroup.from_bytes(e.body)
             except DecodeError as exc:
                 self.reject(f"obs.{exc.field}")
                 continue
-            self._unit(e.tile, group)
-            now = max(now, group.received_at)
-        freeze_stale(self.matching, now)
+            if self._unit(e.tile, group) < group.received_at:
+                ahead.append(group.received_at)
+            follow_time(self.matching)
+        if ahead:
+            log.warning(
+                "%d obs entries stamped ahead of the matcher's clock (%.0f s at most); "
+                "their time not taken",
+                len(ahead),
+                max(ahead) - self.matching.now,
+            )
         for home, out in sorted(self.matching.out.items()):
             self.emit(home, assoc_body(out))
         self.count("passes_closed", close_quiet(self.matching.quiet, self.sums, self.state))
@@ -181,9 +206,12 @@ class MatcherService(StageService):
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
 
-    def _unit(self, tile: str, g: ObsGroup) -> None:
-        """One decoded unit through the domain."""
-        match_unit(self.matching, tile, g.vehicle_id, g.pass_id, g.received_at, g.obs)
+    def _unit(self, tile: str, g: ObsGroup) -> float:
+        """One decoded unit through the domain, at its time on the matcher's clock
+        (returned)."""
+        at = self.matching.entry_time(g.received_at)
+        match_unit(self.matching, tile, g.vehicle_id, g.pass_id, at, g.obs)
+        return at
 
     # -- timers and stats -----------------------------------------------------------------------
 

@@ -48,6 +48,7 @@ CREATE TABLE IF NOT EXISTS trust_status (
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS pass_budget (
     vehicle TEXT NOT NULL, pass_id INTEGER NOT NULL, evicted INTEGER NOT NULL,
     failed INTEGER NOT NULL, quarantined TEXT NOT NULL, last_at REAL NOT NULL,
@@ -129,6 +130,10 @@ class MatcherState(LandmarkTable):
             "DELETE FROM pending WHERE vehicle=? AND obs_id=?",
             [(v, i) for (v, _i), i in zip(removed, sql_ids, strict=True)],
         )
+        gone_v = [(v,) for v in sorted(self._trust_gone)]
+        for table in ("trust", "trust_status", "trust_pass"):
+            c.executemany(f"DELETE FROM {table} WHERE vehicle=?", gone_v)
+        c.execute("INSERT OR REPLACE INTO clock(name, t) VALUES ('ingest', ?)", (self.ingest_time,))
         c.executemany(
             "INSERT OR REPLACE INTO trust(vehicle, n, i_ee, i_en, i_nn, sx, sy, offered, passed) "
             "VALUES (?,?,?,?,?,?,?,?,?)",
@@ -229,6 +234,9 @@ class MatcherState(LandmarkTable):
             t = self.trust.get(v)
             if t is not None:
                 t.status, t.held_homes, t.last_seen = int(status), set(homes.split()), float(seen)
+        self.index_trust()
+        clock = c.execute("SELECT t FROM clock WHERE name='ingest'").fetchone()
+        self.ingest_time = 0.0 if clock is None else float(clock[0])
         rows = c.execute(
             "SELECT id, cls, home, tile, x, cov, sums, created_at FROM landmarks ORDER BY id"
         ).fetchall()

@@ -2,7 +2,8 @@
 mutations of them (flipped bytes, truncation, wrong types, NaN/inf, huge arrays, duplicate
 ids, far timestamps, unknown classes, zero directions, coordinates outside their tile).
 
-Shared by tests/test_fuzz_decoders.py and tests/test_fuzz_endpoints.py.
+Shared by tests/test_fuzz_decoders.py and tests/test_fuzz_endpoints.py; the observation
+builder is the attack generators' (:mod:`fleetsim.attacks`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from fleetsim.synthetic import make_observations
+from fleetsim.attacks import HELSINKI, fresh_observations
 from hdmap.geo.tiles import quadkeys_of, route_rays
 from schemas import (
     AssocGroup,
@@ -48,7 +49,6 @@ FUZZ = settings(
     suppress_health_check=list(HealthCheck),
 )
 
-HELSINKI = (60.17, 24.94)
 _ids = itertools.count(1_000_000)
 """Fresh observation / landmark numbers across every example of the module."""
 
@@ -57,9 +57,8 @@ _ids = itertools.count(1_000_000)
 
 
 def observations(n: int, seed: int = 0, lat: float = HELSINKI[0], lon: float = HELSINKI[1]):
-    obs = make_observations(n, seed=seed, lat=lat, lon=lon)
-    first = next(_ids) * 1000
-    return Observations(**{**obs.__dict__, "obs_id": np.arange(first, first + n, dtype=np.uint64)})
+    """Valid observations with fresh ids (:func:`fleetsim.attacks.fresh_observations`)."""
+    return fresh_observations(n, next(_ids) * 1000, seed, lat, lon)
 
 
 def landmarks(n: int, now: float, seed: int = 0) -> Landmarks:

@@ -1,0 +1,584 @@
+"""Attacks from one vehicle or one client (issue #17, "One vehicle must not stop a region").
+
+Each attack is a thread (:class:`Attack`) with a bus session of its own (one client),
+sending at a modest, paced rate until its ``duration_s`` has passed or :meth:`Attack.stop`
+is called (every request is bounded by its timeout); :meth:`Attack.report` is what it
+sent and what came back (:class:`AttackReport`). The attacks (:data:`ATTACK_NAMES`,
+:func:`make_attack`):
+
+- ``restart``: :class:`StuckPass` with image indices that restart in every upload (three
+  rays, images 0, 1, 2, of one phantom sign, in one pass): the rays meet, but never in the
+  four distinct images a candidate landmark needs;
+- ``parked``: :class:`StuckPass` of a parked car seeing the same sign from the same spot
+  with no usable range (ten rays an upload, images counting up, ``range_m = 0``);
+- ``spread``: :class:`SpreadUpload`, uploads of 10,000 observations spread over the globe
+  (one obs log entry per tile: 10,000 tiles an upload);
+- ``tokens``: :class:`ForgedTokens`, liveliness tokens with wildcards
+  (``hdmap/v1/alive/ingest/*/*``, ...) declared and undeclared again and again;
+- ``snapshots``: :class:`SnapshotQueries`, queries on ``hdmap/v1/**`` (every queryable of
+  the deployment matches: snapshots, uploads, log replays, stats);
+- ``future``: :class:`FutureDated`, uploads sent in 2096 (``sent_at``) whose rows are
+  captured either just inside ingest's clock-skew window (``max_future_s``) or a year
+  ahead.
+
+The builders (:func:`fresh_observations`, :func:`stuck_pass_rays`, :func:`spread_rays`)
+are shared with the fuzz tests (``tests/support/hostile.py``).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+import zenoh
+
+from fleetsim import loadgen
+from fleetsim.loadgen import LoadConfig
+from fleetsim.loadtest import report
+from fleetsim.synthetic import make_observations
+from fleetsim.world import HELSINKI as HELSINKI_TOWN
+from hdmap.geo.geodesy import EnuFrame
+from hdmap.ops.quiesce import wait_quiet
+from hdmap.ops.status import collect
+from hdmap.runtime.bus import BusConfig, open_session, query
+from schemas import DecodeError, ErrorReply, ObservationBatch, Observations, Stats, UploadAck, keys
+
+HELSINKI = (60.17, 24.94)
+"""Where the fuzz tests' observations are (lat, lon deg)."""
+
+TOWN = HELSINKI_TOWN[:2]
+"""The demo town's anchor (lat, lon deg): where the load generator drives."""
+
+PHANTOM_CLASS = 6
+"""Sign class of the stuck passes' phantom sign: none of the demo town's signs has it, so
+no honest landmark takes the rays."""
+
+PHANTOM_SIGN = np.array([10.0, 30.0, 2.5])
+"""The phantom sign in the town's ENU frame (m)."""
+
+ATTACK_NAMES = ("restart", "parked", "spread", "tokens", "snapshots", "future")
+"""Every attack :func:`make_attack` builds, in the order of the issue."""
+
+Pattern = Literal["restart", "parked"]
+"""The two stuck passes (:func:`stuck_pass_rays`)."""
+
+FORGED_TOKENS = (
+    f"{keys.ROOT}/alive/ingest/*/*",
+    f"{keys.ROOT}/alive/**",
+    f"{keys.ROOT}/alive/matcher/*/*",
+    f"{keys.ROOT}/alive/ingest/all/forged",
+)
+"""Liveliness keys :class:`ForgedTokens` declares (wildcards, and one with no service)."""
+
+# --- builders -------------------------------------------------------------------------------
+
+
+def fresh_observations(
+    n: int, first_id: int, seed: int = 0, lat: float = HELSINKI[0], lon: float = HELSINKI[1]
+) -> Observations:
+    """Valid observations (:func:`fleetsim.synthetic.make_observations`) with the ids
+    ``first_id .. first_id + n - 1``."""
+    obs = make_observations(n, seed=seed, lat=lat, lon=lon)
+    return Observations(
+        **{**obs.__dict__, "obs_id": np.arange(first_id, first_id + n, dtype=np.uint64)}
+    )
+
+
+def stuck_pass_rays(
+    frame: EnuFrame,
+    pattern: Pattern,
+    k: int,
+    first_id: int,
+    rng: np.random.Generator,
+) -> Observations:
+    """Upload ``k`` of a pass that never makes a landmark, ids from ``first_id``.
+
+    ``restart``: three rays along 22 m of road at the phantom sign, images 0, 1, 2 in every
+    upload (the GNSS bias drifts between uploads, as on a moving car); ``parked``: ten rays
+    from one spot (GNSS jitter of a standing car), images counting up, no range."""
+    n = 3 if pattern == "restart" else 10
+    if pattern == "restart":
+        a = np.c_[np.full(n, 12.0), np.linspace(0.0, 22.0, n), np.full(n, 1.5)]
+        image = np.arange(n)
+        a_meas = a + np.r_[rng.normal(0, 0.3, 2), 0.0]
+    else:
+        a = np.array([12.0, 0.0, 1.5]) + rng.normal(0, 0.01, (n, 3))
+        image = np.arange(n) + k * n
+        a_meas = a
+    v = PHANTOM_SIGN - a
+    v = v + rng.normal(0, 0.005, (n, 3)) * np.linalg.norm(v, axis=1)[:, None]
+    d = v / np.linalg.norm(v, axis=1, keepdims=True)
+    lat, lon, h = frame.to_geodetic(a_meas)
+    return Observations(
+        obs_id=np.arange(first_id, first_id + n, dtype=np.uint64),
+        t=np.full(n, time.time() - 0.5),
+        image=image.astype(np.uint32),
+        sign_class=np.full(n, PHANTOM_CLASS, np.uint16),
+        lat=np.atleast_1d(lat),
+        lon=np.atleast_1d(lon),
+        h=np.atleast_1d(h),
+        direction=d,
+        sigma_az=np.full(n, 0.005),
+        sigma_el=np.full(n, 0.005),
+        sigma_pos_h=np.full(n, 1.0),
+        sigma_pos_v=np.full(n, 1.5),
+        range_m=np.zeros(n),
+        sigma_range_m=np.zeros(n),
+        score=np.full(n, 0.9, np.float32),
+    )
+
+
+def spread_rays(n: int, first_id: int, rng: np.random.Generator) -> Observations:
+    """``n`` valid observations spread over the globe (latitudes within +-80 deg), one
+    image each, ids from ``first_id``."""
+    obs = make_observations(n, seed=int(rng.integers(2**31)))
+    return Observations(
+        **{
+            **obs.__dict__,
+            "obs_id": np.arange(first_id, first_id + n, dtype=np.uint64),
+            "lat": rng.uniform(-80.0, 80.0, n),
+            "lon": rng.uniform(-180.0, 180.0, n),
+            "image": np.arange(n, dtype=np.uint32),
+        }
+    )
+
+
+# --- the attacks ----------------------------------------------------------------------------
+
+
+@dataclass
+class AttackReport:
+    """What one attack sent and what came back: ``requests`` (uploads, queries or token
+    declarations), ``observations`` (rows uploaded), ``accepted`` (rows acknowledged as
+    recorded, ``UploadAck.accepted``), ``duplicates``, ``rejected`` (rows refused one by
+    one), ``refused`` (requests refused whole: an ack with an error, an error reply),
+    ``unanswered`` (no usable reply within the timeout), ``replies``, and ``errors``: the
+    refusals and rejections by the field they name (``rate``, ``tile``, ``obs.t``, ...)."""
+
+    name: str
+    client: str
+    """The vehicle id (uploads) or a label of the client."""
+    seconds: float = 0.0
+    requests: int = 0
+    observations: int = 0
+    accepted: int = 0
+    duplicates: int = 0
+    rejected: int = 0
+    refused: int = 0
+    unanswered: int = 0
+    replies: int = 0
+    errors: Counter[str] = field(default_factory=Counter)
+
+    def as_dict(self) -> dict:
+        """The report as plain JSON values."""
+        return {**self.__dict__, "errors": dict(sorted(self.errors.items()))}
+
+
+class Attack(threading.Thread):
+    """One client's attack: :meth:`step` every ``period_s`` (paced; a late step runs at
+    once) on a session of its own, until ``duration_s`` has passed or :meth:`stop`."""
+
+    name_ = "attack"
+
+    def __init__(self, bus: BusConfig, duration_s: float, period_s: float, client: str):
+        super().__init__(name=f"attack-{self.name_}", daemon=True)
+        self.bus, self.duration_s, self.period_s = bus, duration_s, period_s
+        self._stop_event = threading.Event()
+        self._lock = threading.Lock()
+        self._report = AttackReport(self.name_, client)
+        self.failure: str = ""
+        """Why the attack ended early (the bus could not be joined), if it did."""
+
+    def stop(self) -> None:
+        """Ask the attack to end after the request in flight."""
+        self._stop_event.set()
+
+    def report(self) -> AttackReport:
+        """A copy of what was sent and answered so far."""
+        with self._lock:
+            r = self._report
+            return AttackReport(**{**r.__dict__, "errors": Counter(r.errors)})
+
+    def run(self) -> None:
+        t0 = time.monotonic()
+        try:
+            with open_session(self.bus) as session:
+                try:
+                    due = t0
+                    while time.monotonic() - t0 < self.duration_s:
+                        if self._stop_event.wait(max(0.0, due - time.monotonic())):
+                            break
+                        due += self.period_s
+                        self.step(session)
+                finally:
+                    self.teardown(session)
+        except zenoh.ZError as exc:
+            self.failure = f"zenoh: {exc}"
+        with self._lock:
+            self._report.seconds = time.monotonic() - t0
+
+    def teardown(self, session: zenoh.Session) -> None:
+        """After the last step (nothing by default)."""
+
+    def step(self, session: zenoh.Session) -> None:
+        """One request (overridden)."""
+        raise NotImplementedError
+
+    def _count(self, **kw: int) -> None:
+        with self._lock:
+            for k, v in kw.items():
+                setattr(self._report, k, getattr(self._report, k) + v)
+
+    def _error(self, field_name: str) -> None:
+        with self._lock:
+            self._report.refused += 1
+            self._report.errors[field_name] += 1
+
+
+class _Uploader(Attack):
+    """An attack by uploads of one vehicle (its own key, unique observation ids)."""
+
+    timeout_s = 10.0
+
+    def __init__(self, bus: BusConfig, duration_s: float, period_s: float, vehicle_id: str):
+        super().__init__(bus, duration_s, period_s, vehicle_id)
+        self.vehicle_id = vehicle_id
+        self.next_id = 1
+        self.batch_id = 0
+
+    def take_ids(self, n: int) -> int:
+        """The first of ``n`` new observation ids."""
+        first = self.next_id
+        self.next_id += n
+        return first
+
+    def upload(self, session: zenoh.Session, batch: ObservationBatch) -> None:
+        """Send one batch and count its ack."""
+        self._count(requests=1, observations=len(batch.obs))
+        try:
+            replies = query(
+                session,
+                keys.upload(self.vehicle_id),
+                batch.to_bytes(),
+                timeout=self.timeout_s,
+                target=zenoh.QueryTarget.BEST_MATCHING,
+            )
+        except zenoh.ZError:
+            self._count(unanswered=1)
+            return
+        ack = None
+        for _k, ok, _err in replies:
+            if ok is not None:
+                try:
+                    ack = UploadAck.from_bytes(ok)
+                except DecodeError:
+                    continue
+        if ack is None:
+            self._count(unanswered=1)
+            return
+        self._count(replies=1)
+        if ack.error is not None:
+            self._error(ack.error.field)
+            return
+        self._count(
+            accepted=len(ack.accepted), duplicates=len(ack.duplicates), rejected=len(ack.rejected)
+        )
+        with self._lock:
+            for r in ack.rejected:
+                self._report.errors[r.field] += 1
+
+    def batch(self, pass_id: int, obs: Observations, sent_at: float | None = None):
+        """The next batch of this vehicle."""
+        self.batch_id += 1
+        now = time.time() if sent_at is None else sent_at
+        return ObservationBatch(self.vehicle_id, pass_id, self.batch_id, now, obs)
+
+
+class StuckPass(_Uploader):
+    """One pass whose pending rays never make a landmark (``restart`` or ``parked``, see
+    :func:`stuck_pass_rays`), at ``rate`` observations/s."""
+
+    def __init__(self, bus: BusConfig, duration_s: float, pattern: Pattern, rate: float = 8.0):
+        self.name_ = pattern
+        period = (3 if pattern == "restart" else 10) / rate
+        super().__init__(bus, duration_s, period, f"attack-{pattern}")
+        self.pattern: Pattern = pattern
+        self.frame = EnuFrame(TOWN[0], TOWN[1], 20.0)
+        self.rng = np.random.default_rng(0)
+        self.k = 0
+
+    def step(self, session: zenoh.Session) -> None:
+        obs = stuck_pass_rays(self.frame, self.pattern, self.k, self.next_id, self.rng)
+        self.take_ids(len(obs))
+        self.k += 1
+        self.upload(session, self.batch(1, obs))
+
+
+class SpreadUpload(_Uploader):
+    """Uploads of ``n_obs`` observations spread over the globe, one every ``period_s``
+    (10,000 every 5 s: 2,000 obs/s, ingest's default per-vehicle limit)."""
+
+    name_ = "spread"
+    timeout_s = 30.0
+
+    def __init__(
+        self, bus: BusConfig, duration_s: float, n_obs: int = 10_000, period_s: float = 5.0
+    ):
+        super().__init__(bus, duration_s, period_s, "attack-spread")
+        self.n_obs = n_obs
+        self.rng = np.random.default_rng(0)
+
+    def step(self, session: zenoh.Session) -> None:
+        obs = spread_rays(self.n_obs, self.take_ids(self.n_obs), self.rng)
+        self.upload(session, self.batch(self.batch_id + 1, obs))
+
+
+class FutureDated(_Uploader):
+    """Uploads sent in 2096 (``sent_at`` 4.0e9, inside the schema's range) of ``n_obs``
+    rows at the town, half captured ``inside_s`` ahead of now (within ingest's default
+    300 s clock-skew window), half a year ahead; one a second."""
+
+    name_ = "future"
+
+    def __init__(self, bus: BusConfig, duration_s: float, n_obs: int = 8, inside_s: float = 290):
+        super().__init__(bus, duration_s, 1.0, "attack-future")
+        self.n_obs, self.inside_s, self.at = n_obs, inside_s, TOWN
+
+    def step(self, session: zenoh.Session) -> None:
+        n = self.n_obs
+        obs = fresh_observations(n, self.take_ids(n), self.batch_id, *self.at)
+        now = time.time()
+        t = np.where(np.arange(n) % 2 == 0, now + self.inside_s, now + 365 * 86400.0)
+        obs = Observations(**{**obs.__dict__, "t": t})
+        self.upload(session, self.batch(self.batch_id + 1, obs, sent_at=4.0e9))
+
+
+class ForgedTokens(Attack):
+    """Liveliness tokens with wildcards (:data:`FORGED_TOKENS`), all declared and then
+    undeclared again every ``period_s`` (each declaration a PUT to every liveliness
+    subscriber, e.g. the stage services' watch of their upstream)."""
+
+    name_ = "tokens"
+
+    def __init__(self, bus: BusConfig, duration_s: float, period_s: float = 0.5):
+        super().__init__(bus, duration_s, period_s, "forged-tokens")
+        self.keys = FORGED_TOKENS
+        self.live: list[zenoh.LivelinessToken] = []
+
+    def step(self, session: zenoh.Session) -> None:
+        self.teardown(session)
+        for k in self.keys:
+            try:
+                self.live.append(session.liveliness().declare_token(k))
+                self._count(requests=1)
+            except zenoh.ZError:
+                self._error("declare")
+
+    def teardown(self, session: zenoh.Session) -> None:
+        for t in self.live:
+            t.undeclare()
+        self.live = []
+
+
+class SnapshotQueries(Attack):
+    """Queries on ``selector`` (default ``hdmap/v1/**``: every queryable matches) with no
+    payload, one every ``period_s``; error replies are counted by the field they name."""
+
+    name_ = "snapshots"
+
+    def __init__(
+        self,
+        bus: BusConfig,
+        duration_s: float,
+        period_s: float = 0.2,
+        selector: str = f"{keys.ROOT}/**",
+        timeout_s: float = 3.0,
+    ):
+        super().__init__(bus, duration_s, period_s, "snapshot-client")
+        self.selector, self.timeout_s = selector, timeout_s
+
+    def step(self, session: zenoh.Session) -> None:
+        self._count(requests=1)
+        try:
+            replies = query(session, self.selector, timeout=self.timeout_s)
+        except zenoh.ZError:
+            self._count(unanswered=1)
+            return
+        if not replies:
+            self._count(unanswered=1)
+        for _k, ok, err in replies:
+            self._count(replies=1)
+            why: str | None = None  # an error reply, or an upload ack with an error: refused
+            try:
+                if err is not None:
+                    why = ErrorReply.from_bytes(err).field
+                elif ok is not None and (ack_error := UploadAck.from_bytes(ok).error):
+                    why = ack_error.field
+            except DecodeError:  # not an ack (stats, a log reply): answered
+                why = "undecodable" if err is not None else None
+            if why is not None:
+                self._error(why)
+
+
+def make_attack(name: str, bus: BusConfig, duration_s: float, fast: bool = False) -> Attack:
+    """The attack ``name`` (one of :data:`ATTACK_NAMES`) at its modest default rate, or
+    with ``fast`` (short tests) the stuck passes at 30 (restart) and 50 (parked) obs/s, so
+    that they reach the matcher's budget and quarantine within seconds, and spread uploads
+    of 1,000 observations (not 10,000)."""
+    if name == "restart":
+        return StuckPass(bus, duration_s, "restart", 30.0 if fast else 8.0)
+    if name == "parked":
+        return StuckPass(bus, duration_s, "parked", 50.0 if fast else 8.0)
+    if name == "spread":
+        return SpreadUpload(bus, duration_s, 1_000 if fast else 10_000)
+    if name == "tokens":
+        return ForgedTokens(bus, duration_s)
+    if name == "snapshots":
+        return SnapshotQueries(bus, duration_s)
+    if name == "future":
+        return FutureDated(bus, duration_s)
+    raise ValueError(f"unknown attack {name!r}; one of {', '.join(ATTACK_NAMES)}")
+
+
+def stop_all(attacks: list[Attack], timeout_s: float = 40.0) -> None:
+    """Stop every attack and wait for its thread (bounded: each request has a timeout)."""
+    for a in attacks:
+        a.stop()
+    deadline = time.monotonic() + timeout_s
+    for a in attacks:
+        if a.is_alive():
+            a.join(max(0.1, deadline - time.monotonic()))
+
+
+# --- an honest load with attacks running ----------------------------------------------------
+
+
+def run_under_attack(
+    session: zenoh.Session,
+    cfg: LoadConfig,
+    attacks: list[Attack],
+    drain_timeout: float = 120.0,
+    quiet_timeout: float = 60.0,
+) -> dict:
+    """The load generator's honest fleet (:mod:`fleetsim.loadgen`) for ``cfg.duration_s``
+    with ``attacks`` running exactly as long, then the drain; the loadtest's report
+    (:func:`fleetsim.loadtest.report`) with ``attacks`` (each :class:`AttackReport`) and
+    ``honest`` (:func:`honest_accounting`). With no attacks it is the loadtest's run.
+
+    Bounded: the initial wait for a quiet chain by ``quiet_timeout``, the load by its
+    duration, vehicles' and attacks' last requests by their timeouts, the drain by
+    ``drain_timeout``."""
+    run_id = cfg.run_id or loadgen.new_run_id()
+    cfg = replace(cfg, run_id=run_id)
+    world, pool = loadgen.build_pool(cfg)
+    tiles = loadgen.town_tiles_with_halo(world)
+    counters = loadgen.Counters()
+    started_quiet = wait_quiet(session, timeout=quiet_timeout)
+    before = collect(session)
+    stop = threading.Event()
+    vehicles = [
+        loadgen.Vehicle(i, session, pool, cfg, counters, stop, run_id) for i in range(cfg.vehicles)
+    ]
+    readers: list[loadgen.Reader] = []
+    t0 = time.monotonic()
+    try:
+        readers = [loadgen.Reader(session, tiles, counters) for _ in range(cfg.subscribers)]
+        for a in attacks:
+            a.start()
+        for v in vehicles:
+            v.start()
+        stop.wait(cfg.duration_s)
+    finally:
+        stop.set()
+        stop_all(attacks)
+        deadline = time.monotonic() + cfg.max_attempts * (cfg.upload_timeout_s + 2.0) + 5.0
+        for v in vehicles:
+            if v.is_alive():
+                v.join(max(0.1, deadline - time.monotonic()))
+        load_s = time.monotonic() - t0
+        if sys.exc_info()[0] is not None:
+            for r in readers:
+                r.close()
+    try:
+        drained = wait_quiet(session, timeout=drain_timeout)
+    finally:
+        drain_s = time.monotonic() - t0 - load_s
+        time.sleep(0.5)  # the last deltas in flight to the readers
+        for r in readers:
+            r.close()
+    after = collect(session)
+    out = report(cfg, counters, before, after, load_s, drain_s, drained, started_quiet)
+    reports = [a.report() for a in attacks]
+    out["attacks"] = [r.as_dict() for r in reports]
+    out["attack_failures"] = [a.failure for a in attacks if a.failure]
+    out["honest"] = honest_accounting(out, reports)
+    out["refusals"] = service_refusals(before, after)
+    return out
+
+
+WATCHED = ("pending_evicted", "passes_quarantined", "init_skipped_quarantined", "rate_limited")
+GAUGES = ("passes_in_quarantine", "quarantine.")
+"""Prefixes of the service counters where an attack shows (with every ``rejected`` reason)."""
+
+
+def service_refusals(before: list[Stats], after: list[Stats]) -> dict[str, dict[str, float]]:
+    """Per service, what changed between two stats snapshots in its ``rejected`` reasons
+    (``rejected.<reason>``) and its counters starting with one of :data:`WATCHED`, and
+    the gauges of :data:`GAUGES` at the end (``quarantine.<vehicle>``: its passes in
+    quarantine); zeros left out."""
+
+    def flat(stats: list[Stats]) -> dict[str, dict[str, float]]:
+        out: dict[str, dict[str, float]] = {}
+        for s in stats:
+            d = out.setdefault(s.service, {})
+            for k, v in s.counters.items():
+                if k.startswith(WATCHED):
+                    d[k] = d.get(k, 0.0) + float(v)
+            for k, v in s.rejected.items():
+                d[f"rejected.{k}"] = d.get(f"rejected.{k}", 0.0) + float(v)
+        return out
+
+    b, a = flat(before), flat(after)
+    delta = {
+        svc: {k: v - b.get(svc, {}).get(k, 0.0) for k, v in sorted(vals.items())}
+        for svc, vals in sorted(a.items())
+    }
+    for s in after:
+        for k, v in s.counters.items():
+            if k.startswith(GAUGES):
+                q = delta.setdefault(s.service, {})
+                q[k] = q.get(k, 0.0) + float(v)
+    return {svc: {k: v for k, v in d.items() if v} for svc, d in delta.items()}
+
+
+def honest_accounting(r: dict, attacks: list[AttackReport]) -> dict:
+    """The honest vehicles' figures of a report of :func:`run_under_attack`: ``sent``,
+    ``acked``, ``failed``, ``applied`` (observations the matcher took in, less those the
+    attackers got acknowledged), ``lost`` (the sum of the chain's losses, with the
+    attackers' acknowledged rows counted on the acknowledged side: 0 when every
+    acknowledged observation, honest or not, was applied exactly once), ``drained``,
+    ``zero_loss`` and the latency percentiles."""
+    attacker_acked = sum(a.accepted for a in attacks)
+    losses = dict(r["losses"])
+    losses["ingest_vs_acked"] += attacker_acked
+    lost = sum(abs(v) for v in losses.values())
+    return {
+        "sent": r["sent"],
+        "acked": r["accepted"],
+        "failed": r["failed"],
+        "rejected": r["rejected"],
+        "applied": r["chain"]["matcher_received"] - attacker_acked,
+        "attacker_acked": attacker_acked,
+        "losses": losses,
+        "lost": lost,
+        "drained": r["drained"],
+        "zero_loss": bool(r["drained"] and lost == 0 and r["failed"] == 0),
+        "latency_s": r["latency_s"],
+        "latency_samples": r["latency_samples"],
+        "ack_latency_s": r["ack_latency_s"],
+    }

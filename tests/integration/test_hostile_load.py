@@ -1,0 +1,119 @@
+"""Issue #17's attacks, all at once, while honest vehicles load a real stack.
+
+A router and the four services run as processes (the ``stack`` fixture stops them, also
+on failure). A short honest load (:func:`fleetsim.attacks.run_under_attack`) runs with
+every attack of :mod:`fleetsim.attacks` concurrently, each from its own client (the stuck
+passes fast enough to reach the matcher's budget within the load, spread uploads of 1,000
+tiles). The honest chain must drain with zero loss, and each attack must show where the
+services say it was refused, quarantined or counted. Counts only, never timings; every
+wait is bounded (the load, the requests' timeouts, the drain, pytest-timeout).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from fleetsim.attacks import ATTACK_NAMES, make_attack, run_under_attack
+from fleetsim.loadgen import LoadConfig
+from hdmap.ops.stack import SERVICE_NAMES
+from hdmap.ops.status import collect
+from hdmap.runtime.bus import open_session
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
+
+CFG = LoadConfig(
+    vehicles=4,
+    rate=500.0,
+    duration_s=15.0,
+    batch=250,
+    subscribers=1,
+    pool_passes=12,
+    upload_timeout_s=10.0,
+)
+
+
+class StatusWatch(threading.Thread):
+    """What the status client sees, once a second until stopped (bounded by ``rounds``)."""
+
+    def __init__(self, bus, rounds: int = 60):
+        super().__init__(daemon=True)
+        self.bus, self.rounds = bus, rounds
+        self.stop = threading.Event()
+        self.seen: list[list[tuple[str, str]]] = []
+
+    def run(self) -> None:
+        with open_session(self.bus) as s:
+            for _ in range(self.rounds):
+                self.seen.append(sorted((x.service, x.instance) for x in collect(s, 2.0)))
+                if self.stop.wait(1.0):
+                    return
+
+
+def test_honest_chain_holds_under_every_attack(stack):
+    stack.start_all()
+    attacks = [make_attack(n, stack.bus, CFG.duration_s, fast=True) for n in ATTACK_NAMES]
+    watch = StatusWatch(stack.bus)
+    watch.start()
+    try:
+        with open_session(stack.bus) as session:
+            r = run_under_attack(session, CFG, attacks, drain_timeout=90.0)
+    finally:
+        watch.stop.set()
+        watch.join(10.0)
+    by_name = {a["name"]: a for a in r["attacks"]}
+    assert not r["attack_failures"]
+
+    # The honest vehicles: everything sent acknowledged, and applied exactly once.
+    h = r["honest"]
+    assert h["drained"] and h["failed"] == 0 and h["rejected"] == 0
+    assert h["acked"] == h["sent"] > 0
+    assert h["applied"] == h["acked"], h
+    assert h["lost"] == 0 and h["zero_loss"], h["losses"]
+    assert r["deltas"] > 0 and r["latency_samples"] > 0
+
+    ingest = r["refusals"].get("ingest", {})
+    matcher = r["refusals"].get("matcher", {})
+    publisher = r["refusals"].get("publisher", {})
+
+    # (1) Passes that never make a landmark: recorded, then evicted past the pass's
+    # budget and quarantined (both of them, by vehicle).
+    for name in ("restart", "parked"):
+        a = by_name[name]
+        assert a["accepted"] == a["observations"] > 0 and a["refused"] == 0, a
+        assert matcher.get(f"quarantine.{a['client']}", 0) >= 1, matcher
+    assert matcher.get("pending_evicted.pass", 0) > 0, matcher
+    assert matcher.get("passes_quarantined", 0) >= 2, matcher
+
+    # (2) Uploads over many tiles: recorded (the honest chain still drained above).
+    spread = by_name["spread"]
+    assert spread["requests"] > 0 and spread["accepted"] == spread["observations"], spread
+
+    # (3) Forged wildcard tokens: the status client saw the four services, one instance
+    # each, every time it looked during the attack.
+    assert by_name["tokens"]["requests"] > 0
+    assert watch.seen
+    for seen in watch.seen:
+        assert sorted(s for s, _i in seen) == sorted(SERVICE_NAMES), seen
+
+    # (4) Queries on hdmap/v1/**: the publisher refuses a snapshot naming no tile, ingest
+    # an upload key naming no vehicle; both counted.
+    snaps = by_name["snapshots"]
+    assert snaps["requests"] > 0 and snaps["errors"].get("tile", 0) > 0, snaps
+    assert publisher.get("rejected.snapshot.tile", 0) >= snaps["errors"]["tile"], publisher
+    assert ingest.get("rejected.batch.key", 0) > 0, ingest
+
+    # (5) Dated in the future: rows within ingest's 300 s skew window recorded, those a
+    # year ahead rejected one by one (obs.t), counted; the batch's sent_at (2096) passes.
+    fut = by_name["future"]
+    assert fut["requests"] > 0 and fut["refused"] == 0, fut
+    assert fut["rejected"] == fut["errors"].get("obs.t", 0) > 0, fut
+    assert fut["accepted"] + fut["rejected"] == fut["observations"], fut
+    assert ingest.get("rejected.obs.t", 0) == fut["rejected"], ingest
+
+    # No service restarted or crashed on any of it.
+    for name in SERVICE_NAMES:
+        assert stack.procs[stack.service_key(name)].alive, name
+    for log in (stack.data_dir / "logs").glob("*.log"):
+        assert "Traceback" not in log.read_text(errors="replace"), log
