@@ -3,7 +3,7 @@
 >>> import numpy as np
 >>> from schemas import Observations
 >>> obs = Observations.empty()
->>> admit(obs, AdmissionPolicy(), now=1.7e9)[1]
+>>> admit(obs, AdmissionPolicy(), now=1.7e9, tiles=np.zeros(0, str))[1]
 []
 >>> check_header(ObservationBatch("veh-1", 2**63, 1, 1.7e9, obs))
 Traceback (most recent call last):
@@ -44,28 +44,56 @@ class AdmissionPolicy:
     """Detections of one image beyond this many (in batch order) are refused: a camera
     frame does not hold hundreds of signs, and the matcher's initiation is quadratic in
     the rays of one pass (3,000 rays of one image kept it busy 17 s)."""
+    max_tiles: int = 32
+    """Rows in tiles beyond the first this many an upload touches (in batch order) are
+    refused: each tile costs a log entry and a matcher transaction step whatever it holds,
+    so one vehicle spreading 10,000 observations over the globe held up everyone's uploads
+    (honest p99 3.4 s -> 114 s, ``benchmarks/bench_hostile.py``). One pass's batch of 500
+    observations (the uploader's batch) covers well under a kilometre of road: a few
+    tiles of zoom 16; a refused row can be sent again in another batch."""
 
 
 def admit(
-    obs: Observations, policy: AdmissionPolicy, now: float
-) -> tuple[Observations, list[Rejection]]:
-    """Split schema-valid observations into admitted ones and rejections with reasons."""
+    obs: Observations, policy: AdmissionPolicy, now: float, tiles: np.ndarray
+) -> tuple[np.ndarray, list[Rejection]]:
+    """Which schema-valid observations are admitted (a mask; ``tiles``: each row's tile),
+    and the rejections of the others with reasons."""
     too_old = obs.t < now - policy.max_age_s
     future = obs.t > now + policy.max_future_s
     low = (obs.score < policy.min_score) & ~too_old & ~future
     crowded = _beyond_per_image(obs.image, policy.max_per_image) & ~too_old & ~future & ~low
     bad = too_old | future | low | crowded
+    spread = np.zeros(len(obs), bool)
+    spread[~bad] = _beyond_first_tiles(np.asarray(tiles)[~bad], policy.max_tiles)
+    bad |= spread
     if not bad.any():
-        return obs, []
+        return ~bad, []
     rejected: list[Rejection] = []
     for mask, field, reason in (
         (too_old, "obs.t", f"older than {policy.max_age_s:g} s"),
         (future, "obs.t", f"more than {policy.max_future_s:g} s in the future"),
         (low, "obs.score", f"below the minimum score {policy.min_score:g}"),
         (crowded, "obs.image", f"more than {policy.max_per_image} detections in one image"),
+        (spread, "obs.lat", f"in a tile beyond the first {policy.max_tiles} of this upload"),
     ):
         rejected += [Rejection(int(i), field, reason) for i in obs.obs_id[mask]]
-    return obs.take(~bad), rejected
+    return ~bad, rejected
+
+
+def _beyond_first_tiles(tiles: np.ndarray, limit: int) -> np.ndarray:
+    """Rows whose tile is not among the first ``limit`` distinct tiles (by first row).
+
+    >>> _beyond_first_tiles(np.array(["a", "b", "a", "c", "b"]), 2).tolist()
+    [False, False, False, True, False]
+    """
+    if tiles.size == 0:
+        return np.zeros(0, bool)
+    uniq, first, inv = np.unique(tiles, return_index=True, return_inverse=True)
+    if uniq.size <= limit:
+        return np.zeros(tiles.size, bool)
+    rank = np.empty(uniq.size, np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(uniq.size)
+    return rank[inv] >= limit
 
 
 def _beyond_per_image(image: np.ndarray, limit: int) -> np.ndarray:

@@ -210,7 +210,17 @@ class IngestService(Service):
             why = f"more than {lim.observations_per_s:g} observations/s"
             return self._rate_limited(key_vehicle, batch.batch_id, wait, why), []
         self.count("received", n_rows)
-        obs, more = admit(batch.obs, self.config.policy, time.time())
+        all_tiles = route_rays(
+            batch.obs.lat,
+            batch.obs.lon,
+            batch.obs.h,
+            batch.obs.direction,
+            batch.obs.range_m,
+            self.opts.zoom,
+            self.config.default_range_m,
+        )
+        keep, more = admit(batch.obs, self.config.policy, time.time(), all_tiles)
+        obs = batch.obs.take(keep) if not keep.all() else batch.obs
         rejected += more
         for r in rejected:
             self.reject(r.field)
@@ -226,15 +236,7 @@ class IngestService(Service):
         self.count("duplicates", int(dup.sum()))
         entries = []
         if len(new):
-            tiles = route_rays(
-                new.lat,
-                new.lon,
-                new.h,
-                new.direction,
-                new.range_m,
-                self.opts.zoom,
-                self.config.default_range_m,
-            )
+            tiles = all_tiles[keep][~dup]
             for tile in np.unique(tiles):
                 group = ObsGroup(
                     batch.vehicle_id,

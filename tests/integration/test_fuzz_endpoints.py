@@ -41,6 +41,7 @@ import zenoh
 from hypothesis import given
 from hypothesis import strategies as st
 
+from hdmap.geo.tiles import route_rays
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import SERVICE_NAMES, Stack, tail
 from hdmap.ops.status import collect
@@ -278,7 +279,10 @@ def expected_ack(key: str, case: Case, now: float) -> tuple[str | None, list[Rej
         check_header(batch)
     except DecodeError as e:
         return e.field, []
-    _, more = admit(batch.obs, AdmissionPolicy(), now)
+    tiles = route_rays(
+        batch.obs.lat, batch.obs.lon, batch.obs.h, batch.obs.direction, batch.obs.range_m
+    )
+    _, more = admit(batch.obs, AdmissionPolicy(), now, tiles)
     return None, rejected + more
 
 

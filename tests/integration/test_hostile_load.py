@@ -86,9 +86,12 @@ def test_honest_chain_holds_under_every_attack(stack):
     assert matcher.get("pending_evicted.pass", 0) > 0, matcher
     assert matcher.get("passes_quarantined", 0) >= 2, matcher
 
-    # (2) Uploads over many tiles: recorded (the honest chain still drained above).
+    # (2) Uploads over many tiles: rows past the upload's first tiles refused one by one
+    # (obs.lat, ingest's max_tiles), counted; the rest recorded.
     spread = by_name["spread"]
-    assert spread["requests"] > 0 and spread["accepted"] == spread["observations"], spread
+    assert spread["requests"] > 0 and 0 < spread["accepted"] < spread["observations"], spread
+    assert spread["accepted"] + spread["rejected"] == spread["observations"], spread
+    assert ingest.get("rejected.obs.lat", 0) >= spread["rejected"], ingest
 
     # (3) Forged wildcard tokens: the status client saw the four services, one instance
     # each, every time it looked during the attack.
