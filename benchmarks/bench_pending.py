@@ -46,6 +46,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine, machine_line, write_json
+from fleetsim.synthetic import ray_observations
 from hdmap.geo.tiles import quadkeys_of
 from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry, Observations, ObsGroup
@@ -92,23 +93,7 @@ def upload_rays(frame, pattern: str, k: int, rng: np.random.Generator) -> Observ
     v = SIGN - a + rng.normal(0, 0.005, (n, 3)) * np.linalg.norm(SIGN - a, axis=1)[:, None]
     d = v / np.linalg.norm(v, axis=1, keepdims=True)
     lat, lon, h = frame.to_geodetic(a_meas)
-    return Observations(
-        obs_id=(np.arange(n) + 100 * k).astype(np.uint64),
-        t=np.full(n, time.time()),
-        image=image.astype(np.uint32),
-        sign_class=np.full(n, CLS, np.uint16),
-        lat=lat,
-        lon=lon,
-        h=h,
-        direction=d,
-        sigma_az=np.full(n, 0.005),
-        sigma_el=np.full(n, 0.005),
-        sigma_pos_h=np.full(n, 1.0),
-        sigma_pos_v=np.full(n, 1.5),
-        range_m=np.zeros(n),
-        sigma_range_m=np.zeros(n),
-        score=np.full(n, 0.9, np.float32),
-    )
+    return ray_observations(lat, lon, h, d, image, np.arange(n) + 100 * k, CLS)
 
 
 def run_one(mode: str, pattern: str, pool: int, uploads: int, seed: int = 0) -> dict:

@@ -40,7 +40,7 @@ import zenoh
 from fleetsim import loadgen
 from fleetsim.loadgen import LoadConfig
 from fleetsim.loadtest import report
-from fleetsim.synthetic import make_observations
+from fleetsim.synthetic import make_observations, ray_observations
 from fleetsim.world import HELSINKI as HELSINKI_TOWN
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.ops.quiesce import wait_quiet
@@ -114,23 +114,8 @@ def stuck_pass_rays(
     v = v + rng.normal(0, 0.005, (n, 3)) * np.linalg.norm(v, axis=1)[:, None]
     d = v / np.linalg.norm(v, axis=1, keepdims=True)
     lat, lon, h = frame.to_geodetic(a_meas)
-    return Observations(
-        obs_id=np.arange(first_id, first_id + n, dtype=np.uint64),
-        t=np.full(n, time.time() - 0.5),
-        image=image.astype(np.uint32),
-        sign_class=np.full(n, PHANTOM_CLASS, np.uint16),
-        lat=np.atleast_1d(lat),
-        lon=np.atleast_1d(lon),
-        h=np.atleast_1d(h),
-        direction=d,
-        sigma_az=np.full(n, 0.005),
-        sigma_el=np.full(n, 0.005),
-        sigma_pos_h=np.full(n, 1.0),
-        sigma_pos_v=np.full(n, 1.5),
-        range_m=np.zeros(n),
-        sigma_range_m=np.zeros(n),
-        score=np.full(n, 0.9, np.float32),
-    )
+    ids = np.arange(first_id, first_id + n)
+    return ray_observations(lat, lon, h, d, image, ids, PHANTOM_CLASS, t=time.time() - 0.5)
 
 
 def spread_rays(n: int, first_id: int, rng: np.random.Generator) -> Observations:

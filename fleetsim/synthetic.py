@@ -34,3 +34,36 @@ def make_observations(
         sigma_range_m=np.full(n, 2.0),
         score=np.full(n, 0.9, np.float32),
     )
+
+
+def ray_observations(
+    lat: np.ndarray,
+    lon: np.ndarray,
+    h: np.ndarray,
+    direction: np.ndarray,
+    image: np.ndarray,
+    obs_id: np.ndarray,
+    sign_class: int,
+    sigma_ang: float = 0.005,
+    t: float | None = None,
+) -> Observations:
+    """Rays without a range from given origins and ENU directions: 1 m / 1.5 m reported
+    position sigmas (horizontal / vertical), ``sigma_ang`` rad on both angles, score 0.9."""
+    n = len(obs_id)
+    return Observations(
+        obs_id=np.asarray(obs_id).astype(np.uint64),
+        t=np.full(n, time.time() if t is None else t),
+        image=np.asarray(image).astype(np.uint32),
+        sign_class=np.full(n, sign_class, np.uint16),
+        lat=np.atleast_1d(lat),
+        lon=np.atleast_1d(lon),
+        h=np.atleast_1d(h),
+        direction=direction,
+        sigma_az=np.full(n, sigma_ang),
+        sigma_el=np.full(n, sigma_ang),
+        sigma_pos_h=np.full(n, 1.0),
+        sigma_pos_v=np.full(n, 1.5),
+        range_m=np.zeros(n),
+        sigma_range_m=np.zeros(n),
+        score=np.full(n, 0.9, np.float32),
+    )

@@ -6,11 +6,11 @@ per-pass GNSS bias (1 m per axis) and 0.01 rad angular noise, 10 rays each.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
 
+from fleetsim.synthetic import ray_observations
 from hdmap.geo.tiles import quadkeys_of
 from hdmap.runtime.service import ServiceOptions
 from schemas import AssocGroup, LandmarkUpdates, Links, LogEntry, NewLandmarks, Observations
@@ -51,23 +51,9 @@ def sign_rays(frame, p: int, rng, from_north: bool = False, n: int = 10, image0:
     v = at - a + rng.normal(0, 0.01, (n, 3)) * np.linalg.norm(at - a, axis=1)[:, None]
     d = v / np.linalg.norm(v, axis=1, keepdims=True)
     lat, lon, h = frame.to_geodetic(a_meas)
-    return Observations(
-        obs_id=(np.arange(n) + 1000 * p + image0).astype(np.uint64),
-        t=np.full(n, time.time()),
-        image=(np.arange(n) + image0).astype(np.uint32),
-        sign_class=np.full(n, CLS, np.uint16),
-        lat=lat,
-        lon=lon,
-        h=h,
-        direction=d,  # the frame's ENU; ENU at the camera is within 1e-4 rad of it
-        sigma_az=np.full(n, 0.01),
-        sigma_el=np.full(n, 0.01),
-        sigma_pos_h=np.full(n, 1.0),
-        sigma_pos_v=np.full(n, 1.5),
-        range_m=np.zeros(n),
-        sigma_range_m=np.zeros(n),
-        score=np.full(n, 0.9, np.float32),
-    )  # fmt: skip
+    # directions in the frame's ENU; ENU at the camera is within 1e-4 rad of it
+    ids = np.arange(n) + 1000 * p + image0
+    return ray_observations(lat, lon, h, d, np.arange(n) + image0, ids, CLS, sigma_ang=0.01)
 
 
 def matcher(path: Path) -> MatcherService:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fleetsim.synthetic import ray_observations
 from hdmap.mapping.initiation import InitConfig
 from hdmap.mapping.pending import NO_LANDMARK, forget_budgets
 from hdmap.runtime.config import ConfigError, from_mapping
@@ -42,23 +43,7 @@ def parked_rays(frame, k: int, rng: np.random.Generator, n: int = PARKED) -> Obs
     v = SIGN - a + rng.normal(0, 0.005, (n, 3)) * np.linalg.norm(SIGN - a, axis=1)[:, None]
     d = v / np.linalg.norm(v, axis=1, keepdims=True)
     lat, lon, h = frame.to_geodetic(a)
-    return Observations(
-        obs_id=(np.arange(n) + 100 * k).astype(np.uint64),
-        t=np.full(n, time.time()),
-        image=(np.arange(n) + n * k).astype(np.uint32),
-        sign_class=np.full(n, CLS, np.uint16),
-        lat=lat,
-        lon=lon,
-        h=h,
-        direction=d,
-        sigma_az=np.full(n, 0.005),
-        sigma_el=np.full(n, 0.005),
-        sigma_pos_h=np.full(n, 1.0),
-        sigma_pos_v=np.full(n, 1.5),
-        range_m=np.zeros(n),
-        sigma_range_m=np.zeros(n),
-        score=np.full(n, 0.9, np.float32),
-    )
+    return ray_observations(lat, lon, h, d, np.arange(n) + n * k, np.arange(n) + 100 * k, CLS)
 
 
 class Feed:
