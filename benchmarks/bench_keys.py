@@ -97,7 +97,7 @@ def main() -> int:
         flush=True,
     )
     write_json(args.json, out)
-    return 0
+    return 0 if all(out[s]["received"] == n for s in ("put", "declared")) else 1
 
 
 if __name__ == "__main__":

@@ -84,9 +84,7 @@ def fresh_observations(
     """Valid observations (:func:`fleetsim.synthetic.make_observations`) with the ids
     ``first_id .. first_id + n - 1``."""
     obs = make_observations(n, seed=seed, lat=lat, lon=lon)
-    return Observations(
-        **{**obs.__dict__, "obs_id": np.arange(first_id, first_id + n, dtype=np.uint64)}
-    )
+    return replace(obs, obs_id=np.arange(first_id, first_id + n, dtype=np.uint64))
 
 
 def stuck_pass_rays(
@@ -122,14 +120,12 @@ def spread_rays(n: int, first_id: int, rng: np.random.Generator) -> Observations
     """``n`` valid observations spread over the globe (latitudes within +-80 deg), one
     image each, ids from ``first_id``."""
     obs = make_observations(n, seed=int(rng.integers(2**31)))
-    return Observations(
-        **{
-            **obs.__dict__,
-            "obs_id": np.arange(first_id, first_id + n, dtype=np.uint64),
-            "lat": rng.uniform(-80.0, 80.0, n),
-            "lon": rng.uniform(-180.0, 180.0, n),
-            "image": np.arange(n, dtype=np.uint32),
-        }
+    return replace(
+        obs,
+        obs_id=np.arange(first_id, first_id + n, dtype=np.uint64),
+        lat=rng.uniform(-80.0, 80.0, n),
+        lon=rng.uniform(-180.0, 180.0, n),
+        image=np.arange(n, dtype=np.uint32),
     )
 
 
@@ -339,7 +335,7 @@ class FutureDated(_Uploader):
         obs = fresh_observations(n, self.take_ids(n), self.batch_id, *self.at)
         now = time.time()
         t = np.where(np.arange(n) % 2 == 0, now + self.inside_s, now + 365 * 86400.0)
-        obs = Observations(**{**obs.__dict__, "t": t})
+        obs = replace(obs, t=t)
         self.upload(session, self.batch(self.batch_id + 1, obs, sent_at=4.0e9))
 
 

@@ -10,6 +10,7 @@ import logging
 
 import numpy as np
 
+from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
 from hdmap.mapping.matching import Matching
 from hdmap.mapping.trust import CAUGHT, VehicleTrust
@@ -50,6 +51,8 @@ def freeze_stale(m: Matching, now: float) -> int:
     cfg = m.config.trust
     cutoff = now - cfg.probation_ttl_s
     n = 0
+    by_row: dict[int, Landmark] | None = None  # built once, if anyone is due: releases
+    # empty no landmark, so it stays right for every vehicle let go here
     for v in m.state.held_by_seen.due(cutoff, m.state.last_seen):
         t = m.state.trust.get(v)
         if t is None or not t.held_homes or not t.held(cfg):
@@ -57,7 +60,9 @@ def freeze_stale(m: Matching, now: float) -> int:
         m.state.trust_of(v)  # marks it for saving
         w = t.weight(cfg, m.fleet_ref())
         local = w / cfg.probation_weight if m.config.gate_probation_full else w
-        let_go(m, v, t, False, w, local)
+        if by_row is None:
+            by_row = landmarks_by_row(m)
+        let_go(m, v, t, False, w, local, by_row)
         m.tally("probation_timed_out", 1)
         n += 1
     return n
@@ -97,6 +102,11 @@ def follow_time(m: Matching) -> None:
     forget_quiet(m, m.now)
 
 
+def landmarks_by_row(m: Matching) -> dict[int, Landmark]:
+    """The matcher's landmarks by their row in the gating sums."""
+    return {lm.row: lm for lm in m.state.landmarks.values()}
+
+
 def let_go(
     m: Matching,
     vehicle: str,
@@ -104,11 +114,13 @@ def let_go(
     dropped: bool,
     weight: float,
     local: float | None = None,
+    by_row: dict[int, Landmark] | None = None,
 ) -> set[int]:
     """Settle ``vehicle``'s held passes here (dropped, or released at ``local``, default
     ``weight``) and, through the assoc output of every home tile it has held passes in, in
     the solvers (released at ``weight``). Returns the landmarks retired for having no rays
-    left."""
+    left. ``by_row``: the landmarks by sums row, when the caller lets several vehicles go
+    (built here otherwise)."""
     key = hold_key(vehicle)
     if dropped:
         rows = m.sums.drop_held(key)
@@ -121,7 +133,8 @@ def let_go(
     m.state.held_by_seen.discard(vehicle)
     if not rows.size:
         return set()
-    by_row = {lm.row: lm for lm in m.state.landmarks.values()}
+    if by_row is None:
+        by_row = landmarks_by_row(m)
     lms = [by_row[r] for r in rows.tolist() if r in by_row]
     empty = m.sums.n_obs([lm.row for lm in lms]) == 0
     gone = {lm.id for lm, e in zip(lms, empty, strict=True) if e}

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -222,8 +223,8 @@ class IngestService(Service):
         keep, more = admit(batch.obs, self.config.policy, time.time(), all_tiles)
         obs = batch.obs.take(keep) if not keep.all() else batch.obs
         rejected += more
-        for r in rejected:
-            self.reject(r.field)
+        for reason, n in Counter(r.field for r in rejected).items():
+            self.reject(reason, n)
 
         ids = obs.obs_id
         dup = self._seen(batch.vehicle_id, ids)

@@ -194,8 +194,8 @@ class MatcherService(StageService):
             follow_time(self.matching)
         if ahead:
             log.warning(
-                "%d obs entries stamped ahead of the matcher's clock (%.0f s at most); "
-                "their time not taken",
+                "%d obs entries stamped more than time_tolerance_s ahead of the matcher's "
+                "wall clock (up to %.0f s past its ingest-time clock); their time not taken",
                 len(ahead),
                 max(ahead) - self.matching.now,
             )

@@ -91,8 +91,7 @@ class PublisherService(StageService):
             self.pubs.put(keys.map_delta(d.tile), d.to_bytes())
 
     def _answer_snapshot(self, conn: sqlite3.Connection, q: zenoh.Query) -> None:
-        parts = str(q.key_expr).split("/")
-        tile = parts[3] if len(parts) == 4 else ""  # hdmap/v1/map/<tile>, nothing else
+        tile = keys.snapshot_tile(str(q.key_expr))
         if not valid_quadkey(tile) or not in_region(tile, self.region):
             err = DecodeError("tile", f"{str(q.key_expr)!r} names no one quadkey of this region")
             q.reply_err(ErrorReply.of(err).to_bytes())

@@ -114,10 +114,13 @@ def landmarks_from_rows(rows: list[tuple]) -> Landmarks:
     )
 
 
-def split_valid(rows: list[tuple]) -> tuple[list[tuple], list[tuple[tuple, str, str]]]:
-    """Rows (as in ``_COLS``) that the wire schema accepts, and the others with the field
-    and reason that refuse them: what a vehicle would refuse is never sent (one bad row
-    would make it refuse the whole delta or snapshot, and lose the tile)."""
+def split_valid(
+    rows: list[tuple],
+) -> tuple[list[tuple], Landmarks, list[tuple[tuple, str, str]]]:
+    """Rows (as in ``_COLS``) that the wire schema accepts, as rows and as a table, and the
+    others with the field and reason that refuse them: what a vehicle would refuse is never
+    sent (one bad row would make it refuse the whole delta or snapshot, and lose the
+    tile)."""
     bad: list[tuple[tuple, str, str]] = []
     typed: list[tuple] = []
     for r in rows:
@@ -136,11 +139,14 @@ def split_valid(rows: list[tuple]) -> tuple[list[tuple], list[tuple[tuple, str, 
         else:
             bad.append((r, *why))
     if not typed:
-        return [], bad
-    flags, fld, reason = Landmarks.CODEC.row_errors(landmarks_from_rows(typed))
+        return [], Landmarks.empty(), bad
+    table = landmarks_from_rows(typed)
+    flags, fld, reason = Landmarks.CODEC.row_errors(table)
+    if not flags.any():
+        return typed, table, bad
     good = [r for r, f in zip(typed, flags, strict=True) if not f]
     bad += [(r, str(fld[i]), str(reason[i])) for i, r in enumerate(typed) if flags[i]]
-    return good, bad
+    return good, table.take(~flags), bad
 
 
 class TileMaps:
@@ -212,7 +218,7 @@ class TileMaps:
                 ).fetchone():
                     removed.append((lid, rev))
             c.executemany("DELETE FROM dirty WHERE tile=? AND id=?", [(tile, i) for i in ids])
-            upserts, bad = split_valid(upserts)
+            upserts, table, bad = split_valid(upserts)
             self._quarantine(tile, bad, now)
             if not upserts and not removed:
                 continue
@@ -231,9 +237,7 @@ class TileMaps:
                 id=i64_to_u64(np.array([r[0] for r in removed], np.int64)),
                 revision=np.array([r[1] for r in removed], np.uint64),
             )
-            deltas.append(
-                MapDelta(tile, version, version + 1, now, landmarks_from_rows(upserts), rem)
-            )
+            deltas.append(MapDelta(tile, version, version + 1, now, table, rem))
         return deltas
 
     def _quarantine(self, tile: str, bad: list[tuple[tuple, str, str]], now: float) -> None:
@@ -286,5 +290,5 @@ def read_snapshot(conn: sqlite3.Connection, tile: str) -> tuple[MapSnapshot, int
         rows = conn.execute(f"SELECT {_COLS} FROM published WHERE tile=?", (tile,)).fetchall()
     finally:
         conn.execute("COMMIT")
-    good, bad = split_valid(rows)
-    return MapSnapshot(tile, version, landmarks_from_rows(good)), len(bad)
+    _good, table, bad = split_valid(rows)
+    return MapSnapshot(tile, version, table), len(bad)

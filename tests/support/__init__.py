@@ -16,3 +16,13 @@ def wait_until(pred: Callable[[], bool], timeout: float = 20.0, step: float = 0.
             return True
         time.sleep(step)
     return pred()
+
+
+class Clock:
+    """A settable clock for code that takes one (``clock=``): ``t`` is what it reads."""
+
+    def __init__(self, t: float = 1000.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t

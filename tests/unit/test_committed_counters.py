@@ -26,19 +26,10 @@ from hdmap.runtime.service import Backoff, Item, Service, ServiceOptions, run_un
 from hdmap.runtime.stage import StageService
 from hdmap.runtime.store import EXIT_CORRUPT, DatabaseCorrupt, StorageError, connect
 from schemas import LogEntry, Stats, keys
+from tests.support import Clock
 from tests.support.services import Sink
 
 PAGE = 4096
-
-
-class Clock:
-    """A fake monotonic clock the test moves by hand."""
-
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 class Counted(StageService):
@@ -232,7 +223,7 @@ def test_stats_never_count_uncommitted_work_and_a_failing_stage_backs_off(servic
     break_storage(svc.db, fault)
     clock = svc.clock
     assert isinstance(clock, Clock)
-    start = clock.now
+    start = clock.t
     failing = len(svc.attempts)
     for i in range(200):  # 10 s of fake time, a kick every 50 ms, live entries now and then
         items = [KICK]
@@ -241,7 +232,7 @@ def test_stats_never_count_uncommitted_work_and_a_failing_stage_backs_off(servic
             items.append(live(published[-1]))
         svc.step(items)
         read()
-        clock.now += 0.05
+        clock.t += 0.05
     tries = svc.attempts[failing:]
     gaps = [round(b - a, 6) for a, b in pairwise(tries)]
     # at once, then 0.1, 0.2, 0.4 ... s (rounded up to the 50 ms kicks), never over 5 s
@@ -262,7 +253,7 @@ def test_stats_never_count_uncommitted_work_and_a_failing_stage_backs_off(servic
     for _ in range(40):  # bounded: the retry is due within 5 s of fake time
         if committed_rows(svc.db_path) == 30:
             break
-        clock.now += 0.5
+        clock.t += 0.5
         svc.step([])  # no item: the backoff's retry alone replays
     rows = svc.db.execute("SELECT tile, seq FROM applied ORDER BY n").fetchall()
     assert rows == [(e.tile, e.seq) for e in log[:30]]  # everything once, in order

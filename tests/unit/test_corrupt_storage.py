@@ -24,6 +24,7 @@ from hdmap.runtime.store import (
     transaction,
 )
 from schemas import DecodeError, ObservationBatch, UploadAck
+from tests.support import Clock
 from vehicle.uploader import PERMANENT_BACKOFF_MAX_S, PERMANENT_BACKOFF_MIN_S, Uploader
 
 PAGE = 4096
@@ -168,14 +169,6 @@ def test_a_bad_permanent_field_is_refused():
 
 
 # -- the vehicle backs off on a permanent refusal ----------------------------------------
-
-
-class Clock:
-    def __init__(self, t: float = 1000.0):
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def test_the_uploader_keeps_its_queue_and_backs_off_on_permanent_refusals(tmp_path, monkeypatch):

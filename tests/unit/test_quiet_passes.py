@@ -22,6 +22,7 @@ from hdmap.runtime.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
 from services.matcher.service import MatcherConfig, MatcherService
 from services.solver.service import SolverConfig, SolverService
+from tests.support import Clock
 from tests.support.services import (
     CLS,
     SIGN,
@@ -32,14 +33,6 @@ from tests.support.services import (
     tile_of,
     updates,
 )
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def solver(path: Path, close: bool, clock: Clock) -> SolverService:
@@ -88,7 +81,7 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
         kw = {"created": created} if seq == 1 else {}
         return assoc_entry(seq, tile, vehicles=[v], obs=obs, links=links, **kw)
 
-    clock = Clock()
+    clock = Clock(0.0)
     svcs = {c: solver(tmp_path / f"s{c}", c, clock) for c in (False, True)}
     for seq, (v, p, obs) in enumerate(groups, start=1):
         clock.t = 600.0 * seq + (3 * 3600.0 if v == "veh-c" else 0.0)
@@ -127,7 +120,7 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
 
 
 def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> None:
-    clock = Clock()
+    clock = Clock(0.0)
     svcs = {}
     for close in (False, True):
         cfg = MatcherConfig(  # no probation: held passes are never closed (nor evicted)
@@ -200,7 +193,7 @@ def test_a_merged_landmarks_open_pass_closes_with_its_pass():
     rows = sums.new_rows(2, np.array([[0.0, 20.0, 2.0], [0.5, 20.0, 2.0]]))
     rays = Rays.from_angles(np.zeros((3, 3)), [0.0, 0.01, 0.02], [0.1] * 3, 0.01, 0.01, 1.0, 1.0)
     sums.accumulate([rows[1]] * 3, [5] * 3, rays)
-    clock, state = Clock(), State()
+    clock, state = Clock(0.0), State()
     quiet = QuietPasses(7200.0, clock)
     quiet.note(5, [(2, int(rows[1]))])
     assert sums.open_clusters(int(rows[1])) == [5]

@@ -19,23 +19,10 @@ from hdmap.runtime.config import ConfigError, from_mapping
 from schemas import DecodeError, ObservationBatch, Observations, UploadAck, keys
 from services.ingest.ratelimit import MAX_RETRY_AFTER_S, RateLimit, TokenBucket, VehicleLimiter
 from services.ingest.service import IngestConfig
-from tests.support import wait_until
+from tests.support import Clock, wait_until
 from vehicle.uploader import Uploader
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-class Clock:
-    """A settable clock for the code under test."""
-
-    def __init__(self, t: float = 1000.0):
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
-
-
-# --- token bucket ------------------------------------------------------------------------------
 
 
 def test_bucket_grants_a_burst_then_the_rate() -> None:
