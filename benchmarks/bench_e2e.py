@@ -61,6 +61,16 @@ def vehicles_for(rate: float) -> int:
     return int(min(200, max(10, rate // 100)))
 
 
+def fleet_admission(workdir: Path) -> dict[str, list[str]]:
+    """``Stack(extra_service_args=...)`` for an ingest that admits the load generator's
+    fleet at once: its vehicles are new in every run (a fresh run tag), and up to 200 of
+    them start together, past ingest's default budget of new vehicles (50 at once)."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    cfg = workdir / "ingest-admission.toml"
+    cfg.write_text("[ingest.rate_limit]\nnew_vehicle_burst = 1000.0\n")
+    return {"ingest": ["--config", str(cfg)]}
+
+
 def load_config(rate: float, seconds: float, **kw) -> LoadConfig:
     return LoadConfig(vehicles=vehicles_for(rate), rate=float(rate), duration_s=seconds, **kw)
 
@@ -291,7 +301,8 @@ def profile_service(
     prof_dir = workdir / "profile"
     python = profiling_python(prof_dir, [service])
     print(f"\nprofiling {service} at {rate:.0f} obs/s for {seconds:.0f} s (fresh stack) ...")
-    with Stack(workdir / "stack-profiled", python=python) as st:
+    admission = fleet_admission(workdir)
+    with Stack(workdir / "stack-profiled", python=python, extra_service_args=admission) as st:
         st.start_all()
         with open_session(st.bus) as s:
             r = run_load(s, load_config(rate, seconds), drain_timeout, progress=False)
@@ -350,7 +361,7 @@ def main() -> int:
     print(json.dumps(out["machine"]), "load average", out["load_average_start"], flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.data_dir or Path(tmp)
-        with Stack(work / "stack") as st:
+        with Stack(work / "stack", extra_service_args=fleet_admission(work)) as st:
             st.start_all()
             payload, n = reference_payload(load_config(rates[0], seconds))
             out["raw_zenoh"] = raw_zenoh(st, payload, n, 2.0 if args.quick else 5.0)

@@ -1,18 +1,22 @@
 """Attacks under honest load: one attacker (issue #17) against a loadtest of honest vehicles.
 
 For each attack of :mod:`fleetsim.attacks` (``restart``, ``parked``, ``spread``,
-``tokens``, ``snapshots``, ``future``), side by side in one run, each on a fresh stack
-(hdmap.ops.stack.Stack: a router and the four services as processes on 127.0.0.1, a
-random free port, multicast scouting off): the honest fleet of the load generator
-(``--vehicles`` at ``--rate`` obs/s for ``--seconds``, then the drain) WITHOUT and then
-WITH the attacker running for exactly the honest load (:func:`fleetsim.attacks.
-run_under_attack`). Reported for the honest vehicles: sent, acked, applied (observations
-the matcher took in, less the attacker's acknowledged ones), lost (the chain's losses with
-the attacker's acknowledged rows counted; must be 0), drained (the loadtest's quiet-chain
-check, bounded by ``--drain-timeout``), p50/p99 latency (ingest receipt -> landmark update
-at a subscribed vehicle) and p99_with / p99_without (target <= 2); for the attacker what
-it sent and how it was answered, and the services' refusal counters (``rejected.*``,
-``pending_evicted``, ``passes_quarantined``, ...).
+``tokens``, ``snapshots``, ``sybil``, ``wildcard``, ``future``, ``newcomers``), side by
+side in one run, each on a fresh stack (hdmap.ops.stack.Stack: a router and the four
+services as processes on 127.0.0.1, a random free port, multicast scouting off): the
+honest fleet of the load generator (``--vehicles`` at ``--rate`` obs/s for ``--seconds``,
+then the drain) WITHOUT and then WITH the attacker running for exactly the honest load
+(:func:`fleetsim.attack_run. run_under_attack`), in a process of its own
+(:class:`fleetsim.attack_run.AttackProcess`: its CPU is not the measuring process's GIL).
+Reported for the honest vehicles: sent, acked, applied (observations the matcher took in,
+less the attacker's acknowledged ones), lost (the chain's losses with the attacker's
+acknowledged rows counted; must be 0), drained (the loadtest's quiet-chain check, bounded
+by ``--drain-timeout``), p50/p99 latency (ingest receipt -> landmark update at a
+subscribed vehicle) and p99_with / p99_without (target <= 2); for the attacker what it
+sent and how it was answered, and the services' refusal counters (``rejected.*``,
+``pending_evicted``, ``passes_quarantined``, ...). The control ``cpu``
+(:class:`fleetsim.attack_run.CpuBurner`) sends nothing and keeps one core of the machine
+busy: its ratio is what an attacker's own CPU does on this machine.
 
     .venv/bin/python benchmarks/bench_hostile.py [--quick] [--json FILE] [--attacks spread]
 """
@@ -29,7 +33,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import machine, machine_line, write_json
-from fleetsim.attacks import ATTACK_NAMES, make_attack, run_under_attack
+from fleetsim.attack_run import CONTROL, AttackProcess, CpuBurner, run_under_attack
+from fleetsim.attacks import ATTACK_NAMES
 from fleetsim.loadgen import LoadConfig
 from hdmap.ops.stack import Stack
 from hdmap.runtime.bus import open_session
@@ -48,7 +53,13 @@ def one_run(attack: str, with_attacker: bool, cfg: LoadConfig, drain_timeout: fl
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp, Stack(Path(tmp) / "stack") as st:
         st.start_all()
-        attacks = [make_attack(attack, st.bus, cfg.duration_s)] if with_attacker else []
+        attacks: list = []
+        if with_attacker:
+            attacks = [
+                CpuBurner(cfg.duration_s)
+                if attack == CONTROL
+                else AttackProcess(attack, st.bus, cfg.duration_s)
+            ]
         with open_session(st.bus) as session:
             r = run_under_attack(session, cfg, attacks, drain_timeout=drain_timeout)
         st.stop_all()
@@ -107,6 +118,10 @@ def print_run(x: dict) -> None:
         print(f"{'':>18}services: {counts}", flush=True)
 
 
+def _outcome(passed: bool | None) -> str:
+    return "control" if passed is None else "PASS" if passed else "FAIL"
+
+
 def verdict(without: dict, with_: dict) -> dict:
     """The pair's figures: p99 ratio and whether the honest chain held."""
     p0, p1 = without["latency_s"]["p99"], with_["latency_s"]["p99"]
@@ -127,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vehicles", type=int, help="honest vehicles (default 10; quick 4)")
     ap.add_argument("--rate", type=float, help="honest obs/s in all (default 1000; quick 500)")
     ap.add_argument("--seconds", type=float, help="honest load per run (default 20; quick 6)")
-    ap.add_argument("--attacks", nargs="+", choices=ATTACK_NAMES, default=list(ATTACK_NAMES))
+    names = [*ATTACK_NAMES, CONTROL]
+    ap.add_argument("--attacks", nargs="+", choices=names, default=names)
     ap.add_argument("--drain-timeout", type=float, default=300.0)
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
@@ -164,9 +180,11 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(one_run(name, with_attacker, cfg, a.drain_timeout))
             print_run(runs[-1])
         v = verdict(*runs)
+        if name == CONTROL:  # no attack: what one busy local core does to the ratio
+            v["passed"] = None
         print(
             f"{'':>18}p99 with / without = {_f(v['p99_ratio'], 2)} (target <= {RATIO_MAX:g})"
-            f" -> {'PASS' if v['passed'] else 'FAIL'}",
+            f" -> {_outcome(v['passed'])}",
             flush=True,
         )
         out["attacks"].append({"attack": name, **v, "without": runs[0], "with": runs[1]})
@@ -176,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         lost = f"{x['without']['lost']:.0f}/{x['with']['lost']:.0f}"
         print(
             f"{x['attack']:>9} {lost:>9} {_f(x['p99_without_s']):>11} {_f(x['p99_with_s']):>9} "
-            f"{_f(x['p99_ratio'], 2):>6} {'PASS' if x['passed'] else 'FAIL'}"
+            f"{_f(x['p99_ratio'], 2):>6} {_outcome(x['passed'])}"
         )
     print(f"total {out['seconds']:.0f} s", flush=True)
     write_json(a.json, out)

@@ -1,7 +1,7 @@
 """Attacks from one vehicle or one client (issue #17, "One vehicle must not stop a region").
 
 Each attack is a thread (:class:`Attack`) with a bus session of its own (one client),
-sending at a modest, paced rate until its ``duration_s`` has passed or :meth:`Attack.stop`
+sending at a paced rate until its ``duration_s`` has passed or :meth:`Attack.stop`
 is called (every request is bounded by its timeout); :meth:`Attack.report` is what it
 sent and what came back (:class:`AttackReport`). The attacks (:data:`ATTACK_NAMES`,
 :func:`make_attack`):
@@ -15,19 +15,26 @@ sent and what came back (:class:`AttackReport`). The attacks (:data:`ATTACK_NAME
   (one obs log entry per tile: 10,000 tiles an upload);
 - ``tokens``: :class:`ForgedTokens`, liveliness tokens with wildcards
   (``hdmap/v1/alive/ingest/*/*``, ...) declared and undeclared again and again;
-- ``snapshots``: :class:`SnapshotQueries`, queries on ``hdmap/v1/**`` (every queryable of
-  the deployment matches: snapshots, uploads, log replays, stats);
+- ``snapshots``: :class:`SnapshotQueries` from one client id on its own snapshot key
+  (``hdmap/v1/map/<tile>/by/<id>``), hundreds a second: the publisher's per-client limit
+  refuses it (``rate``, ``snapshot.client``) past its burst;
+- ``sybil``: :class:`SnapshotQueries` under a new made-up client id every query (what an
+  unauthenticated client can do): each id is within its own budget, only the publisher's
+  total budget holds it (``busy``, ``snapshot.total``);
+- ``wildcard``: :class:`SnapshotQueries` on ``hdmap/v1/**`` (every queryable of the
+  deployment matches: snapshots, uploads, log replays, stats);
+- ``newcomers``: :class:`Newcomers`, a new made-up vehicle id every upload (125 a second);
 - ``future``: :class:`FutureDated`, uploads sent in 2096 (``sent_at``) whose rows are
   captured either just inside ingest's clock-skew window (``max_future_s``) or a year
   ahead.
 
 The builders (:func:`fresh_observations`, :func:`stuck_pass_rays`, :func:`spread_rays`)
-are shared with the fuzz tests (``tests/support/hostile.py``).
+are shared with the fuzz tests (``tests/support/hostile.py``); running attacks under an
+honest load is :mod:`fleetsim.attack_run`.
 """
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
 from collections import Counter
@@ -37,16 +44,12 @@ from typing import Literal
 import numpy as np
 import zenoh
 
-from fleetsim import loadgen
-from fleetsim.loadgen import LoadConfig
-from fleetsim.loadtest import report
 from fleetsim.synthetic import make_observations, ray_observations
 from fleetsim.world import HELSINKI as HELSINKI_TOWN
 from hdmap.geo.geodesy import EnuFrame
-from hdmap.ops.quiesce import wait_quiet
-from hdmap.ops.status import collect
+from hdmap.geo.tiles import quadkeys_of
 from hdmap.runtime.bus import BusConfig, open_session, query
-from schemas import DecodeError, ErrorReply, ObservationBatch, Observations, Stats, UploadAck, keys
+from schemas import DecodeError, ErrorReply, ObservationBatch, Observations, UploadAck, keys
 
 HELSINKI = (60.17, 24.94)
 """Where the fuzz tests' observations are (lat, lon deg)."""
@@ -61,7 +64,17 @@ no honest landmark takes the rays."""
 PHANTOM_SIGN = np.array([10.0, 30.0, 2.5])
 """The phantom sign in the town's ENU frame (m)."""
 
-ATTACK_NAMES = ("restart", "parked", "spread", "tokens", "snapshots", "future")
+ATTACK_NAMES = (
+    "restart",
+    "parked",
+    "spread",
+    "tokens",
+    "snapshots",
+    "sybil",
+    "wildcard",
+    "future",
+    "newcomers",
+)
 """Every attack :func:`make_attack` builds, in the order of the issue."""
 
 Pattern = Literal["restart", "parked"]
@@ -319,6 +332,25 @@ class SpreadUpload(_Uploader):
         self.upload(session, self.batch(self.batch_id + 1, obs))
 
 
+class Newcomers(_Uploader):
+    """A new made-up vehicle id every upload (what an unauthenticated client can do):
+    ``n_obs`` observations at the town per upload, ``per_s`` uploads a second (issue 17:
+    5,000 new vehicles in 40 s). Each id is within its own rate limit; every one is a
+    vehicle the matcher has never seen (trust, probation, pending pools)."""
+
+    name_ = "newcomers"
+
+    def __init__(self, bus: BusConfig, duration_s: float, per_s: float = 125.0, n_obs: int = 4):
+        super().__init__(bus, duration_s, 1.0 / per_s, "newcomer-0")
+        self.n_obs, self.k = n_obs, 0
+
+    def step(self, session: zenoh.Session) -> None:
+        self.k += 1
+        self.vehicle_id = f"newcomer-{self.k}"
+        obs = fresh_observations(self.n_obs, self.take_ids(self.n_obs), self.k, *TOWN)
+        self.upload(session, self.batch(1, obs))
+
+
 class FutureDated(_Uploader):
     """Uploads sent in 2096 (``sent_at`` 4.0e9, inside the schema's range) of ``n_obs``
     rows at the town, half captured ``inside_s`` ahead of now (within ingest's default
@@ -367,8 +399,15 @@ class ForgedTokens(Attack):
 
 
 class SnapshotQueries(Attack):
-    """Queries on ``selector`` (default ``hdmap/v1/**``: every queryable matches) with no
-    payload, one every ``period_s``; error replies are counted by the field they name."""
+    """Snapshot queries, ``per_step`` at once (all sent before any reply is read) every
+    ``period_s``, with no payload; error replies are counted by the field they name.
+
+    - ``clients == 1`` (``snapshots``): all under the one id ``client`` on its snapshot
+      key of ``tile`` (:func:`schemas.keys.map_snapshot_for`);
+    - ``clients > 1`` (``sybil``): query ``k`` under the id ``<client>-<k mod clients>``,
+      a new id each query until ``clients`` were used;
+    - ``selector`` (``wildcard``): that selector for every query instead.
+    """
 
     name_ = "snapshots"
 
@@ -376,41 +415,88 @@ class SnapshotQueries(Attack):
         self,
         bus: BusConfig,
         duration_s: float,
-        period_s: float = 0.2,
-        selector: str = f"{keys.ROOT}/**",
+        period_s: float = 0.02,
+        per_step: int = 10,
+        clients: int = 1,
+        client: str = "snapshot-client",
+        tile: str | None = None,
+        selector: str | None = None,
         timeout_s: float = 3.0,
     ):
-        super().__init__(bus, duration_s, period_s, "snapshot-client")
+        if selector is not None:
+            self.name_ = "wildcard"
+        elif clients > 1:
+            self.name_ = "sybil"
+        super().__init__(bus, duration_s, period_s, client if clients == 1 else f"{client}-*")
+        self.per_step, self.clients, self.client = per_step, clients, client
+        self.tile = tile or str(quadkeys_of([TOWN[0]], [TOWN[1]])[0])
         self.selector, self.timeout_s = selector, timeout_s
+        self.k = 0
+
+    def next_selector(self) -> str:
+        """The key of the next query."""
+        if self.selector is not None:
+            return self.selector
+        self.k += 1
+        who = self.client if self.clients == 1 else f"{self.client}-{self.k % self.clients}"
+        return keys.map_snapshot_for(who, self.tile)
 
     def step(self, session: zenoh.Session) -> None:
-        self._count(requests=1)
-        try:
-            replies = query(session, self.selector, timeout=self.timeout_s)
-        except zenoh.ZError:
-            self._count(unanswered=1)
-            return
-        if not replies:
-            self._count(unanswered=1)
-        for _k, ok, err in replies:
-            self._count(replies=1)
-            why: str | None = None  # an error reply, or an upload ack with an error: refused
+        pending = []
+        for _ in range(self.per_step):
+            self._count(requests=1)
             try:
-                if err is not None:
-                    why = ErrorReply.from_bytes(err).field
-                elif ok is not None and (ack_error := UploadAck.from_bytes(ok).error):
-                    why = ack_error.field
-            except DecodeError:  # not an ack (stats, a log reply): answered
-                why = "undecodable" if err is not None else None
-            if why is not None:
-                self._error(why)
+                pending.append(
+                    session.get(
+                        self.next_selector(),
+                        timeout=self.timeout_s,
+                        consolidation=zenoh.ConsolidationMode.NONE,
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                    )
+                )
+            except zenoh.ZError:
+                self._count(unanswered=1)
+        for replies in pending:
+            try:
+                got = [(r.ok, r.err) for r in replies]
+            except zenoh.ZError:
+                self._count(unanswered=1)
+                continue
+            if not got:
+                self._count(unanswered=1)
+            for ok, err in got:
+                self._count(replies=1)
+                why = _refusal(
+                    None if ok is None else ok.payload.to_bytes(),
+                    None if err is None else err.payload.to_bytes(),
+                )
+                if why is not None:
+                    self._error(why)
+
+
+def _refusal(ok: bytes | None, err: bytes | None) -> str | None:
+    """The field a reply refuses on (an error reply, or an upload ack with an error), or
+    None for an answer (a snapshot, stats, a log reply)."""
+    try:
+        if err is not None:
+            return ErrorReply.from_bytes(err).field
+        if ok is not None and (ack_error := UploadAck.from_bytes(ok).error):
+            return ack_error.field
+    except DecodeError:  # not an ack: answered
+        return "undecodable" if err is not None else None
+    return None
 
 
 def make_attack(name: str, bus: BusConfig, duration_s: float, fast: bool = False) -> Attack:
-    """The attack ``name`` (one of :data:`ATTACK_NAMES`) at its modest default rate, or
-    with ``fast`` (short tests) the stuck passes at 30 (restart) and 50 (parked) obs/s, so
-    that they reach the matcher's budget and quarantine within seconds, and spread uploads
-    of 1,000 observations (not 10,000)."""
+    """The attack ``name`` (one of :data:`ATTACK_NAMES`) at its default rate, or with
+    ``fast`` (short tests) the stuck passes at 30 (restart) and 50 (parked) obs/s, so
+    that they reach the matcher's budget and quarantine within seconds, spread uploads
+    of 1,000 observations (not 10,000) and the Sybil client at up to 200 queries/s (not
+    3,000, the rate of issue 17, which a shared test machine cannot take next to the
+    rest). The snapshot attacks: ``snapshots`` up to 500 queries/s under one id (the
+    per-client limit: 20/s after a burst of 200), ``sybil`` a new id each query, cycling
+    over 100,000 ids (the publisher's ``max_clients``), ``wildcard`` 5 queries/s on
+    ``hdmap/v1/**``."""
     if name == "restart":
         return StuckPass(bus, duration_s, "restart", 30.0 if fast else 8.0)
     if name == "parked":
@@ -421,8 +507,17 @@ def make_attack(name: str, bus: BusConfig, duration_s: float, fast: bool = False
         return ForgedTokens(bus, duration_s)
     if name == "snapshots":
         return SnapshotQueries(bus, duration_s)
+    if name == "sybil":
+        step = (0.05, 10) if fast else (0.01, 30)
+        return SnapshotQueries(bus, duration_s, *step, clients=100_000, client="sybil")
+    if name == "wildcard":
+        return SnapshotQueries(
+            bus, duration_s, 0.2, 1, client="wildcard-client", selector=f"{keys.ROOT}/**"
+        )
     if name == "future":
         return FutureDated(bus, duration_s)
+    if name == "newcomers":
+        return Newcomers(bus, duration_s, 25.0 if fast else 125.0)
     raise ValueError(f"unknown attack {name!r}; one of {', '.join(ATTACK_NAMES)}")
 
 
@@ -434,132 +529,3 @@ def stop_all(attacks: list[Attack], timeout_s: float = 40.0) -> None:
     for a in attacks:
         if a.is_alive():
             a.join(max(0.1, deadline - time.monotonic()))
-
-
-# --- an honest load with attacks running ----------------------------------------------------
-
-
-def run_under_attack(
-    session: zenoh.Session,
-    cfg: LoadConfig,
-    attacks: list[Attack],
-    drain_timeout: float = 120.0,
-    quiet_timeout: float = 60.0,
-) -> dict:
-    """The load generator's honest fleet (:mod:`fleetsim.loadgen`) for ``cfg.duration_s``
-    with ``attacks`` running exactly as long, then the drain; the loadtest's report
-    (:func:`fleetsim.loadtest.report`) with ``attacks`` (each :class:`AttackReport`) and
-    ``honest`` (:func:`honest_accounting`). With no attacks it is the loadtest's run.
-
-    Bounded: the initial wait for a quiet chain by ``quiet_timeout``, the load by its
-    duration, vehicles' and attacks' last requests by their timeouts, the drain by
-    ``drain_timeout``."""
-    run_id = cfg.run_id or loadgen.new_run_id()
-    cfg = replace(cfg, run_id=run_id)
-    world, pool = loadgen.build_pool(cfg)
-    tiles = loadgen.town_tiles_with_halo(world)
-    counters = loadgen.Counters()
-    started_quiet = wait_quiet(session, timeout=quiet_timeout)
-    before = collect(session)
-    stop = threading.Event()
-    vehicles = [
-        loadgen.Vehicle(i, session, pool, cfg, counters, stop, run_id) for i in range(cfg.vehicles)
-    ]
-    readers: list[loadgen.Reader] = []
-    t0 = time.monotonic()
-    try:
-        readers = [loadgen.Reader(session, tiles, counters) for _ in range(cfg.subscribers)]
-        for a in attacks:
-            a.start()
-        for v in vehicles:
-            v.start()
-        stop.wait(cfg.duration_s)
-    finally:
-        stop.set()
-        stop_all(attacks)
-        deadline = time.monotonic() + cfg.max_attempts * (cfg.upload_timeout_s + 2.0) + 5.0
-        for v in vehicles:
-            if v.is_alive():
-                v.join(max(0.1, deadline - time.monotonic()))
-        load_s = time.monotonic() - t0
-        if sys.exc_info()[0] is not None:
-            for r in readers:
-                r.close()
-    try:
-        drained = wait_quiet(session, timeout=drain_timeout)
-    finally:
-        drain_s = time.monotonic() - t0 - load_s
-        time.sleep(0.5)  # the last deltas in flight to the readers
-        for r in readers:
-            r.close()
-    after = collect(session)
-    out = report(cfg, counters, before, after, load_s, drain_s, drained, started_quiet)
-    reports = [a.report() for a in attacks]
-    out["attacks"] = [r.as_dict() for r in reports]
-    out["attack_failures"] = [a.failure for a in attacks if a.failure]
-    out["honest"] = honest_accounting(out, reports)
-    out["refusals"] = service_refusals(before, after)
-    return out
-
-
-WATCHED = ("pending_evicted", "passes_quarantined", "init_skipped_quarantined", "rate_limited")
-GAUGES = ("passes_in_quarantine", "quarantine.")
-"""Prefixes of the service counters where an attack shows (with every ``rejected`` reason)."""
-
-
-def service_refusals(before: list[Stats], after: list[Stats]) -> dict[str, dict[str, float]]:
-    """Per service, what changed between two stats snapshots in its ``rejected`` reasons
-    (``rejected.<reason>``) and its counters starting with one of :data:`WATCHED`, and
-    the gauges of :data:`GAUGES` at the end (``quarantine.<vehicle>``: its passes in
-    quarantine); zeros left out."""
-
-    def flat(stats: list[Stats]) -> dict[str, dict[str, float]]:
-        out: dict[str, dict[str, float]] = {}
-        for s in stats:
-            d = out.setdefault(s.service, {})
-            for k, v in s.counters.items():
-                if k.startswith(WATCHED):
-                    d[k] = d.get(k, 0.0) + float(v)
-            for k, v in s.rejected.items():
-                d[f"rejected.{k}"] = d.get(f"rejected.{k}", 0.0) + float(v)
-        return out
-
-    b, a = flat(before), flat(after)
-    delta = {
-        svc: {k: v - b.get(svc, {}).get(k, 0.0) for k, v in sorted(vals.items())}
-        for svc, vals in sorted(a.items())
-    }
-    for s in after:
-        for k, v in s.counters.items():
-            if k.startswith(GAUGES):
-                q = delta.setdefault(s.service, {})
-                q[k] = q.get(k, 0.0) + float(v)
-    return {svc: {k: v for k, v in d.items() if v} for svc, d in delta.items()}
-
-
-def honest_accounting(r: dict, attacks: list[AttackReport]) -> dict:
-    """The honest vehicles' figures of a report of :func:`run_under_attack`: ``sent``,
-    ``acked``, ``failed``, ``applied`` (observations the matcher took in, less those the
-    attackers got acknowledged), ``lost`` (the sum of the chain's losses, with the
-    attackers' acknowledged rows counted on the acknowledged side: 0 when every
-    acknowledged observation, honest or not, was applied exactly once), ``drained``,
-    ``zero_loss`` and the latency percentiles."""
-    attacker_acked = sum(a.accepted for a in attacks)
-    losses = dict(r["losses"])
-    losses["ingest_vs_acked"] += attacker_acked
-    lost = sum(abs(v) for v in losses.values())
-    return {
-        "sent": r["sent"],
-        "acked": r["accepted"],
-        "failed": r["failed"],
-        "rejected": r["rejected"],
-        "applied": r["chain"]["matcher_received"] - attacker_acked,
-        "attacker_acked": attacker_acked,
-        "losses": losses,
-        "lost": lost,
-        "drained": r["drained"],
-        "zero_loss": bool(r["drained"] and lost == 0 and r["failed"] == 0),
-        "latency_s": r["latency_s"],
-        "latency_samples": r["latency_samples"],
-        "ack_latency_s": r["ack_latency_s"],
-    }

@@ -176,6 +176,8 @@ class Vehicle(threading.Thread):
         self.index, self.session, self.pool, self.cfg = index, session, pool, cfg
         self.counters, self.stop = counters, stop
         self.obs_period = cfg.vehicles / cfg.rate
+        self.acked_uploads = 0
+        """Uploads of this vehicle acknowledged so far (read by other threads)."""
         """Seconds of this vehicle's schedule one observation takes."""
 
     def run(self) -> None:
@@ -205,6 +207,7 @@ class Vehicle(threading.Thread):
                     c.duplicates += len(ack.duplicates)
                     c.rejected += len(ack.rejected)
                     c.ack_latencies.append(time.monotonic() - t)
+                self.acked_uploads += 1
                 return
         self.counters.add(sent=n, failed=n, batches=1)
 

@@ -8,7 +8,15 @@ in :mod:`schemas.tables`; every name is importable from here.
 
 from schemas.codec import VERSION, DecodeError
 from schemas.control import ErrorReply, Stats
-from schemas.logs import AssocGroup, LandmarkUpdates, LogEntry, LogQuery, ObsGroup
+from schemas.logs import (
+    AssocGroup,
+    LandmarkUpdates,
+    LogEntry,
+    LogHead,
+    LogQuery,
+    ObsGroup,
+    decode_replay,
+)
 from schemas.map import MapDelta, MapSnapshot
 from schemas.messages import MAX_BATCH
 from schemas.tables import (
@@ -41,6 +49,7 @@ __all__ = [
     "Landmarks",
     "Links",
     "LogEntry",
+    "LogHead",
     "LogQuery",
     "MapDelta",
     "MapSnapshot",
@@ -53,4 +62,5 @@ __all__ = [
     "Stats",
     "TrustChanges",
     "UploadAck",
+    "decode_replay",
 ]

@@ -3,6 +3,8 @@
 
 >>> ErrorReply.from_bytes(ErrorReply("bad_request", "tile", "not a quadkey").to_bytes()).code
 'bad_request'
+>>> ErrorReply.from_bytes(ErrorReply("rate", "snapshot.client", "slow down", 0.5).to_bytes())
+ErrorReply(code='rate', field='snapshot.client', reason='slow down', retry_after_s=0.5)
 """
 
 from __future__ import annotations
@@ -13,28 +15,44 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from schemas.codec import DecodeError, get_float, get_list, get_map, get_str
-from schemas.messages import FLOAT_EPOCH_MAX, Message
+from schemas.messages import FLOAT_EPOCH_MAX, MAX_RETRY_AFTER_S, Message
 
 _REASON_RE = re.compile(r".{1,200}", re.S)
 
 
 @dataclass(frozen=True, eq=False)
 class ErrorReply(Message):
-    """Any queryable's answer to a request it cannot serve."""
+    """Any queryable's answer to a request it cannot serve.
+
+    ``retry_after_s`` > 0: the refusal is transient (``rate``, ``busy``), the same request
+    may be served after that many seconds; 0: no advice (resending soon fails the same way
+    or the error says nothing about time). On the wire it is optional and sent only when
+    > 0, so an error without it reads as 0 and an older reader ignores it.
+    """
 
     TYPE: ClassVar[str] = "error"
     code: str
     field: str
     reason: str
+    retry_after_s: float = 0.0
 
     def _encode(self) -> dict[str, Any]:
-        return {"code": self.code, "field": self.field, "reason": self.reason}
+        out: dict[str, Any] = {"code": self.code, "field": self.field, "reason": self.reason}
+        if self.retry_after_s:  # absent means 0: older encodings and readers stay as they were
+            out["retry_after_s"] = float(self.retry_after_s)
+        return out
 
     @classmethod
     def from_bytes(cls, data: bytes) -> ErrorReply:
         m = cls._open(data)
+        retry = 0.0
+        if "retry_after_s" in m:  # absent in the errors of older services
+            retry = get_float(m, "retry_after_s", 0.0, MAX_RETRY_AFTER_S)
         return cls(
-            get_str(m, "code"), get_str(m, "field", _REASON_RE), get_str(m, "reason", _REASON_RE)
+            get_str(m, "code"),
+            get_str(m, "field", _REASON_RE),
+            get_str(m, "reason", _REASON_RE),
+            retry,
         )
 
     @classmethod

@@ -4,6 +4,13 @@
 sub-chunk wildcard ``$*`` (``hdmap/v1/obs/120210$*`` matches every tile under
 ``120210``).
 
+A map snapshot is asked for on one of two keys: ``hdmap/v1/map/<tile>`` (anonymous:
+operators, tools, older vehicles) or ``hdmap/v1/map/<tile>/by/<client>``
+(:func:`map_snapshot_for`), which names the client the publisher limits the query under.
+In secured mode the router lets a vehicle query only the keys ending in its own
+authenticated id, so there ``<client>`` is the vehicle's identity; the anonymous queries
+share one budget (:data:`ANONYMOUS`).
+
 >>> obs('1202')
 'hdmap/v1/obs/1202'
 >>> obs(region('120'))
@@ -14,8 +21,12 @@ sub-chunk wildcard ``$*`` (``hdmap/v1/obs/120210$*`` matches every tile under
 
 from __future__ import annotations
 
+from schemas.codec import valid_id
+
 ROOT = "hdmap/v1"
 ANY = "*"
+ANONYMOUS = "anonymous"
+"""The client every anonymous snapshot query (``hdmap/v1/map/<tile>``) counts as."""
 
 
 def region(prefix: str) -> str:
@@ -53,15 +64,45 @@ def map_snapshot(tile: str) -> str:
     return f"{ROOT}/map/{tile}"
 
 
+def map_snapshot_for(client: str, tile: str) -> str:
+    """Publisher queryable: the snapshot of one tile, asked for by ``client`` (an id, the
+    vehicle's in secured mode), who the query counts against; the reply has this key."""
+    return f"{ROOT}/map/{tile}/by/{client}"
+
+
+def snapshot_request(key: str) -> tuple[str, str]:
+    """``(tile, client)`` of a snapshot query's key: :func:`map_snapshot` keys give
+    :data:`ANONYMOUS`, :func:`map_snapshot_for` keys their client; any other key
+    ``('', ANONYMOUS)``: a wildcard query (``hdmap/v1/**``, ``.../by/*``) reaches the
+    queryables with other chunks, and is limited like an anonymous one. The tile chunk is
+    not checked here (the publisher does).
+
+    >>> snapshot_request("hdmap/v1/map/0123"), snapshot_request("hdmap/v1/map/0123/by/veh-1")
+    (('0123', 'anonymous'), ('0123', 'veh-1'))
+    >>> snapshot_request("hdmap/v1/map/0123/by/*"), snapshot_request("hdmap/v1/**")
+    (('', 'anonymous'), ('', 'anonymous'))
+    """
+    parts = key.split("/")
+    if len(parts) < 4 or not key.startswith(f"{ROOT}/map/"):
+        return "", ANONYMOUS
+    if len(parts) == 4:
+        return parts[3], ANONYMOUS
+    client = parts[5] if len(parts) == 6 and parts[4] == "by" else ""
+    if valid_id(client):
+        return parts[3], client
+    return "", ANONYMOUS
+
+
 def snapshot_tile(key: str) -> str:
-    """The tile of a :func:`map_snapshot` key, '' for any other key (a wildcard query such
-    as ``hdmap/v1/**`` reaches the queryable with fewer chunks).
+    """The tile of a :func:`map_snapshot` or :func:`map_snapshot_for` key, '' for any other
+    key (a wildcard query such as ``hdmap/v1/**`` reaches the queryable with other chunks).
 
     >>> snapshot_tile("hdmap/v1/map/0123"), snapshot_tile("hdmap/v1/**")
     ('0123', '')
+    >>> snapshot_tile("hdmap/v1/map/0123/by/veh-1"), snapshot_tile("hdmap/v1/map/0123/delta")
+    ('0123', '')
     """
-    parts = key.split("/")
-    return parts[3] if len(parts) == 4 and key.startswith(f"{ROOT}/map/") else ""
+    return snapshot_request(key)[0]
 
 
 def log(stage: str, producer: str, tile: str) -> str:

@@ -83,55 +83,143 @@ class LogEntry(Message):
         )
 
 
+MAX_LISTED_TILES = 100_000
+"""Tiles a :class:`LogQuery` may list over all producers."""
+
+
+def _get_offsets(m: dict) -> dict[str, dict[str, int]]:
+    offsets = get_map(m, "offsets")
+    if len(offsets) > 10_000:
+        raise DecodeError("offsets", f"{len(offsets)} producers exceeds the limit of 10000")
+    listed = 0
+    for p, tiles in offsets.items():
+        if not valid_id(p) or not isinstance(tiles, dict):
+            raise DecodeError("offsets", "expected producer id -> {tile: seq}")
+        listed += len(tiles)
+        if listed > MAX_LISTED_TILES:
+            raise DecodeError("offsets", f"more than {MAX_LISTED_TILES} tiles listed")
+        for t, s in tiles.items():
+            if (
+                not isinstance(t, str)
+                or not TILE_RE.fullmatch(t)
+                or not isinstance(s, int)
+                or isinstance(s, bool)
+                or not 0 <= s < 2**63
+            ):
+                raise DecodeError(f"offsets.{p}", "expected quadkey -> non-negative seq")
+    return offsets
+
+
 @dataclass(frozen=True, eq=False)
 class LogQuery(Message):
-    """Consumer -> producers: entries after these offsets for tiles of these prefixes."""
+    """Consumer -> producers: the entries of a region that the consumer has not applied.
+
+    Two forms. With ``after_gseq`` (what consumers send): for a tile listed in
+    ``offsets``, its entries with ``seq`` above the listed one; for every other tile of
+    the region, its entries with ``gseq`` above the producer's watermark (absent = 0).
+    The answer ends with a :class:`LogHead` saying how far it goes, so the query stays
+    as small as the tiles active since the watermark, whatever the region ever held.
+    Without ``after_gseq`` (older consumers): every tile with entries after its listed
+    ``seq`` (absent = 0), and no :class:`LogHead`.
+    """
 
     TYPE: ClassVar[str] = "log_query"
     stage: str
     offsets: dict[str, dict[str, int]]
-    """producer -> tile -> last applied seq (absent = 0)."""
+    """producer -> tile -> last applied seq."""
     prefixes: list[str] = field(default_factory=list)
     """Quadkey prefixes of the consumer's region (empty = every tile)."""
     limit: int = 1000
     """At most this many entries per producer in one answer."""
+    after_gseq: dict[str, int] | None = None
+    """producer -> watermark: every entry of the region up to this ``gseq`` is applied,
+    except in the listed tiles. Optional on the wire (absent = the per-tile form)."""
 
     def _encode(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "stage": self.stage,
             "offsets": self.offsets,
             "prefixes": list(self.prefixes),
             "limit": int(self.limit),
         }
+        if self.after_gseq is not None:
+            out["after_gseq"] = {p: int(g) for p, g in self.after_gseq.items()}
+        return out
 
     @classmethod
     def from_bytes(cls, data: bytes) -> LogQuery:
         m = cls._open(data)
-        offsets = get_map(m, "offsets")
-        if len(offsets) > 10_000:
-            raise DecodeError("offsets", f"{len(offsets)} producers exceeds the limit of 10000")
-        for p, tiles in offsets.items():
-            if not valid_id(p) or not isinstance(tiles, dict):
-                raise DecodeError("offsets", "expected producer id -> {tile: seq}")
-            for t, s in tiles.items():
-                if (
-                    not isinstance(t, str)
-                    or not TILE_RE.fullmatch(t)
-                    or not isinstance(s, int)
-                    or isinstance(s, bool)
-                    or not 0 <= s < 2**63
-                ):
-                    raise DecodeError(f"offsets.{p}", "expected quadkey -> non-negative seq")
+        offsets = _get_offsets(m)
         prefixes = get_list(m, "prefixes", 10_000)
         for i, p in enumerate(prefixes):
             if not isinstance(p, str) or (p and not TILE_RE.fullmatch(p)):
                 raise DecodeError("prefixes", "expected quadkey prefixes", i)
+        after: dict[str, int] | None = None
+        if "after_gseq" in m:
+            after = get_map(m, "after_gseq")
+            if len(after) > 10_000:
+                raise DecodeError("after_gseq", f"{len(after)} producers exceeds the limit")
+            for p, g in after.items():
+                if not valid_id(p) or not isinstance(g, int) or isinstance(g, bool):
+                    raise DecodeError("after_gseq", "expected producer id -> gseq")
+                if not 0 <= g < 2**63:
+                    raise DecodeError(f"after_gseq.{p}", "expected a non-negative gseq")
         return cls(
             stage=get_str(m, "stage", _STAGE_RE, _STAGE),
             offsets=offsets,
             prefixes=prefixes,
             limit=get_int(m, "limit", 1, 100_000),
+            after_gseq=after,
         )
+
+
+@dataclass(frozen=True, eq=False)
+class LogHead(Message):
+    """Producer -> consumer: the last reply to a :class:`LogQuery` with ``after_gseq``.
+
+    Every entry the query asked for with ``gseq <= through`` is in this answer; ``head``
+    is the producer's last ``gseq`` when it read (``through == head``: nothing more).
+    A producer that sent no head did not answer: the consumer learns nothing from it.
+    """
+
+    TYPE: ClassVar[str] = "log_head"
+    stage: str
+    producer: str
+    through: int
+    head: int
+
+    def _encode(self) -> dict[str, Any]:
+        return {
+            "stage": self.stage,
+            "producer": self.producer,
+            "through": int(self.through),
+            "head": int(self.head),
+        }
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> LogHead:
+        m = cls._open(data)
+        head = get_int(m, "head", 0, 2**63 - 1)
+        return cls(
+            stage=get_str(m, "stage", _STAGE_RE, _STAGE),
+            producer=get_str(m, "producer"),
+            through=get_int(m, "through", 0, head),
+            head=head,
+        )
+
+    @property
+    def complete(self) -> bool:
+        return self.through >= self.head
+
+
+def decode_replay(data: bytes) -> LogEntry | LogHead:
+    """A reply to a :class:`LogQuery`: an entry, or the answer's closing head."""
+    try:
+        return LogEntry.from_bytes(data)
+    except DecodeError as exc:
+        if exc.field != "type":
+            raise
+    return LogHead.from_bytes(data)
 
 
 @dataclass(frozen=True, eq=False)

@@ -42,6 +42,8 @@ TILE_TEXT = "a quadkey (1-24 digits 0-3)"
 """What :data:`TILE_RE` accepts, for error messages."""
 FLOAT_EPOCH_MAX = 4.1e9
 """Upper bound on Unix times, s (the year 2100)."""
+MAX_RETRY_AFTER_S = 86400.0
+"""Upper bound of every ``retry_after_s`` (``UploadAck``, ``ErrorReply``), s (a day)."""
 
 
 def get_table(m: dict, name: str, cls: type, max_rows: int, strict: bool = True) -> Any:

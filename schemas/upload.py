@@ -18,6 +18,7 @@ from schemas.codec import DecodeError, get_float, get_int, get_list, get_map, ge
 from schemas.messages import (
     FLOAT_EPOCH_MAX,
     MAX_BATCH,
+    MAX_RETRY_AFTER_S,
     MAX_TABLE_ROWS,
     Message,
     as_ids,
@@ -181,6 +182,6 @@ class UploadAck(Message):
             duplicates=get_ids(m, "duplicates", max_rows),
             rejected=rejected,
             error=error,
-            retry_after_s=get_float(m, "retry_after_s", 0.0, 86400.0),
+            retry_after_s=get_float(m, "retry_after_s", 0.0, MAX_RETRY_AFTER_S),
             permanent=permanent,
         )

@@ -21,6 +21,7 @@ from vehicle.geoloc import (
     fix_outliers,
     geolocate,
 )
+from vehicle.mapclient import MapClient
 from vehicle.tracking import TrackConfig, smoothed_rays, track_rays
 from vehicle.uploader import Uploader, UploadResult
 
@@ -97,6 +98,12 @@ class VehicleAgent:
 
     def upload(self, session: zenoh.Session, timeout: float = 10.0) -> UploadResult:
         return self.uploader.flush(session, timeout)
+
+    def map_client(self, session: zenoh.Session, radius_m: float = 500.0) -> MapClient:
+        """This vehicle's map client: it asks for snapshots under the vehicle id (the key
+        the publisher limits per client, and the only one it may query in secured mode).
+        The caller closes it."""
+        return MapClient(session, radius_m=radius_m, client_id=self.vehicle_id)
 
     def close(self) -> None:
         self.uploader.close()

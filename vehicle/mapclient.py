@@ -13,13 +13,27 @@ client's own thread applies, so ``near()`` reads a consistent map.
 ``update_position``, ``follow`` and ``unfollow`` may be called from several threads
 (a GPS thread and the application): subscription changes are serialised, so each
 followed tile has exactly one subscription.
+
+Snapshots are asked for under the client's id (``client_id``, the vehicle id:
+``hdmap/v1/map/<tile>/by/<id>``, the only snapshot key a vehicle may query in secured
+mode), or on the anonymous ``hdmap/v1/map/<tile>`` without one. The publisher limits the
+queries of each client (``services/publisher/limits.py``): a snapshot refused with
+``rate`` or ``busy`` is asked for again after the error's ``retry_after_s``
+(:func:`retry_delay`: at least :data:`MIN_RETRY_S`, at most ``max_retry_s``, plus up to
+:data:`RETRY_JITTER` of it at random so that refused clients do not come back together),
+scheduled on the client's own thread; the tile stays "fetching" meanwhile (its deltas are
+buffered, no other fetch is queued) and the refusal is counted in
+``stats.snapshots_refused``.
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
 import queue
+import random
 import threading
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,9 +42,37 @@ import zenoh
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.tiles import DEFAULT_ZOOM, tiles_around
 from hdmap.runtime.bus import query
-from schemas import DecodeError, Landmarks, MapDelta, MapSnapshot, keys
+from schemas import DecodeError, ErrorReply, Landmarks, MapDelta, MapSnapshot, keys
+from schemas.codec import valid_id
 
 log = logging.getLogger(__name__)
+
+RETRIED_CODES = ("rate", "busy")
+"""Error codes of a snapshot refusal that passes by itself: the fetch is retried."""
+MIN_RETRY_S = 0.05
+"""Least wait before a refused snapshot is asked for again (also when the error gives none)."""
+RETRY_JITTER = 0.25
+"""A refused fetch waits up to this fraction more than told, at random."""
+
+
+def retry_delay(retry_after_s: float, u: float, max_s: float = 60.0) -> float:
+    """Seconds before a refused snapshot is asked for again: ``retry_after_s`` clamped to
+    ``[MIN_RETRY_S, max_s]``, times ``1 + RETRY_JITTER * u`` for ``u`` in [0, 1).
+
+    >>> retry_delay(2.0, 0.0), retry_delay(2.0, 0.5), retry_delay(0.0, 0.0), retry_delay(1e4, 0.0)
+    (2.0, 2.25, 0.05, 60.0)
+    """
+    base = min(max(retry_after_s, MIN_RETRY_S), max_s)
+    return base * (1.0 + RETRY_JITTER * u)
+
+
+def _refusal(err: bytes) -> ErrorReply | None:
+    """The error reply if it is a refusal that passes by itself (:data:`RETRIED_CODES`)."""
+    try:
+        e = ErrorReply.from_bytes(err)
+    except DecodeError:
+        return None
+    return e if e.code in RETRIED_CODES else None
 
 
 @dataclass
@@ -40,7 +82,9 @@ class TileCopy:
     rows: dict[int, Landmarks] = field(default_factory=dict)
     buffered: list[MapDelta] = field(default_factory=list)
     fetching: bool = False
-    """A snapshot fetch is queued or in flight."""
+    """A snapshot fetch is queued, in flight, or scheduled again after a refusal."""
+    retry_at: float | None = None
+    """When the refused snapshot is asked for again (monotonic s); None: no retry pending."""
 
 
 @dataclass
@@ -51,6 +95,8 @@ class ClientStats:
     ahead_of_snapshot: int = 0
     """Buffered deltas dropped because a fresher snapshot was behind their from_version."""
     snapshots: int = 0
+    snapshots_refused: int = 0
+    """Snapshot fetches the publisher refused with ``rate`` or ``busy`` (each retried later)."""
     subscribed: int = 0
     dropped: int = 0
     resyncs: int = 0
@@ -68,11 +114,25 @@ class MapClient:
         radius_m: float = 500.0,
         zoom: int = DEFAULT_ZOOM,
         snapshot_timeout: float = 5.0,
+        client_id: str | None = None,
+        max_retry_s: float = 60.0,
     ):
+        """``client_id``: the id snapshots are asked for under (the vehicle id; None: the
+        anonymous key). ``max_retry_s``: the longest wait before a refused snapshot is
+        asked for again, whatever the publisher says."""
+        if client_id is not None and not valid_id(client_id):
+            raise ValueError(f"client_id {client_id!r}: 1-64 characters of [A-Za-z0-9_.-]")
         self._session = session
         self.radius_m = radius_m
         self.zoom = zoom
         self._timeout = snapshot_timeout
+        self.client_id = client_id
+        self.max_retry_s = max_retry_s
+        self._rng = random.Random()
+        self._retries: list[tuple[float, str]] = []
+        """Heap of (due, tile) of refused fetches (the worker's only)."""
+        self._markers: list[threading.Event] = []
+        """``wait_idle`` markers reached while a refused fetch waits (the worker's only)."""
         self._tiles: dict[str, TileCopy] = {}
         self._subs: dict[str, zenoh.Subscriber] = {}
         self._lock = threading.Lock()
@@ -139,19 +199,45 @@ class MapClient:
     # -- worker ----------------------------------------------------------------------------
 
     def _run(self) -> None:
-        while (item := self._inbox.get()) is not None:
-            kind, tile, payload = item
+        while True:
+            wait = self._retries[0][0] - time.monotonic() if self._retries else None
             try:
-                if isinstance(payload, threading.Event):
-                    payload.set()
-                elif kind == "fetch":
-                    self._fetch(tile)
-                elif kind == "resync":
-                    self._resync()
-                else:
-                    self._on_delta(tile, payload)
-            except (DecodeError, zenoh.ZError) as exc:
-                log.warning("map client: %s on tile %s: %s", kind, tile, exc)
+                item = self._inbox.get(timeout=None if wait is None else max(0.0, wait))
+            except queue.Empty:
+                item = ("retry", "", b"")
+            if item is None:
+                return
+            self._do(*item)
+            self._retry_due()
+            if self._markers and not self._retry_pending():
+                for m in self._markers:
+                    m.set()
+                self._markers.clear()
+
+    def _do(self, kind: str, tile: str, payload: bytes | threading.Event) -> None:
+        try:
+            if isinstance(payload, threading.Event):
+                self._markers.append(payload)  # set once no refused fetch waits (_run)
+            elif kind == "fetch":
+                self._fetch(tile)
+            elif kind == "resync":
+                self._resync()
+            elif kind == "delta":
+                self._on_delta(tile, payload)
+        except (DecodeError, zenoh.ZError) as exc:
+            log.warning("map client: %s on tile %s: %s", kind, tile, exc)
+
+    def _retry_due(self) -> None:
+        """Fetch again the refused snapshots whose wait is over (each only if it is still
+        the tile's pending retry: unfollowed, or fetched since by a resync, it is not)."""
+        now = time.monotonic()
+        while self._retries and self._retries[0][0] <= now:
+            due, tile = heapq.heappop(self._retries)
+            with self._lock:
+                copy = self._tiles.get(tile)
+                current = copy is not None and copy.retry_at == due
+            if current:
+                self._do("fetch", tile, b"")
 
     def _resync(self) -> None:
         with self._lock:
@@ -162,14 +248,34 @@ class MapClient:
         for t in tiles:
             self._fetch(t)
 
+    def _retry_pending(self) -> bool:
+        """Whether a followed tile waits to ask for its refused snapshot again."""
+        with self._lock:
+            return any(c.retry_at is not None for c in self._tiles.values())
+
+    def snapshot_key(self, tile: str) -> str:
+        """The key this client asks for ``tile``'s snapshot on."""
+        if self.client_id is None:
+            return keys.map_snapshot(tile)
+        return keys.map_snapshot_for(self.client_id, tile)
+
     def _fetch(self, tile: str) -> None:
-        snap = None
-        for _k, ok, _err in query(self._session, keys.map_snapshot(tile), timeout=self._timeout):
+        snap, refused = None, None
+        for _k, ok, err in query(self._session, self.snapshot_key(tile), timeout=self._timeout):
             if ok is not None:
                 snap = MapSnapshot.from_bytes(ok)
+            elif err is not None:
+                refused = _refusal(err) or refused
         with self._lock:
             copy = self._tiles.get(tile)
             if copy is None:
+                return
+            copy.retry_at = None
+            if snap is None and refused is not None:  # ask again later; still fetching
+                self.stats.snapshots_refused += 1
+                delay = retry_delay(refused.retry_after_s, self._rng.random(), self.max_retry_s)
+                copy.retry_at = time.monotonic() + delay
+                heapq.heappush(self._retries, (copy.retry_at, tile))
                 return
             copy.fetching = False
             if snap is None:
@@ -245,7 +351,8 @@ class MapClient:
         return lm.take(np.hypot(enu[:, 0], enu[:, 1]) <= radius_m)
 
     def wait_idle(self, timeout: float = 5.0) -> bool:
-        """Until everything queued before this call is applied (bounded); whether it was."""
+        """Until everything queued before this call is applied and no refused snapshot
+        waits to be asked for again (bounded); whether it was."""
         marker = threading.Event()
         self._inbox.put(("marker", "", marker))
         return marker.wait(timeout)

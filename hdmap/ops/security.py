@@ -11,10 +11,12 @@ wheel; the services and vehicles only load a client config file:
   identity is the user name; TLS still encrypts and authenticates the router);
 - **authorization**: an ACL on the router, default deny. Services (and the
   ``operator`` identity of ``hdmap status``) may do everything under ``hdmap/v1/**``.
-  A vehicle may only query ``hdmap/v1/upload/<its own id>``, subscribe to
-  ``hdmap/v1/map/*/delta``, query ``hdmap/v1/map/*`` and receive the matching
-  samples and replies: no put, no delete, no other subscription, no queryable,
-  no liveliness.
+  A vehicle may only query ``hdmap/v1/upload/<its own id>`` and
+  ``hdmap/v1/map/<tile>/by/<its own id>`` (snapshots asked for under its authenticated
+  id, which the publisher limits per client), subscribe to ``hdmap/v1/map/*/delta``, and
+  receive the matching samples and replies: no anonymous snapshot query
+  (``hdmap/v1/map/<tile>``, which all share one budget), no put, no delete, no other
+  subscription, no queryable, no liveliness.
 
 Measured with eclipse-zenoh 1.10.2 (tests/test_security.py shows each over real
 connections): a denied put or delete returns normally and is dropped at the router;
@@ -27,12 +29,13 @@ requires both (AND). Queries, subscriptions and tokens that a session matches it
 are served locally, without the router: a test must use separate sessions.
 
 **Scaling limit.** Zenoh's ACL has no "the caller's own name" placeholder, so the
-upload right takes one rule, one subject and one policy per vehicle (~280 bytes of
-config). A 20,000-vehicle ACL loaded and opened in ~2.5 s and did not slow a
-vehicle's connect (31 ms) or its uploads; but the ACL is read once at router start,
-so adding or revoking a vehicle means regenerating the router config from the vehicle
-registry and restarting the router (clients reconnect). Shard vehicles over several
-routers by region when the file or restarts become a burden.
+rights on a vehicle's own keys take one rule, one subject and one policy per vehicle
+(~340 bytes of config). A 20,000-vehicle ACL (measured with the upload key alone, ~280
+bytes each) loaded and opened in ~2.5 s and did not slow a vehicle's connect (31 ms) or
+its uploads; but the ACL is read once at router start, so adding or revoking a vehicle
+means regenerating the router config from the vehicle registry and restarting the router
+(clients reconnect). Shard vehicles over several routers by region when the file or
+restarts become a burden.
 """
 
 from __future__ import annotations
@@ -98,9 +101,9 @@ def acl(services: Sequence[str], vehicles: Sequence[str], auth: str = "mtls") ->
 
     >>> a = acl(["ingest"], ["veh-1", "veh-2"])
     >>> len(a["rules"]), len(a["subjects"]), len(a["policies"])
-    (8, 4, 4)
-    >>> [r["key_exprs"] for r in a["rules"] if r["id"] == "upload-veh-2"]
-    [['hdmap/v1/upload/veh-2']]
+    (7, 4, 4)
+    >>> [r["key_exprs"] for r in a["rules"] if r["id"] == "own-veh-2"]
+    [['hdmap/v1/upload/veh-2', 'hdmap/v1/map/*/by/veh-2']]
     """
     if auth not in AUTH_MODES:
         raise ValueError(f"auth {auth!r}: one of {AUTH_MODES}")
@@ -120,7 +123,7 @@ def acl(services: Sequence[str], vehicles: Sequence[str], auth: str = "mtls") ->
             "key_exprs": key_exprs,
         }
 
-    delta, snap = keys.map_delta(keys.ANY), keys.map_snapshot(keys.ANY)
+    delta, snap = keys.map_delta(keys.ANY), keys.map_snapshot_for(keys.ANY, keys.ANY)
     rules = [rule("services-all", list(ALL_MESSAGES), ["ingress", "egress"], [f"{keys.ROOT}/**"])]
     # A subject without names matches anyone (an empty list is refused by Zenoh): none here.
     subjects: list[dict[str, Any]] = []
@@ -132,20 +135,20 @@ def acl(services: Sequence[str], vehicles: Sequence[str], auth: str = "mtls") ->
         rules += [
             rule("vehicle-subscribe-deltas", ["declare_subscriber"], "ingress", [delta]),
             rule("vehicle-receive-deltas", ["put"], "egress", [delta]),
-            rule("vehicle-query-snapshots", ["query"], "ingress", [snap]),
+            # A vehicle only gets replies to its own queries: shared reply rules are enough.
             rule("vehicle-receive-snapshots", ["reply"], "egress", [snap]),
-            # A vehicle only gets replies to its own queries: one shared rule is enough.
             rule("vehicle-receive-upload-acks", ["reply"], "egress", [keys.upload(keys.ANY)]),
         ]
         subjects.append({"id": "vehicles", field: list(vehicles)})
         shared = [r["id"] for r in rules if r["id"].startswith("vehicle-")]
         policies.append({"id": "vehicles", "rules": shared, "subjects": ["vehicles"]})
     for v in vehicles:  # the scaling limit: one rule + subject + policy per vehicle
-        rules.append(rule(f"upload-{v}", ["query"], "ingress", [keys.upload(v)]))
+        # Its own keys only: it uploads as itself, and asks for snapshots as itself (the
+        # publisher's per-client limit then holds for its authenticated id).
+        own = [keys.upload(v), keys.map_snapshot_for(v, keys.ANY)]
+        rules.append(rule(f"own-{v}", ["query"], "ingress", own))
         subjects.append({"id": f"vehicle-{v}", field: [v]})
-        policies.append(
-            {"id": f"vehicle-{v}", "rules": [f"upload-{v}"], "subjects": [f"vehicle-{v}"]}
-        )
+        policies.append({"id": f"vehicle-{v}", "rules": [f"own-{v}"], "subjects": [f"vehicle-{v}"]})
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -4,7 +4,10 @@ Zenoh callbacks only copy bytes into one bounded inbox; the worker (the thread
 that called :meth:`Service.run`) does all the work, in batches, so heavy work
 never runs on a Zenoh callback thread (zenoh-python ``z_sub_queued.py`` style).
 A full inbox blocks the callback, which with ``CongestionControl.BLOCK`` pushes
-back on the producers instead of dropping data.
+back on the producers instead of dropping data; except for input that can be fetched
+again (stage log entries, :meth:`Service.subscribe` with ``drop_when_full``): a slow
+consumer must not hold up its producer (ingest's acks to vehicles), so such samples are
+dropped and the consumer replays them from the producer's log.
 
 Per-key state follows an explicit contract (bytewax ``StatefulLogic``-like):
 ``handle`` (on items), ``on_timer`` (periodic), and the state lives in SQLite,
@@ -228,6 +231,8 @@ class Service:
         """The last one's cause (SQLite's error name, or the exception's class) and time."""
         self._load_counters()
         self.inbox: queue.Queue[Item] = queue.Queue(maxsize=opts.inbox_size)
+        self.inbox_dropped = threading.Event()
+        """Set by a callback that dropped a sample on a full inbox (see :meth:`subscribe`)."""
         self.started_at = time.time()
         self._process = psutil.Process(os.getpid())
         self._declared: list[Any] = []
@@ -341,9 +346,21 @@ class Service:
             rejected[reason] += n
             counters["rejected"] += n
 
-    def subscribe(self, key: str, kind: str) -> None:
+    def subscribe(self, key: str, kind: str, drop_when_full: bool = False) -> None:
+        """Samples on ``key`` into the inbox as items of ``kind``. A full inbox blocks the
+        callback (pushing back on the publisher), or with ``drop_when_full`` drops the
+        sample and sets :attr:`inbox_dropped` (for input that can be fetched again, such
+        as stage log entries: the producer's log still has them)."""
+
         def cb(sample: zenoh.Sample) -> None:
-            self.inbox.put(Item(kind, str(sample.key_expr), sample.payload.to_bytes()))
+            item = Item(kind, str(sample.key_expr), sample.payload.to_bytes())
+            if not drop_when_full:
+                self.inbox.put(item)
+                return
+            try:
+                self.inbox.put_nowait(item)
+            except queue.Full:
+                self.inbox_dropped.set()
 
         self._declared.append(self.session.declare_subscriber(key, cb))
 

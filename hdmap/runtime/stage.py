@@ -60,6 +60,8 @@ class StageService(Service):
         self._outbox: list[LogEntry] = []
         self._deferred = 0
         """Live entries not taken while a storage failure is waited out (replayed later)."""
+        self._dropped_batches = 0
+        """Times live entries were dropped on a full inbox (each time a catch-up follows)."""
         self.db.execute(
             "CREATE TABLE IF NOT EXISTS dead_letters "
             "(at REAL NOT NULL, stage TEXT NOT NULL, body BLOB NOT NULL)"
@@ -84,7 +86,8 @@ class StageService(Service):
 
     def setup(self) -> None:
         for prefix in self.region or [""]:
-            self.subscribe(STAGE_KEYS[self.input_stage](keys.region(prefix)), "entry")
+            key = STAGE_KEYS[self.input_stage](keys.region(prefix))
+            self.subscribe(key, "entry", drop_when_full=True)
         if self.output_stage:
             self._log_server = LogServer(
                 self.session, self.db_path, self.output_stage, self.instance
@@ -125,6 +128,10 @@ class StageService(Service):
         storage failure is waited out (:attr:`backoff`), nothing is applied and live
         entries are left to the replay that follows."""
         waiting = self.backoff.waiting(self.clock())
+        if self.inbox_dropped.is_set():  # live entries lost on a full inbox: replay them
+            self.inbox_dropped.clear()
+            self.consumer.need_catchup = True
+            self._dropped_batches += 1
         deliver: list[LogEntry] = []
         others: list[Item] = []
         for it in items:
@@ -166,8 +173,8 @@ class StageService(Service):
         """Entries above the committed offsets. A batch that failed and was applied entry
         by entry leaves the consumer's delivery marks behind its offsets, so the next
         replay delivers those entries again: they must not be applied twice."""
-        done = self.consumer.offsets
-        return [e for e in entries if e.seq > done.get((e.producer, e.tile), 0)]
+        done = self.consumer.committed
+        return [e for e in entries if e.seq > done(e.producer, e.tile)]
 
     def _apply_and_publish(self, entries: list[LogEntry]) -> bool:
         """Apply a batch in one transaction; a batch that raises is retried entry by entry,
@@ -257,6 +264,7 @@ class StageService(Service):
             "entries_replayed": s.replayed,
             "catchups": s.catchups,
             "entries_deferred": self._deferred,
+            "inbox_overflows": self._dropped_batches,
         }
 
 

@@ -22,9 +22,7 @@ consumer has it) and nothing is applied twice (offsets commit with the effects).
 from __future__ import annotations
 
 import logging
-import queue
 import sqlite3
-import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
@@ -35,8 +33,8 @@ import zenoh
 
 from hdmap.geo.tiles import in_region
 from hdmap.runtime.bus import query
-from hdmap.runtime.store import connect
-from schemas import DecodeError, ErrorReply, LogEntry, LogQuery, keys
+from hdmap.runtime.queries import QueryServer
+from schemas import DecodeError, ErrorReply, LogEntry, LogHead, LogQuery, decode_replay, keys
 
 log = logging.getLogger(__name__)
 
@@ -70,11 +68,12 @@ class LogWriter:
         self._heads = dict(conn.execute("SELECT tile, seq FROM log_heads").fetchall())
         self._gseq = conn.execute("SELECT COALESCE(MAX(gseq), 0) FROM log_out").fetchone()[0]
         self._staged: list[LogEntry] = []
+        self._staged_heads: dict[str, int] = {}
 
     def append(self, tile: str, body: bytes) -> LogEntry:
-        staged_heads = {e.tile: e.seq for e in self._staged}
-        seq = staged_heads.get(tile, self._heads.get(tile, 0)) + 1
+        seq = self._staged_heads.get(tile, self._heads.get(tile, 0)) + 1
         gseq = (self._staged[-1].gseq if self._staged else self._gseq) + 1
+        self._staged_heads[tile] = seq
         entry = LogEntry(self.stage, self.producer, tile, seq, gseq, body)
         self._conn.execute(
             "INSERT INTO log_out(gseq, tile, seq, body, created_at) VALUES (?, ?, ?, ?, ?)",
@@ -85,13 +84,13 @@ class LogWriter:
         return entry
 
     def on_commit(self) -> None:
-        for e in self._staged:
-            self._heads[e.tile] = e.seq
-            self._gseq = e.gseq
-        self._staged = []
+        self._heads.update(self._staged_heads)
+        if self._staged:
+            self._gseq = self._staged[-1].gseq
+        self._staged, self._staged_heads = [], {}
 
     def on_rollback(self) -> None:
-        self._staged = []
+        self._staged, self._staged_heads = [], {}
 
     @property
     def heads(self) -> dict[str, int]:
@@ -102,45 +101,12 @@ class LogWriter:
         return self._gseq
 
 
-class QueryServer:
-    """A queryable answered on its own thread from its own read-only SQLite connection.
+Row = tuple[int, str, int, bytes]
+"""``(gseq, tile, seq, body)`` of a ``log_out`` row."""
 
-    Keeps reads (replays, snapshots) off both the Zenoh callback threads and the
-    service's worker; WAL lets it read committed state while the worker writes.
-    """
-
-    def __init__(
-        self,
-        session: zenoh.Session,
-        key: str,
-        db_path: str | Path,
-        answer: Callable[[sqlite3.Connection, zenoh.Query], None],
-        name: str = "query",
-    ):
-        self._db_path = db_path
-        self._answer = answer
-        self._queue: queue.Queue[zenoh.Query | None] = queue.Queue(maxsize=1024)
-        self._thread = threading.Thread(target=self._serve, name=name, daemon=True)
-        self._thread.start()
-        self._queryable = session.declare_queryable(key, self._queue.put)
-
-    def close(self) -> None:
-        self._queryable.undeclare()
-        self._queue.put(None)
-        self._thread.join(timeout=5)
-
-    def _serve(self) -> None:
-        conn = connect(self._db_path, readonly=True)
-        try:
-            while (q := self._queue.get()) is not None:
-                try:
-                    self._answer(conn, q)
-                except Exception:  # one bad query must not stop the thread
-                    log.exception("query on %s failed", q.key_expr)
-                finally:
-                    q.drop()
-        finally:
-            conn.close()
+SCAN_FACTOR = 50
+"""A replay answer reads at most this many times its ``limit`` entries past the
+watermark (entries of other regions included) before it stops with ``through``."""
 
 
 class LogServer(QueryServer):
@@ -160,24 +126,30 @@ class LogServer(QueryServer):
         except DecodeError as exc:
             q.reply_err(ErrorReply.of(exc).to_bytes())
             return
-        offsets = req.offsets.get(self.producer, {})
-        heads = conn.execute("SELECT tile, seq FROM log_heads").fetchall()
-        wanted = [
-            (t, offsets.get(t, 0))
-            for t, s in heads
-            if s > offsets.get(t, 0) and in_region(t, req.prefixes)
-        ]
-        rows: list[tuple[int, str, int, bytes]] = []
-        for tile, after in wanted:
-            rows += conn.execute(
-                "SELECT gseq, tile, seq, body FROM log_out WHERE tile=? AND seq>? "
-                "ORDER BY seq LIMIT ?",
-                (tile, after, req.limit),
-            ).fetchall()
-        rows.sort()
-        for gseq, tile, seq, body in rows[: req.limit]:
-            entry = LogEntry(self.stage, self.producer, tile, seq, gseq, body)
-            q.reply(keys.log(self.stage, self.producer, tile), entry.to_bytes())
+        conn.execute("BEGIN")  # one snapshot of the log for the whole answer
+        try:
+            if req.after_gseq is None:
+                rows, head = rows_per_tile(conn, req, self.producer), None
+            else:
+                rows, head = rows_since(conn, req, self.producer)
+            for gseq, tile, seq, body in rows:
+                entry = LogEntry(self.stage, self.producer, tile, seq, gseq, body)
+                q.reply(keys.log(self.stage, self.producer, tile), entry.to_bytes())
+        finally:
+            conn.execute("COMMIT")
+        if head is not None:
+            q.reply(
+                keys.log(self.stage, self.producer, _head_chunk(str(q.key_expr))), head.to_bytes()
+            )
+
+
+def _head_chunk(selector: str) -> str:
+    """A last key chunk for the closing :class:`LogHead` that the query's selector
+    matches (``0123$*`` -> ``0123``; ``*`` or ``**`` -> ``head``)."""
+    last = selector.rsplit("/", 1)[-1]
+    if last.endswith("$*"):
+        return last[:-2] or "head"
+    return "head" if "*" in last else last
 
 
 @dataclass
@@ -193,12 +165,25 @@ LAG_CAP = 1_000_000
 
 
 class LogConsumer:
-    """Consumer side: in-order, exactly-once delivery of a stage's entries for a region."""
+    """Consumer side: in-order, exactly-once delivery of a stage's entries for a region.
+
+    Invariant (the watermark): every entry of the region with ``gseq`` up to
+    ``watermark[producer]`` is delivered, except in tiles where an entry waits behind a
+    gap. A catch-up therefore lists only the tiles delivered past the watermark (to skip
+    what it has) and the tiles with a gap (to fill them whatever their ``gseq``), and the
+    producer's :class:`LogHead` moves the watermark up: the query grows with the tiles
+    active since the last catch-up, not with every tile the region ever held. The
+    watermark is saved only by a transaction that leaves nothing delivered uncommitted,
+    so the saved one holds for the saved offsets.
+    """
 
     SCHEMA = """
     CREATE TABLE IF NOT EXISTS offsets (
         stage TEXT NOT NULL, producer TEXT NOT NULL, tile TEXT NOT NULL, seq INTEGER NOT NULL,
         PRIMARY KEY (stage, producer, tile)) WITHOUT ROWID;
+    CREATE TABLE IF NOT EXISTS watermarks (
+        stage TEXT NOT NULL, producer TEXT NOT NULL, gseq INTEGER NOT NULL,
+        PRIMARY KEY (stage, producer)) WITHOUT ROWID;
     """
 
     def __init__(self, conn: sqlite3.Connection, stage: str, prefixes: Sequence[str]):
@@ -207,19 +192,34 @@ class LogConsumer:
         self._conn = conn
         conn.executescript(self.SCHEMA)
         self._committed: dict[tuple[str, str], int] = {}
-        self._load()
-        self._delivered = dict(self._committed)
+        self._committed_wm: dict[str, int] = {}
         self._ahead: dict[tuple[str, str], dict[int, LogEntry]] = defaultdict(dict)
         self._pending_commit: dict[tuple[str, str], int] = {}
+        self._pending_wm: dict[str, int] = {}
         self._seen: dict[tuple[str, str], int] = {}
-        self.need_catchup = True
         self.stats = ConsumerStats()
+        self._rewind()
 
-    def _load(self) -> None:
+    def _rewind(self) -> None:
+        """Back to the committed state (start, rollback)."""
         rows = self._conn.execute(
             "SELECT producer, tile, seq FROM offsets WHERE stage=?", (self.stage,)
         ).fetchall()
         self._committed = {(p, t): s for p, t, s in rows}
+        self._committed_wm = dict(
+            self._conn.execute(
+                "SELECT producer, gseq FROM watermarks WHERE stage=?", (self.stage,)
+            ).fetchall()
+        )
+        self._delivered = dict(self._committed)
+        self._watermark = dict(self._committed_wm)
+        self._recent: dict[str, dict[str, tuple[int, int]]] = defaultdict(dict)
+        """producer -> tile -> (delivered seq, its gseq) for deliveries past the watermark."""
+        self._uncommitted: set[tuple[str, str]] = set()
+        self._ahead.clear()
+        self._pending_commit = {}
+        self._pending_wm = {}
+        self.need_catchup = True
 
     # -- delivery ---------------------------------------------------------------------
 
@@ -233,6 +233,7 @@ class LogConsumer:
         last = self._delivered.get(k, 0)
         if entry.seq <= last:
             self.stats.duplicates += 1
+            self._note(entry, last)
             return []
         if entry.seq > last + 1:
             self._ahead[k][entry.seq] = entry
@@ -240,17 +241,26 @@ class LogConsumer:
             self.need_catchup = True
             return []
         out = [entry]
-        self._delivered[k] = entry.seq
         buf = self._ahead.get(k)
-        while buf and (nxt := buf.pop(self._delivered[k] + 1, None)) is not None:
+        while buf and (nxt := buf.pop(out[-1].seq + 1, None)) is not None:
             out.append(nxt)
-            self._delivered[k] = nxt.seq
         if buf is not None and not buf:
             del self._ahead[k]
+        self._delivered[k] = out[-1].seq
+        self._uncommitted.add(k)
+        self._note(out[-1], out[-1].seq)
         return out
 
+    def _note(self, entry: LogEntry, delivered: int) -> None:
+        """Remember a tile delivered past the watermark, so catch-ups skip what it has."""
+        if entry.gseq > self._watermark.get(entry.producer, 0):
+            mine = self._recent[entry.producer]
+            if entry.gseq > mine.get(entry.tile, (0, 0))[1]:
+                mine[entry.tile] = (delivered, entry.gseq)
+
     def record(self, entries: Iterable[LogEntry]) -> None:
-        """Write offsets for applied entries (inside the caller's transaction)."""
+        """Write offsets for applied entries (inside the caller's transaction), and the
+        watermarks if this transaction leaves nothing delivered uncommitted."""
         latest: dict[tuple[str, str], int] = {}
         for e in entries:
             k = (e.producer, e.tile)
@@ -260,30 +270,47 @@ class LogConsumer:
             [(self.stage, p, t, s) for (p, t), s in latest.items()],
         )
         self._pending_commit.update(latest)
+        done = self._committed
+        self._uncommitted = {k for k in self._uncommitted if done.get(k, 0) < self._delivered[k]}
+        if all(latest.get(k, 0) >= self._delivered[k] for k in self._uncommitted):
+            moved = {p: w for p, w in self._watermark.items() if w > self._committed_wm.get(p, 0)}
+            self._conn.executemany(
+                "INSERT OR REPLACE INTO watermarks(stage, producer, gseq) VALUES (?, ?, ?)",
+                [(self.stage, p, w) for p, w in moved.items()],
+            )
+            self._pending_wm = moved
 
     def on_commit(self) -> None:
         self.stats.applied += sum(
             s - self._committed.get(k, 0) for k, s in self._pending_commit.items()
         )
         self._committed.update(self._pending_commit)
-        for k, seq in self._pending_commit.items():  # entries re-applied after a rollback
-            if seq > self._delivered.get(k, 0):
+        self._committed_wm.update(self._pending_wm)
+        for k, seq in self._pending_commit.items():
+            if seq > self._delivered.get(k, 0):  # entries re-applied after a rollback
                 self._delivered[k] = seq
+            if seq >= self._delivered.get(k, 0):
+                self._uncommitted.discard(k)
         self._pending_commit = {}
+        self._pending_wm = {}
 
     def on_rollback(self) -> None:
         """What was delivered but not committed will come again: rewind and catch up."""
-        self._pending_commit = {}
-        self._load()
-        self._delivered = dict(self._committed)
-        self._ahead.clear()
-        self.need_catchup = True
+        self._rewind()
 
     # -- catch-up ---------------------------------------------------------------------
 
     def selector(self) -> list[str]:
         stage_key = f"{keys.ROOT}/log/{self.stage}/*"
         return [f"{stage_key}/{keys.region(p)}" for p in (self.prefixes or [""])]
+
+    def query(self, limit: int) -> LogQuery:
+        """What a catch-up asks: the tiles delivered past the watermark and those with a
+        gap, by seq; the rest of the region after the watermarks."""
+        listed = {p: {t: s for t, (s, _g) in tiles.items()} for p, tiles in self._recent.items()}
+        for p, t in self._ahead:
+            listed.setdefault(p, {})[t] = self._delivered.get((p, t), 0)
+        return LogQuery(self.stage, listed, self.prefixes, limit, dict(self._watermark))
 
     def catch_up(
         self,
@@ -292,37 +319,70 @@ class LogConsumer:
         limit: int = 2000,
         max_rounds: int = 1000,
     ) -> list[LogEntry]:
-        """Fetch what producers have after our offsets; return it deliverable, in order.
+        """Fetch what producers have that we have not; return it deliverable, in order.
 
         Bounded: at most ``max_rounds`` queries of ``limit`` entries per producer.
         """
         self.stats.catchups += 1
         out: list[LogEntry] = []
         for _ in range(max_rounds):
-            offsets: dict[str, dict[str, int]] = defaultdict(dict)
-            for (p, t), s in self._delivered.items():
-                offsets[p][t] = s
-            req = LogQuery(self.stage, dict(offsets), self.prefixes, limit).to_bytes()
-            got: list[LogEntry] = []
-            for sel in self.selector():
-                for _key, ok, _err in query(session, sel, req, timeout=timeout):
-                    if ok is None:
-                        continue
-                    try:
-                        got.append(LogEntry.from_bytes(ok))
-                    except DecodeError:
-                        log.warning("undecodable replay entry ignored")
-            per_producer: dict[str, int] = defaultdict(int)
-            got.sort(key=lambda e: (e.producer, e.gseq))
-            for e in got:
-                per_producer[e.producer] += 1
-                delivered = self.offer(e)
-                self.stats.replayed += len(delivered)
-                out += delivered
-            if not per_producer or max(per_producer.values()) < limit:
+            req = self.query(limit).to_bytes()
+            replies = [
+                ok
+                for sel in self.selector()
+                for _key, ok, _err in query(session, sel, req, timeout=timeout)
+                if ok is not None
+            ]
+            delivered, complete = self.absorb(replies)
+            out += delivered
+            if complete:
                 break
         self.need_catchup = any(self._ahead.values())
         return out
+
+    def absorb(self, replies: Iterable[bytes]) -> tuple[list[LogEntry], bool]:
+        """One round's replies -> (entries now deliverable, whether every producer that
+        answered sent all it had). Entries are offered in each producer's ``gseq`` order;
+        each producer's :class:`LogHead` then raises its watermark."""
+        got: list[LogEntry] = []
+        heads: dict[str, LogHead] = {}
+        for data in replies:
+            try:
+                r = decode_replay(data)
+            except DecodeError:
+                log.warning("undecodable replay reply ignored")
+                continue
+            if isinstance(r, LogEntry):
+                got.append(r)
+            elif r.stage == self.stage and (
+                r.producer not in heads or r.through < heads[r.producer].through
+            ):
+                heads[r.producer] = r
+        got.sort(key=lambda e: (e.producer, e.gseq))
+        out: list[LogEntry] = []
+        for e in got:
+            delivered = self.offer(e)
+            self.stats.replayed += len(delivered)
+            out += delivered
+        for p, h in heads.items():
+            self._advance(p, h.through)
+        return out, all(h.complete for h in heads.values())
+
+    def _advance(self, producer: str, through: int) -> None:
+        """The producer's answer is delivered up to ``through``: raise its watermark there,
+        below any entry still waiting behind a gap (its missing ones are below it)."""
+        waiting = [
+            min(buf.values(), key=lambda e: e.gseq).gseq - 1
+            for (p, _t), buf in self._ahead.items()
+            if p == producer and buf
+        ]
+        w = min([through, *waiting])
+        if w <= self._watermark.get(producer, 0):
+            return
+        self._watermark[producer] = w
+        mine = self._recent.get(producer, {})
+        for t in [t for t, (_s, g) in mine.items() if g <= w]:
+            del mine[t]
 
     @property
     def lag(self) -> int:
@@ -332,6 +392,75 @@ class LogConsumer:
             min(max(0, s - self._committed.get(k, 0)), LAG_CAP) for k, s in list(self._seen.items())
         )
 
+    def committed(self, producer: str, tile: str) -> int:
+        """The last seq applied and committed for (producer, tile)."""
+        return self._committed.get((producer, tile), 0)
+
     @property
     def offsets(self) -> dict[tuple[str, str], int]:
         return dict(self._committed)
+
+    @property
+    def watermarks(self) -> dict[str, int]:
+        """Committed watermarks per producer."""
+        return dict(self._committed_wm)
+
+
+def rows_per_tile(conn: sqlite3.Connection, req: LogQuery, producer: str) -> list[Row]:
+    """The older form: every tile's entries after its listed seq (cost: every tile the
+    producer ever wrote)."""
+    offsets = req.offsets.get(producer, {})
+    heads = conn.execute("SELECT tile, seq FROM log_heads").fetchall()
+    rows: list[Row] = []
+    for tile, s in heads:
+        after = offsets.get(tile, 0)
+        if s > after and in_region(tile, req.prefixes):
+            rows += conn.execute(
+                "SELECT gseq, tile, seq, body FROM log_out WHERE tile=? AND seq>? "
+                "ORDER BY seq LIMIT ?",
+                (tile, after, req.limit),
+            ).fetchall()
+    rows.sort()
+    return rows[: req.limit]
+
+
+def rows_since(conn: sqlite3.Connection, req: LogQuery, producer: str) -> tuple[list[Row], LogHead]:
+    """Listed tiles after their seq, the others after the watermark; cost: the listed
+    tiles plus at most ``SCAN_FACTOR * limit`` entries read after the watermark."""
+    listed = {t: s for t, s in req.offsets.get(producer, {}).items() if in_region(t, req.prefixes)}
+    after = (req.after_gseq or {}).get(producer, 0)
+    head = conn.execute("SELECT COALESCE(MAX(gseq), 0) FROM log_out").fetchone()[0]
+    picked: list[int] = []
+    for tile, s in listed.items():
+        picked += [
+            g
+            for (g,) in conn.execute(
+                "SELECT gseq FROM log_out WHERE tile=? AND seq>? ORDER BY seq LIMIT ?",
+                (tile, s, req.limit),
+            )
+        ]
+    through = head
+    scanned = found = 0
+    cursor = conn.execute("SELECT gseq, tile FROM log_out WHERE gseq>? ORDER BY gseq", (after,))
+    for g, tile in cursor:
+        scanned += 1
+        if tile not in listed and in_region(tile, req.prefixes):
+            picked.append(g)
+            found += 1
+        if found >= req.limit or scanned >= SCAN_FACTOR * req.limit:
+            through = g  # the scan stops here: the rest of the log is not looked at
+            break
+    picked.sort()
+    if len(picked) >= req.limit:
+        picked = picked[: req.limit]
+        through = min(through, picked[-1])
+    picked = [g for g in picked if g <= through]
+    rows: list[Row] = []
+    for i in range(0, len(picked), 500):
+        chunk = picked[i : i + 500]
+        rows += conn.execute(
+            "SELECT gseq, tile, seq, body FROM log_out WHERE gseq IN "
+            f"({','.join('?' * len(chunk))}) ORDER BY gseq",
+            chunk,
+        ).fetchall()
+    return rows, LogHead(req.stage, producer, through, head)

@@ -9,6 +9,10 @@ Per upload (``hdmap/v1/upload/<vehicle_id>`` queryable):
    answered with an :class:`schemas.UploadAck` carrying the error, bad rows are
    rejected one by one with field and reason; admission policy (timestamps,
    vehicle id matching the key, pass ids the pipeline can carry) rejects more;
+   a well-formed batch of a vehicle ingest has never recorded anything from takes a
+   token of the budget of new vehicles shared by all (``new_vehicles_per_s``): past it,
+   ``error.field == "vehicle.new"`` with ``retry_after_s``, so a client inventing
+   vehicle ids adds load only at that rate;
 3. drop duplicates by (vehicle, observation id): a retried batch is acknowledged
    again but recorded once;
 4. route each new observation to the tile of its expected target point and
@@ -18,7 +22,7 @@ Per upload (``hdmap/v1/upload/<vehicle_id>`` queryable):
 
 Uploads that arrive together are committed in one transaction (one fsync for many).
 Every refused upload or row is counted in ``Stats.rejected`` by reason (``batch.<field>``,
-``obs.<column>``, ``rate_limited``).
+``obs.<column>``, ``rate_limited``, ``vehicle.new``).
 
 Storage: a failed transaction (disk full, read-only) is answered ``error.field ==
 "storage"`` with ``retry_after_s`` :data:`STORAGE_RETRY_S` (transient: it passes by
@@ -41,6 +45,7 @@ import numpy as np
 import zenoh
 
 from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, route_rays
+from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
 from hdmap.runtime.stream import STAGE_KEYS, LogServer, LogWriter
@@ -48,7 +53,7 @@ from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys
 from schemas.codec import valid_id
 from schemas.messages import MAX_BATCH
 from services.ingest.admission import AdmissionPolicy, admit, check_header
-from services.ingest.ratelimit import MAX_RETRY_AFTER_S, RateLimit, VehicleLimiter
+from services.ingest.ratelimit import RateLimit, VehicleLimiter
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +105,8 @@ class IngestService(Service):
         self.writer = LogWriter(self.db, "obs", self.instance)
         self._log_server: LogServer | None = None
         self.limiter = VehicleLimiter(self.config.rate_limit)
+        self._admitted: list[str] = []
+        """Vehicles with observations staged in the open transaction (known once it commits)."""
         self.corrupt: DatabaseCorrupt | None = None
         """Set once a transaction met corruption: nothing more is written, uploads refused."""
 
@@ -118,6 +125,7 @@ class IngestService(Service):
             return
         staged: list[_Pending] = []
         entries = []
+        self._admitted = []
         try:
             with self.transaction([self.writer]):
                 for it in uploads:
@@ -143,6 +151,9 @@ class IngestService(Service):
                 ack = UploadAck(_sender(it), 0, _NO_IDS, error=err, retry_after_s=STORAGE_RETRY_S)
                 self._reply(it, ack)
             return
+        for v in self._admitted:
+            self.limiter.admitted(v)
+        self._admitted = []
         for p in staged:
             self._reply(p.item, p.ack)
         for e in entries:
@@ -203,6 +214,19 @@ class IngestService(Service):
         except DecodeError as exc:
             self.reject(f"batch.{exc.field}")
             return UploadAck(key_vehicle, 0, _NO_IDS, error=exc), []
+        wait = self.limiter.newcomer(key_vehicle, self._recorded)
+        if wait > 0:
+            self.reject("vehicle.new")
+            wait = min(max(wait, 0.001), MAX_RETRY_AFTER_S)
+            lim = self.config.rate_limit
+            err = DecodeError(
+                "vehicle.new",
+                f"vehicle {key_vehicle!r} is new and new vehicles are admitted at "
+                f"{lim.new_vehicles_per_s:g}/s; retry after {wait:.3g} s",
+            )
+            return UploadAck(
+                key_vehicle, batch.batch_id, _NO_IDS, error=err, retry_after_s=wait
+            ), []
         n_rows = len(batch.obs) + len(rejected)
         wait = self.limiter.observations(key_vehicle, n_rows)
         if wait > 0:
@@ -235,6 +259,8 @@ class IngestService(Service):
         )
         self.count("accepted", len(new))
         self.count("duplicates", int(dup.sum()))
+        if len(new):
+            self._admitted.append(batch.vehicle_id)
         entries = []
         if len(new):
             tiles = all_tiles[keep][~dup]
@@ -258,6 +284,12 @@ class IngestService(Service):
         wait = min(max(wait, 0.001), MAX_RETRY_AFTER_S)
         err = DecodeError("rate", f"vehicle {vehicle!r} sends {why}; retry after {wait:.3g} s")
         return UploadAck(vehicle, batch_id, _NO_IDS, error=err, retry_after_s=wait)
+
+    def _recorded(self, vehicle: str) -> bool:
+        """Whether ingest has recorded an observation of ``vehicle`` (committed, or staged
+        in the current transaction)."""
+        row = self.db.execute("SELECT 1 FROM seen WHERE vehicle=? LIMIT 1", (vehicle,))
+        return row.fetchone() is not None
 
     def _seen(self, vehicle: str, ids: np.ndarray) -> np.ndarray:
         if ids.size == 0:

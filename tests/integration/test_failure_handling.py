@@ -341,3 +341,20 @@ def test_a_database_that_cannot_be_opened_is_a_storage_error_naming_it(tmp_path)
     (tmp_path / "state.sqlite").mkdir()  # e.g. a broken restore
     with pytest.raises(StorageError, match=r"state\.sqlite: cannot open"):
         connect(tmp_path / "state.sqlite")
+
+
+def test_live_entries_dropped_on_a_full_inbox_are_replayed(recorder):
+    """A stage's subscriber drops live entries when its inbox is full (so its producer
+    is never held up); the next batch replays them from the producer's log."""
+    log = entries("A B A B")
+    r = recorder(log[:1])
+    r.live(log[0])
+    assert r.applied() == [("0123", 1)] and not r.consumer.need_catchup
+    r.log.extend(log[1:])  # the producer wrote three more; their live copies were dropped
+    r.live()
+    assert r.applied() == [("0123", 1)]  # nothing tells the consumer yet
+    r.inbox_dropped.set()  # what the subscriber callback does on queue.Full
+    r.live()
+    assert r.applied() == [("0123", 1), ("0130", 1), ("0123", 2), ("0130", 2)]
+    assert r.extra_counters()["inbox_overflows"] == 1
+    assert not r.inbox_dropped.is_set()

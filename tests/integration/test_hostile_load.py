@@ -1,7 +1,7 @@
 """Issue #17's attacks, all at once, while honest vehicles load a real stack.
 
 A router and the four services run as processes (the ``stack`` fixture stops them, also
-on failure). A short honest load (:func:`fleetsim.attacks.run_under_attack`) runs with
+on failure). A short honest load (:func:`fleetsim.attack_run.run_under_attack`) runs with
 every attack of :mod:`fleetsim.attacks` concurrently, each from its own client (the stuck
 passes fast enough to reach the matcher's budget within the load, spread uploads of 1,000
 tiles). The honest chain must drain with zero loss, and each attack must show where the
@@ -15,7 +15,8 @@ import threading
 
 import pytest
 
-from fleetsim.attacks import ATTACK_NAMES, make_attack, run_under_attack
+from fleetsim.attack_run import run_under_attack
+from fleetsim.attacks import ATTACK_NAMES, make_attack
 from fleetsim.loadgen import LoadConfig
 from hdmap.ops.stack import SERVICE_NAMES
 from hdmap.ops.status import collect
@@ -100,11 +101,20 @@ def test_honest_chain_holds_under_every_attack(stack):
     for seen in watch.seen:
         assert sorted(s for s, _i in seen) == sorted(SERVICE_NAMES), seen
 
-    # (4) Queries on hdmap/v1/**: the publisher refuses a snapshot naming no tile, ingest
-    # an upload key naming no vehicle; both counted.
+    # (4) Snapshot queries. One client id flooding its own snapshot key: refused with
+    # `rate` past its burst (snapshot.client), counted. A new id each query (Sybil): never
+    # refused per client (only the total budget can hold it), answered. Queries on
+    # hdmap/v1/**: the publisher refuses a snapshot naming no tile, ingest an upload key
+    # naming no vehicle; both counted.
     snaps = by_name["snapshots"]
-    assert snaps["requests"] > 0 and snaps["errors"].get("tile", 0) > 0, snaps
-    assert publisher.get("rejected.snapshot.tile", 0) >= snaps["errors"]["tile"], publisher
+    assert snaps["errors"].get("snapshot.client", 0) > 0, snaps
+    assert publisher.get("rejected.snapshot.client", 0) >= snaps["errors"]["snapshot.client"]
+    assert snaps["replies"] > snaps["refused"] > 0, snaps  # its burst was served
+    sybil = by_name["sybil"]
+    assert sybil["replies"] > 0 and "snapshot.client" not in sybil["errors"], sybil
+    wild = by_name["wildcard"]
+    assert wild["requests"] > 0 and wild["errors"].get("tile", 0) > 0, wild
+    assert publisher.get("rejected.snapshot.tile", 0) >= wild["errors"]["tile"], publisher
     assert ingest.get("rejected.batch.key", 0) > 0, ingest
 
     # (5) Dated in the future: rows within ingest's 300 s skew window recorded, those a

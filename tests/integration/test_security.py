@@ -31,7 +31,7 @@ from hdmap.ops.security import (
 from hdmap.ops.stack import Stack, free_port
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import BusConfig, open_session, query
-from schemas import MapSnapshot, ObservationBatch, UploadAck, keys
+from schemas import ErrorReply, MapSnapshot, ObservationBatch, UploadAck, keys
 from tests.support import wait_until
 
 pytestmark = pytest.mark.integration
@@ -93,10 +93,11 @@ def test_vehicle_uploads_as_itself_and_reads_the_map(mtls):
         ack = UploadAck.from_bytes(replies[0][1])
         assert ack.error is None and sorted(ack.accepted.tolist()) == [1, 2, 3, 4, 5]
 
-        snaps = query(veh, keys.map_snapshot(TILE), timeout=10.0)
+        snaps = query(veh, keys.map_snapshot_for("veh-1", TILE), timeout=10.0)
         assert len(snaps) == 1 and snaps[0][1] is not None  # from the publisher process
         snap = MapSnapshot.from_bytes(snaps[0][1])
         assert snap.tile == TILE and len(snap.landmarks) == 0
+        assert snaps[0][0] == keys.map_snapshot_for("veh-1", TILE)
 
         got = collector(es, veh, keys.map_delta(TILE))
         assert until_received(lambda: pub.put(keys.map_delta(TILE), b"delta"), got)
@@ -114,7 +115,8 @@ def test_vehicle_cannot_publish_a_map_delta(mtls):
         assert veh.put(keys.map_delta(TILE), b"forged") is None  # no error: dropped silently
         veh.delete(keys.map_delta(TILE))
         veh.put(keys.obs(TILE), b"forged")
-        assert len(query(veh, keys.map_snapshot(TILE), timeout=10.0)) == 1  # a fence on the link
+        fence = keys.map_snapshot_for("veh-1", TILE)
+        assert len(query(veh, fence, timeout=10.0)) == 1  # a fence on the link
         time.sleep(QUIET_S)
         assert all(payload == b"control" for _kind, payload in got)
         assert {kind for kind, _p in got} == {"SampleKind.PUT"}
@@ -135,6 +137,44 @@ def test_vehicle_cannot_upload_under_another_id(mtls):
         ack = UploadAck.from_bytes(query(veh2, keys.upload("veh-2"), batch("veh-2", 2, 100))[0][1])
         assert sorted(ack.accepted.tolist()) == [100, 101, 102, 103, 104]
         assert ingest_counter(op, "uploads") == before + 1
+
+
+def publisher_rejected(op: zenoh.Session) -> dict[str, int]:
+    return dict({st.service: st for st in collect(op)}["publisher"].rejected)
+
+
+def test_vehicle_asks_for_snapshots_only_under_its_own_id(mtls):
+    _stack, dep = mtls
+    with ExitStack() as es:
+        veh1, veh2, op = sessions(es, dep, "veh-1", "veh-2", "operator")
+        before = publisher_rejected(op)
+        denied = (
+            keys.map_snapshot_for("veh-2", TILE),  # another vehicle's budget
+            keys.map_snapshot(TILE),  # anonymous: the shared budget
+            keys.map_snapshot_for(keys.ANY, TILE),
+            f"{keys.ROOT}/map/**",
+        )
+        for selector in denied:
+            t0 = time.monotonic()
+            assert query(veh1, selector, timeout=5.0) == [], selector
+            assert time.monotonic() - t0 < 2.0  # denied at the router: answered at once, empty
+        # Control: its own key is answered (the operator may use the anonymous one).
+        (mine,) = query(veh1, keys.map_snapshot_for("veh-1", TILE), timeout=10.0)
+        assert MapSnapshot.from_bytes(mine[1]).tile == TILE
+        assert len(query(op, keys.map_snapshot(TILE), timeout=10.0)) == 1
+        # Over its budget (200 at once by default), the refusal reaches the vehicle too
+        # (veh-2: the module's other tests use veh-1's budget).
+        refusal = None
+        for _ in range(400):
+            (reply,) = query(veh2, keys.map_snapshot_for("veh-2", TILE), timeout=10.0)
+            if reply[2] is not None:
+                refusal = ErrorReply.from_bytes(reply[2])
+                break
+        assert refusal is not None and (refusal.code, refusal.field) == ("rate", "snapshot.client")
+        assert refusal.retry_after_s > 0 and "'veh-2'" in refusal.reason
+        after = publisher_rejected(op)
+        assert after.get("snapshot.client", 0) == before.get("snapshot.client", 0) + 1
+        assert after.get("snapshot.tile", 0) == before.get("snapshot.tile", 0)  # none got there
 
 
 def test_vehicle_cannot_subscribe_to_internal_keys(mtls):
@@ -271,13 +311,18 @@ def test_acl_has_no_wildcard_subject_and_one_upload_rule_per_vehicle():
     a = acl(["ingest", "operator"], ["v1", "v2", "v3"], "usrpwd")
     assert a["default_permission"] == "deny"
     assert all(s["usernames"] for s in a["subjects"])  # a subject without names matches anyone
-    uploads = [r for r in a["rules"] if r["messages"] == ["query"] and "upload" in r["id"]]
-    assert [r["key_exprs"] for r in uploads] == [[keys.upload(v)] for v in ("v1", "v2", "v3")]
-    assert all(r["flows"] == ["ingress"] for r in uploads)
+    own = [r for r in a["rules"] if r["id"].startswith("own-")]
+    assert [r["key_exprs"] for r in own] == [
+        [keys.upload(v), keys.map_snapshot_for(v, keys.ANY)] for v in ("v1", "v2", "v3")
+    ]
+    assert all(r["flows"] == ["ingress"] and r["messages"] == ["query"] for r in own)
     vehicle_in = [
         r for r in a["rules"] if r["id"].startswith("vehicle-") and "ingress" in r["flows"]
     ]
-    assert {m for r in vehicle_in for m in r["messages"]} == {"declare_subscriber", "query"}
+    assert {m for r in vehicle_in for m in r["messages"]} == {"declare_subscriber"}
+    # no shared right to query anything: snapshots only under the vehicle's own id
+    shared = [r for r in a["rules"] if r["id"].startswith("vehicle-")]
+    assert not [r for r in shared if "query" in r["messages"]]
     assert acl([], [], "mtls")["subjects"] == []
     with pytest.raises(ValueError):
         acl(["ingest"], ["veh/1"])

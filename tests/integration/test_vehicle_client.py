@@ -160,7 +160,7 @@ def town(tmp_path_factory) -> Iterator[DrivenTown]:
     with Stack(tmp / "stack") as st:
         st.start_all()
         with open_session(st.bus) as s:
-            client = MapClient(s, radius_m=0.0)
+            client = MapClient(s, radius_m=0.0, client_id="town-reader")
             driver = FleetDriver(world, fl, tmp / "vehicles")
             try:
                 follow_town(client, world)
@@ -185,7 +185,10 @@ def ids(lm: Landmarks) -> set[int]:
 
 
 def snapshot_version(session, tile: str) -> int:
-    replies = [ok for _k, ok, _e in query(session, keys.map_snapshot(tile)) if ok is not None]
+    """The publisher's version of ``tile`` (asked for under the client id ``probe``: every
+    client of this module has its own snapshot budget, none shares the anonymous one)."""
+    key = keys.map_snapshot_for("probe", tile)
+    replies = [ok for _k, ok, _e in query(session, key) if ok is not None]
     assert len(replies) == 1
     return MapSnapshot.from_bytes(replies[0]).version
 
@@ -201,7 +204,7 @@ def ground_m(lat0: float, lon0: float, lat: np.ndarray, lon: np.ndarray) -> np.n
 def test_snapshot_on_start_and_near(town):
     assert town.deltas_applied >= 1  # the client that followed during the drive got deltas
     with open_session(town.stack.bus) as s:
-        client = MapClient(s, radius_m=0.0)
+        client = MapClient(s, radius_m=0.0, client_id="late-reader")
         try:
             follow_town(client, town.world)
             assert client.wait_idle(20.0)
@@ -232,7 +235,7 @@ def test_follows_tiles_around_a_moving_position(town):
     lat0, lon0 = town.world.lat0, town.world.lon0
     far = (lat0, lon0 + 0.06)  # about 3.3 km east: no tile in common
     with open_session(town.stack.bus) as s:
-        client = MapClient(s, radius_m=150.0)
+        client = MapClient(s, radius_m=150.0, client_id="moving-reader")
         try:
             here = client.update_position(lat0, lon0)
             assert here == tiles_around(lat0, lon0, 150.0) and len(here) >= 1
@@ -271,7 +274,7 @@ def forged(lm: Landmarks, tile: str, frm: int) -> bytes:
 
 def followed_town(s, town: DrivenTown) -> tuple[MapClient, Landmarks, str, int]:
     """A client holding the town from the snapshots; its map, its newest tile, that version."""
-    client = MapClient(s, radius_m=0.0)
+    client = MapClient(s, radius_m=0.0, client_id="followed-reader")
     follow_town(client, town.world)
     assert client.wait_idle(20.0)
     tile = max(town_tiles(town.world), key=lambda t: client.versions()[t])
@@ -344,7 +347,7 @@ def test_update_position_from_several_threads_keeps_one_subscription_per_tile(to
     lat0, lon0 = town.world.lat0, town.world.lon0
     spots = [(lat0, lon0), (lat0 + 0.004, lon0), (lat0, lon0 + 0.006), (lat0 - 0.003, lon0)]
     with open_session(town.stack.bus) as s:
-        client = MapClient(s, radius_m=300.0)
+        client = MapClient(s, radius_m=300.0, client_id="threaded-reader")
         errors: list[BaseException] = []
 
         def drive(k: int) -> None:

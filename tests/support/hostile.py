@@ -126,7 +126,7 @@ def valid_messages(now: float) -> dict[str, bytes]:
         LandmarkUpdates(lm, rem),
         MapDelta(tile, 1, 2, now, lm, rem),
         MapSnapshot(tile, 2, lm),
-        ErrorReply("bad_request", "obs.lat[1]", "out of range"),
+        ErrorReply("busy", "snapshot.total", "too many", 0.5),
         Stats("ingest", "i-1", ["12"], now, {"n": 1.5}, {"obs.lat": 2}),
     ]
     return {m.TYPE: m.to_bytes() for m in msgs}
@@ -176,7 +176,8 @@ RELATED: dict[tuple[str, str], tuple[str, ...]] = {
     ("assoc_group", "links"): ("links",),
     ("assoc_group", "obs"): ("links",),
 }
-OPTIONAL = {("upload_ack", "error"), ("assoc_group", "merged_into")}
+OPTIONAL = {("upload_ack", "error"), ("assoc_group", "merged_into"), ("error", "retry_after_s")}
+"""Fields a message may lack (absent reads as a default)."""
 
 
 def always_invalid(value: Any, mtype: str, key: str) -> bool:

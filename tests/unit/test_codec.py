@@ -155,7 +155,7 @@ def messages(n: int = 5) -> dict[str, object]:
             "1201202110133102", 41, 42, T0 + 3, make_landmarks(n), make_removals(3)
         ),
         "MapSnapshot": MapSnapshot("1201202110133102", 42, make_landmarks(n)),
-        "ErrorReply": ErrorReply("bad_request", "obs.lat[3]", "out of range [-90, 90]"),
+        "ErrorReply": ErrorReply("rate", "snapshot.client", "client 'veh-1' asks too often", 2.5),
         "Stats": Stats(
             "matcher", "m-1", ["120", "121"], T0, {"obs_in": 1234, "lag_s": 0.25}, {"obs.lat": 3}
         ),
@@ -361,6 +361,7 @@ FLOAT_FIELDS = [
     ("UploadAck", "retry_after_s"),
     ("ObsGroup", "received_at"),
     ("MapDelta", "published_at"),
+    ("ErrorReply", "retry_after_s"),
     ("Stats", "started_at"),
 ]
 
@@ -394,6 +395,7 @@ def _optional(name: str, key: str) -> bool:
         ("UploadAck", "error"),
         ("AssocGroup", "merged_into"),
         ("AssocGroup", "held"),
+        ("ErrorReply", "retry_after_s"),
     }
 
 
@@ -410,6 +412,25 @@ def _missing_cases() -> list:
 @pytest.mark.parametrize("name,key", _missing_cases())
 def test_missing_field_is_named(name: str, key: str) -> None:
     expect(CLASSES[name], without(messages(2)[name], key), key)
+
+
+def test_error_reply_retry_after_is_optional_and_sent_only_when_set() -> None:
+    msg = messages(2)["ErrorReply"]
+    assert ErrorReply.from_bytes(msg.to_bytes()).retry_after_s == 2.5
+    old = ErrorReply.from_bytes(without(msg, "retry_after_s"))  # an older service's error
+    assert (old.code, old.field, old.retry_after_s) == ("rate", "snapshot.client", 0.0)
+    plain = ErrorReply("bad_request", "tile", "names no tile")
+    assert "retry_after_s" not in raw(plain)  # encoded as an older service did
+    assert raw(plain) == {
+        "v": 1,
+        "type": "error",
+        "code": "bad_request",
+        "field": "tile",
+        "reason": "names no tile",
+    }
+    assert_message_equal(plain, ErrorReply.from_bytes(plain.to_bytes()))
+    assert ErrorReply.from_bytes(with_(msg, retry_after_s=86400.0)).retry_after_s == 86400.0
+    expect(ErrorReply, with_(msg, retry_after_s=86400.5), "retry_after_s")
 
 
 def test_optional_error_in_upload_ack() -> None:

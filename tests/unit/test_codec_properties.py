@@ -151,6 +151,7 @@ def _valid_messages() -> list[bytes]:
         MapDelta("1201", 1, 2, 1.7e9, lm, rem),
         MapSnapshot("1201", 2, lm),
         ErrorReply("bad_request", "obs.lat[1]", "out of range"),
+        ErrorReply("rate", "snapshot.client", "too many", 0.25),
         Stats("ingest", "i-1", ["12"], 1.7e9, {"n": 1.5}, {"obs.lat": 2}),
     ]
     return [m.to_bytes() for m in msgs]

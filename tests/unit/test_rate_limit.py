@@ -16,8 +16,9 @@ from fleetsim.synthetic import make_observations
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session, query
 from hdmap.runtime.config import ConfigError, from_mapping
+from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S, TokenBucket
 from schemas import DecodeError, ObservationBatch, Observations, UploadAck, keys
-from services.ingest.ratelimit import MAX_RETRY_AFTER_S, RateLimit, TokenBucket, VehicleLimiter
+from services.ingest.ratelimit import RateLimit, VehicleLimiter
 from services.ingest.service import IngestConfig
 from tests.support import Clock, wait_until
 from vehicle.uploader import Uploader
@@ -114,6 +115,28 @@ def test_the_least_recently_seen_vehicles_are_forgotten() -> None:
     assert lim.upload("b") == 0.0  # a fresh bucket
 
 
+def test_new_vehicles_share_one_budget_and_known_ones_take_nothing() -> None:
+    clock = Clock()
+    lim = VehicleLimiter(RateLimit(new_vehicles_per_s=2.0, new_vehicle_burst=3.0), clock)
+    recorded = {"old-1"}
+    lookups: list[str] = []
+
+    def in_db(v: str) -> bool:
+        lookups.append(v)
+        return v in recorded
+
+    assert [lim.newcomer(f"new-{i}", in_db) for i in range(3)] == [0.0] * 3
+    assert lim.newcomer("new-3", in_db) == pytest.approx(0.5)  # the burst is used up
+    assert lim.newcomer("old-1", in_db) == 0.0  # recorded before: not new
+    assert lim.newcomer("old-1", in_db) == 0.0 and lookups.count("old-1") == 1  # remembered
+    lim.admitted("new-0")  # its upload was recorded
+    assert lim.newcomer("new-0", in_db) == 0.0
+    clock.t += 0.5
+    assert lim.newcomer("new-3", in_db) == 0.0 and lim.newcomer("new-4", in_db) > 0
+    off = VehicleLimiter(RateLimit(new_vehicles_per_s=0.0), clock)
+    assert all(off.newcomer(f"v{i}", in_db) == 0.0 for i in range(1000))
+
+
 def test_rate_limit_config_defaults_match_the_deploy_file() -> None:
     with open(ROOT / "deploy" / "services.toml", "rb") as f:
         table = tomllib.load(f)["ingest"]
@@ -125,6 +148,8 @@ def test_rate_limit_config_defaults_match_the_deploy_file() -> None:
         {"upload_burst": 0.5},
         {"observation_burst": float("nan")},
         {"max_vehicles": 0},
+        {"new_vehicle_burst": 0.5},
+        {"new_vehicles_per_s": float("inf")},
     ):
         with pytest.raises(ConfigError):
             from_mapping(IngestConfig, {"rate_limit": bad}, "ingest")
@@ -279,3 +304,40 @@ def test_a_flooding_vehicle_is_limited_and_an_honest_one_is_not(stack, tmp_path)
 
 def _uploads(session) -> float:
     return {st.service: st for st in collect(session)}["ingest"].counters["uploads"]
+
+
+@pytest.mark.integration
+def test_new_vehicle_ids_are_admitted_at_the_budget_and_known_ones_always(stack, tmp_path):
+    """A client inventing a vehicle id per upload gets the budget of new vehicles and no
+    more; a vehicle ingest has recorded is never new again, also after ingest restarts
+    (known from its database)."""
+    cfg = tmp_path / "ingest.toml"
+    cfg.write_text("[ingest.rate_limit]\nnew_vehicles_per_s = 0.01\nnew_vehicle_burst = 3\n")
+    stack.start_router()
+    stack.start_service("ingest", (), "--config", str(cfg))
+    stack.wait_ready(["ingest-all"], 60)
+
+    def upload(s, vehicle: str, first: int) -> UploadAck:
+        batch = ObservationBatch(vehicle, 1, first, time.time(), _obs(5, first))
+        replies = query(s, keys.upload(vehicle), batch.to_bytes(), timeout=20)
+        return UploadAck.from_bytes(replies[0][1])
+
+    with open_session(stack.bus) as s:
+        acks = [upload(s, f"sybil-{i}", 10 * i + 1) for i in range(6)]
+        assert [a.error is None for a in acks] == [True] * 3 + [False] * 3
+        for a in acks[3:]:
+            assert a.error.field == "vehicle.new" and a.retry_after_s > 0
+            assert len(a.accepted) == 0
+        assert upload(s, "sybil-0", 1000).error is None  # known: no budget needed
+        stats = {st.service: st for st in collect(s)}["ingest"]
+        assert stats.rejected.get("vehicle.new") == 3
+    stack.restart("ingest-all")
+    stack.wait_ready(["ingest-all"], 60)
+    with open_session(stack.bus) as s:
+        assert [upload(s, f"later-{i}", 10 * i + 1).error is None for i in range(4)] == [
+            True,
+            True,
+            True,
+            False,
+        ]
+        assert upload(s, "sybil-1", 2000).error is None  # recorded before the restart
