@@ -25,7 +25,7 @@ import itertools
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +57,13 @@ class UploadResult:
     duplicates: int = 0
     """Of ``accepted``, those an earlier upload had already recorded (a retried batch)."""
     rejected: int = 0
+    """Observations ingest refused one by one (they leave the queue, see ``rejected_by``)."""
+    rejected_by: dict[str, int] = field(default_factory=dict)
+    """``rejected`` by the field ingest named (``obs.lat``, ``obs.t``, ...); each reason is
+    also logged once per batch, and every refused row is kept in :meth:`Uploader.rejected`."""
+    refused: str = ""
+    """The last batch refused whole in this flush: ``<field>: <reason>`` (``rate``,
+    ``vehicle.new``, ``storage``, ...); its observations stay queued."""
     failed_batches: int = 0
     """Batches with no usable answer (timeout, transport, retry-later); still queued."""
     retry_after_s: float = 0.0
@@ -176,6 +183,7 @@ class Uploader:
                     self._hold_after_permanent(ack, res)
                 elif ack is not None:
                     log.warning("%s: batch refused: %s", self.vehicle_id, ack.error)
+                    res.refused = f"{ack.error.field}: {ack.error.reason}"
                     if ack.retry_after_s > 0:
                         self._retry_at = self._clock() + ack.retry_after_s
                         res.retry_after_s = ack.retry_after_s
@@ -185,7 +193,25 @@ class Uploader:
             res.accepted += len(ack.accepted)
             res.duplicates += len(ack.duplicates)
             res.rejected += len(ack.rejected)
+            if ack.rejected:
+                self._report_rejected(ack, res)
         return res
+
+    def _report_rejected(self, ack: UploadAck, res: UploadResult) -> None:
+        """Count one batch's refused rows by field and say so in one log line per field."""
+        by_field: dict[str, list[Rejection]] = {}
+        for r in ack.rejected:
+            by_field.setdefault(r.field, []).append(r)
+        for f, rows in sorted(by_field.items()):
+            res.rejected_by[f] = res.rejected_by.get(f, 0) + len(rows)
+            log.warning(
+                "%s: ingest refused %d observation(s) of batch %d on %s: %s",
+                self.vehicle_id,
+                len(rows),
+                ack.batch_id,
+                f,
+                rows[0].reason,
+            )
 
     def _hold_after_permanent(self, ack: UploadAck, res: UploadResult) -> None:
         """Back off after a permanent refusal (module docstring); the batch stays queued."""

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 from pathlib import Path
 
 from hdmap.cli.common import add_bus_arguments, bus_from_args, setup_logging
 from hdmap.geo.tiles import DEFAULT_ZOOM, valid_quadkey
-from hdmap.runtime.config import from_mapping, load_toml
+from hdmap.runtime.config import EXIT_CONFIG, ConfigError, from_mapping, load_toml
 from hdmap.runtime.service import ServiceOptions, run_until_signalled
+
+log = logging.getLogger(__name__)
 
 # name -> (module, service class, config class)
 SERVICES: dict[str, tuple[str, str, str]] = {
@@ -46,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def build(args: argparse.Namespace):
     for r in args.region:
         if not valid_quadkey(r):
-            raise SystemExit(f"--region {r!r}: not a quadkey prefix (digits 0-3)")
+            raise ConfigError(f"--region {r!r}: not a quadkey prefix (digits 0-3)")
     module, cls_name, cfg_name = SERVICES[args.name]
     mod = importlib.import_module(module)
     table = load_toml(args.config).get(args.name, {}) if args.config else {}
@@ -63,5 +66,13 @@ def build(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run the service until signalled; a refused configuration (a bad key or value, an
+    unreadable file, a bad region) is one error line and :data:`EXIT_CONFIG`, which
+    ``hdmap up`` does not restart."""
     setup_logging(args.log_level)
-    return run_until_signalled(build(args))
+    try:
+        service = build(args)
+    except (ConfigError, OSError) as exc:
+        log.error("%s: configuration refused: %s", args.name, exc)
+        return EXIT_CONFIG
+    return run_until_signalled(service)

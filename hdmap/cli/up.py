@@ -21,6 +21,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-dir", default="var", help="state directory (default ./var)")
     p.add_argument("--region", action="append", default=[], metavar="QUADKEY_PREFIX")
     p.add_argument(
+        "--config",
+        metavar="FILE",
+        help="services config (TOML, deploy/services.toml shows every key) for every service: "
+        "each reads its own [name] table",
+    )
+    p.add_argument(
         "--secure",
         action="store_true",
         help="TLS + authentication + ACL with a test PKI generated in <data-dir>/secure/ "
@@ -56,7 +62,15 @@ def run(args: argparse.Namespace) -> int:
             security = generate(root, vehicles, tls_endpoint(args.listen), args.auth)
         except ValueError as exc:
             raise SystemExit(f"hdmap up --secure: {exc}") from None
-    with Stack(Path(args.data_dir), listen=args.listen, security=security) as stack:
+    extra: dict[str, list[str]] = {}
+    if args.config:
+        config = Path(args.config).resolve()
+        if not config.is_file():
+            raise SystemExit(f"hdmap up --config {args.config}: no such file")
+        extra = {name: ["--config", str(config)] for name in SERVICE_NAMES}
+    with Stack(
+        Path(args.data_dir), listen=args.listen, security=security, extra_service_args=extra
+    ) as stack:
         stack.start_all(region, isolate=True)  # the supervisor below reports who did not
         print(
             f"hdmap up: router on {stack.listen}; services {', '.join(SERVICE_NAMES)}; "
@@ -79,4 +93,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"hdmap up: {line}", flush=True)
             stop.wait(0.5)
         print("hdmap up: stopping", flush=True)
+    if supervisor.stopped:  # the operator must see that part of the region was down
+        for name, why in sorted(supervisor.stopped.items()):
+            print(f"hdmap up: {name} had stopped on a permanent fault: {why}", flush=True)
+        return 1
     return 0

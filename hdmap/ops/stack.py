@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 
 from hdmap.geo.tiles import region_label
 from hdmap.runtime.bus import BusConfig, open_session
+from hdmap.runtime.config import EXIT_CONFIG
 from hdmap.runtime.orphan import PARENT_ENV
 from hdmap.runtime.store import EXIT_CORRUPT
 from schemas import keys
@@ -50,6 +51,10 @@ def endpoint_port(endpoint: str) -> tuple[str, int]:
     return host.strip("[]"), int(port)
 
 
+PERMANENT_EXITS = (EXIT_CORRUPT, EXIT_CONFIG)
+"""Exit codes :class:`Supervisor` does not restart."""
+
+
 @dataclass
 class Proc:
     name: str
@@ -69,9 +74,10 @@ class Proc:
 
     @property
     def permanent(self) -> bool:
-        """Whether it ended on a permanent fault (:data:`EXIT_CORRUPT`): restarting it
-        fails the same way until an operator repairs its data."""
-        return self.returncode == EXIT_CORRUPT
+        """Whether it ended on a permanent fault (:data:`EXIT_CORRUPT`: a corrupt database,
+        :data:`EXIT_CONFIG`: a refused configuration): restarting it fails the same way
+        until an operator repairs its data or its config."""
+        return self.returncode in PERMANENT_EXITS
 
 
 @dataclass
@@ -298,7 +304,7 @@ class Supervisor:
             if proc.permanent:
                 self.stopped[name] = stop_reason(proc)
                 report.append(
-                    f"{name} stopped on a permanent fault (exit {EXIT_CORRUPT}; not "
+                    f"{name} stopped on a permanent fault (exit {proc.returncode}; not "
                     f"restarted, the others keep running): {self.stopped[name]}"
                 )
                 continue

@@ -29,6 +29,11 @@ class ConfigError(ValueError):
     """A config file or mapping that does not fit its dataclass; names the key."""
 
 
+EXIT_CONFIG = 78
+"""Exit code of a service whose configuration is refused (sysexits ``EX_CONFIG``): a
+permanent fault, like a corrupt database, that a restart cannot cure."""
+
+
 def from_mapping(cls: type[T], data: Mapping[str, Any], path: str = "", base: T | None = None) -> T:
     """Build dataclass ``cls`` from a mapping, checking keys and scalar types.
 

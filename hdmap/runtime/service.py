@@ -53,8 +53,10 @@ from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
 from hdmap.runtime.store import (
     EXIT_CORRUPT,
+    EXIT_RESTART,
     DatabaseCorrupt,
     Meta,
+    StateLost,
     StorageError,
     connect,
     is_corruption,
@@ -222,6 +224,7 @@ class Service:
         self._staged: _Staged | None = None
         self._busy = False
         self._corrupt_seen: DatabaseCorrupt | None = None
+        self._state_lost: StateLost | None = None
         self.clock: Callable[[], float] = time.monotonic
         """The worker's clock (monotonic seconds): timers and the backoff."""
         self.backoff = Backoff()
@@ -314,6 +317,8 @@ class Service:
         self.last_txn_error = (str(name), time.time())
         if isinstance(exc, DatabaseCorrupt):
             self._corrupt_seen = exc
+        elif isinstance(exc, StateLost):
+            self._state_lost = exc
         elif isinstance(exc, StorageError) and exc.transient:
             self.backoff.failed(self.clock())
 
@@ -478,6 +483,7 @@ class Service:
             if now >= due:
                 self._run_timer(fn, now)
                 self._timers[i] = (period, self.clock() + period, fn)
+        self._stop_if_corrupt()
 
     def _run_timer(self, fn: Callable[[float], None], now: float) -> None:
         """A timer; one whose transaction fails on the storage is tried at its next period."""
@@ -493,8 +499,13 @@ class Service:
         self._stop_if_corrupt()
 
     def _stop_if_corrupt(self) -> None:
+        """Stop on a corrupt database (:attr:`stops_on_corruption`), and on state that could
+        not be reloaded after a rollback (every service: a restart reloads it)."""
         if self.stops_on_corruption and (fault := self._corrupt_seen) is not None:
             raise fault
+        if (lost := self._state_lost) is not None:
+            log.error("%s: %s; exiting to be restarted (exit %d)", self.name, lost, EXIT_RESTART)
+            raise SystemExit(EXIT_RESTART)
 
 
 def _wire_number(v: float) -> float:

@@ -34,6 +34,17 @@ class StorageError(RuntimeError):
         self.transient = transient
 
 
+class StateLost(StorageError):
+    """A participant could not reload its state from the database after a rollback (an I/O
+    error): the process's memory no longer matches its file. Nothing is lost on disk; the
+    service ends with :data:`EXIT_RESTART` so that a restart reloads everything."""
+
+
+EXIT_RESTART = 75
+"""Exit code of a service that must be restarted to reload its state (sysexits
+``EX_TEMPFAIL``): ``hdmap up`` restarts it."""
+
+
 class DatabaseCorrupt(StorageError):
     """The database file is damaged (SQLITE_CORRUPT, SQLITE_NOTADB, a failed integrity
     check): permanent until an operator restores or removes the file.
@@ -206,18 +217,23 @@ def transaction(
 
 
 def _roll_back(conn: sqlite3.Connection, participants: Sequence[Participant]) -> None:
-    """Tell every participant of a rollback; one that meets a damaged file while it reloads
-    its state raises :class:`DatabaseCorrupt` once all were told (other errors as they are)."""
+    """Tell every participant of a rollback; once all were told, one that met a damaged file
+    while it reloaded its state raises :class:`DatabaseCorrupt`, one that met any other
+    storage error :class:`StateLost` (its memory no longer matches the file)."""
     damage: sqlite3.Error | None = None
+    lost: sqlite3.Error | None = None
     for p in participants:
         try:
             p.on_rollback()
         except sqlite3.Error as exc:
-            if not is_corruption(exc):
-                raise
-            damage = damage or exc
+            if is_corruption(exc):
+                damage = damage or exc
+            else:
+                lost = lost or exc
     if damage is not None:
         raise DatabaseCorrupt(db_file(conn), str(damage)) from damage
+    if lost is not None:
+        raise StateLost(f"{db_file(conn)}: state not reloaded after a rollback: {lost}") from lost
 
 
 class Meta:

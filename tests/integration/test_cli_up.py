@@ -121,7 +121,10 @@ def test_up_runs_the_stack_until_sigterm_and_leaves_no_process(tmp_path):
     ep = f"tcp/127.0.0.1:{free_port()}"
     data = tmp_path / "var"
     log = tmp_path / "up.log"
-    with running(hdmap("up", "--listen", ep, "--data-dir", str(data)), log) as up:
+    cfg = tmp_path / "services.toml"
+    cfg.write_text("[publisher]\ninterval_s = 0.25\n")
+    argv = hdmap("up", "--listen", ep, "--data-dir", str(data), "--config", str(cfg))
+    with running(argv, log) as up:
         listed: dict[str, list[str]] = {}
 
         def all_listed() -> bool:
@@ -145,6 +148,9 @@ def test_up_runs_the_stack_until_sigterm_and_leaves_no_process(tmp_path):
 
         kids = children_by_role(up.pid)
         assert sorted(kids) == sorted(["router", *SERVICE_NAMES]), kids
+        for name in SERVICE_NAMES:  # --config reaches every service
+            argv_of = kids[name].cmdline()
+            assert argv_of[argv_of.index("--config") + 1] == str(cfg.resolve()), argv_of
 
         # a service that dies is restarted (same instance: its id is kept in the data dir)
         kids["ingest"].kill()

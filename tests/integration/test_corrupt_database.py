@@ -29,6 +29,7 @@ from fleetsim.synthetic import make_observations
 from hdmap.ops.stack import SERVICE_NAMES, Stack, Supervisor, free_port
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import BusConfig, open_session, query
+from hdmap.runtime.config import EXIT_CONFIG
 from hdmap.runtime.service import ServiceOptions
 from hdmap.runtime.store import EXIT_CORRUPT
 from schemas import ObservationBatch, UploadAck, keys
@@ -182,7 +183,26 @@ def test_hdmap_up_keeps_running_without_a_matcher_whose_database_is_corrupt(tmp_
         assert sum("service " in a for a in argvs) == 3, argvs
         assert log.read_text().count("matcher-all stopped") == 1
         up.send_signal(signal.SIGTERM)
-        assert up.wait(60) == 0, log.read_text()
+        assert up.wait(60) == 1, log.read_text()  # part of the region was down
+        assert "matcher-all had stopped on a permanent fault" in log.read_text()
+
+
+def test_a_refused_config_stops_its_service_for_good(stack: Stack, tmp_path):
+    """A config the service refuses is one error line naming the key and exit
+    EXIT_CONFIG; ``hdmap up``'s supervisor does not restart it (it would fail the same way)."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[solver]\nno_such_key = 1\n")
+    stack.start_router()
+    p = stack.start_service("solver", (), "--config", str(bad))
+    assert p.popen is not None and p.popen.wait(60) == EXIT_CONFIG
+    assert p.permanent
+    text = p.log_path.read_text()
+    assert "configuration refused" in text and "no_such_key" in text and "Traceback" not in text
+    sup = Supervisor(stack)
+    report = sup.check()
+    assert len(report) == 1 and "permanent fault (exit 78" in report[0], report
+    assert "no_such_key" in sup.stopped["solver-all"]
+    assert sup.check() == [] and stack.procs["solver-all"].popen is p.popen
 
 
 def test_ingest_refuses_permanently_once_its_dedup_table_is_corrupt(stack: Stack, tmp_path):

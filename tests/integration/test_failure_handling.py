@@ -30,7 +30,7 @@ from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session, query
 from hdmap.runtime.service import Item, ServiceOptions
 from hdmap.runtime.stage import StageService
-from hdmap.runtime.store import StorageError, connect, transaction
+from hdmap.runtime.store import EXIT_RESTART, StorageError, connect, transaction
 from schemas import LogEntry, LogQuery, ObservationBatch, ObsGroup, UploadAck, keys
 from services.ingest.service import IngestService
 
@@ -358,3 +358,21 @@ def test_live_entries_dropped_on_a_full_inbox_are_replayed(recorder):
     assert r.applied() == [("0123", 1), ("0130", 1), ("0123", 2), ("0130", 2)]
     assert r.extra_counters()["inbox_overflows"] == 1
     assert not r.inbox_dropped.is_set()
+
+
+def test_state_not_reloaded_after_a_rollback_restarts_the_service(recorder):
+    """A rollback whose reload of in-memory state fails (an I/O error) must not set the
+    batch aside as poison: nothing is dead-lettered and the service exits to be restarted
+    (EXIT_RESTART), which reloads its state from the file."""
+    log = entries("A:poison B")
+    r = recorder(log)
+
+    def reload_fails() -> None:
+        raise sqlite3.OperationalError("disk I/O error")
+
+    r.consumer.on_rollback = reload_fails
+    r.live(*log)
+    assert r.dead() == 0 and r.applied() == []
+    with pytest.raises(SystemExit) as stop:
+        r.step([])
+    assert stop.value.code == EXIT_RESTART

@@ -20,7 +20,7 @@ import pytest
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session, query
 from schemas import ErrorReply, MapSnapshot, keys
-from tests.support import wait_until
+from tests.support import start_configured, wait_until
 from vehicle.mapclient import MapClient
 
 pytestmark = pytest.mark.integration
@@ -30,11 +30,7 @@ LIMITS = {"per_client_per_s": 2.0, "per_client_burst": 5.0, "total_per_s": 1000.
 
 
 def start_publisher(stack, tmp_path: Path) -> None:
-    cfg = tmp_path / "publisher.toml"
-    cfg.write_text("[publisher.snapshots]\n" + "".join(f"{k} = {v}\n" for k, v in LIMITS.items()))
-    stack.start_router()
-    stack.start_service("publisher", (), "--config", str(cfg))
-    stack.wait_ready(["publisher-all"], 60)
+    start_configured(stack, tmp_path, "publisher", "publisher.snapshots", LIMITS)
 
 
 def publisher_rejected(session) -> dict[str, int]:

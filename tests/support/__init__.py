@@ -26,3 +26,13 @@ class Clock:
 
     def __call__(self) -> float:
         return self.t
+
+
+def start_configured(stack, tmp_path, service: str, table: str, values: dict) -> None:
+    """A router and ``service`` alone on ``stack``, started with a config file whose
+    ``[table]`` holds ``values`` (e.g. ``ingest.rate_limit``); waits until it is ready."""
+    cfg = tmp_path / f"{service}.toml"
+    cfg.write_text(f"[{table}]\n" + "".join(f"{k} = {v}\n" for k, v in values.items()))
+    stack.start_router()
+    stack.start_service(service, (), "--config", str(cfg))
+    stack.wait_ready([f"{service}-all"], 60)

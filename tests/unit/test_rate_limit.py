@@ -20,7 +20,7 @@ from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S, TokenBucket
 from schemas import DecodeError, ObservationBatch, Observations, UploadAck, keys
 from services.ingest.ratelimit import RateLimit, VehicleLimiter
 from services.ingest.service import IngestConfig
-from tests.support import Clock, wait_until
+from tests.support import Clock, start_configured, wait_until
 from vehicle.uploader import Uploader
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -207,11 +207,7 @@ LIMITS = {
 
 
 def _ingest_with_limits(stack, tmp_path: Path) -> None:
-    cfg = tmp_path / "ingest.toml"
-    cfg.write_text("[ingest.rate_limit]\n" + "".join(f"{k} = {v}\n" for k, v in LIMITS.items()))
-    stack.start_router()
-    stack.start_service("ingest", (), "--config", str(cfg))
-    stack.wait_ready(["ingest-all"], 60)
+    start_configured(stack, tmp_path, "ingest", "ingest.rate_limit", LIMITS)
 
 
 def _obs(n: int, first_id: int) -> Observations:
@@ -311,11 +307,8 @@ def test_new_vehicle_ids_are_admitted_at_the_budget_and_known_ones_always(stack,
     """A client inventing a vehicle id per upload gets the budget of new vehicles and no
     more; a vehicle ingest has recorded is never new again, also after ingest restarts
     (known from its database)."""
-    cfg = tmp_path / "ingest.toml"
-    cfg.write_text("[ingest.rate_limit]\nnew_vehicles_per_s = 0.01\nnew_vehicle_burst = 3\n")
-    stack.start_router()
-    stack.start_service("ingest", (), "--config", str(cfg))
-    stack.wait_ready(["ingest-all"], 60)
+    budget = {"new_vehicles_per_s": 0.01, "new_vehicle_burst": 3}
+    start_configured(stack, tmp_path, "ingest", "ingest.rate_limit", budget)
 
     def upload(s, vehicle: str, first: int) -> UploadAck:
         batch = ObservationBatch(vehicle, 1, first, time.time(), _obs(5, first))

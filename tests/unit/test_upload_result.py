@@ -1,0 +1,45 @@
+"""What a vehicle's ``upload()`` says about refused observations: counts by the field ingest
+named, one log line per field and batch, the batch refusal itself, and the rows kept."""
+
+from __future__ import annotations
+
+import logging
+
+from fleetsim.synthetic import make_observations
+from schemas import DecodeError, ObservationBatch, Rejection, UploadAck
+from tests.support import Clock
+from vehicle.uploader import Uploader
+
+
+def test_refused_rows_are_counted_by_field_and_logged(tmp_path, monkeypatch, caplog):
+    up = Uploader("veh-1", tmp_path / "q.sqlite", batch_size=10, clock=Clock())
+    obs = make_observations(20, seed=1)
+    up.enqueue(1, obs)
+    calls = []
+
+    def send(_session, batch: ObservationBatch, _timeout: float) -> UploadAck:
+        calls.append(batch)
+        ids = batch.obs.obs_id
+        if len(calls) == 3:
+            err = DecodeError("vehicle.new", "vehicle 'veh-1' is new; retry after 2 s")
+            return UploadAck("veh-1", batch.batch_id, ids[:0], error=err, retry_after_s=2.0)
+        bad = [Rejection(int(i), "obs.lat", "latitude 91 outside [-90, 90]") for i in ids[:2]]
+        bad.append(Rejection(int(ids[2]), "obs.t", "captured 400 s in the future"))
+        return UploadAck("veh-1", batch.batch_id, ids[3:], rejected=bad)
+
+    monkeypatch.setattr(up, "_send", send)
+    with caplog.at_level(logging.WARNING, logger="vehicle.uploader"):
+        res = up.flush(None)
+    assert (res.accepted, res.rejected) == (14, 6)
+    assert res.rejected_by == {"obs.lat": 4, "obs.t": 2}
+    assert res.refused == "" and res.failed_batches == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("on obs.lat: latitude 91" in ln for ln in lines) == 2  # one per batch
+    assert sum("on obs.t: captured" in ln for ln in lines) == 2
+    assert sorted(r.field for r in up.rejected()) == ["obs.lat"] * 4 + ["obs.t"] * 2
+
+    up.enqueue(2, make_observations(5, seed=2))
+    res = up.flush(None)
+    assert res.refused.startswith("vehicle.new: ") and res.retry_after_s == 2.0
+    assert res.failed_batches == 1 and up.pending == 5
+    up.close()
