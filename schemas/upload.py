@@ -95,7 +95,12 @@ class ObservationBatch(Message):
         obs: Observations = Observations.CODEC.decode(get_map(m, "obs"), n, "obs", strict=False)
         bad, fld, why = Observations.CODEC.row_errors(obs)
         unknown = ~catalog.known(obs.sign_class) & ~bad
-        fld[unknown], why[unknown] = "sign_class", "unknown sign class"
+        if unknown.any():
+            fld[unknown] = "sign_class"
+            why[unknown] = [
+                f"unknown sign class {int(c)} (not in the receiver's sign catalogue)"
+                for c in obs.sign_class[unknown]
+            ]
         bad |= unknown
         _, first = np.unique(obs.obs_id, return_index=True)
         dup = np.ones(n, bool)

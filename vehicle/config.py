@@ -17,13 +17,13 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from hdmap.geo.camera import Intrinsics
-from hdmap.geo.signs import CATALOG, SignCatalog
+from hdmap.geo.signs import CATALOG, SignCatalog, SignCatalogError, UnknownSignClass
 from vehicle.geoloc import VehicleModel
 
 DEFAULT_FILE = "default_vehicle.toml"
@@ -55,6 +55,11 @@ class VehicleConfig:
     min_box_px: float = 12.0
     sign_heights_m: tuple[tuple[str, float], ...] = ()
     """Per-class panel height overrides, (class name, metres)."""
+    sign_catalog_file: str = ""
+    """The sign catalogue file ``[signs] catalog`` names, resolved ("": the defaults)."""
+    sign_catalog: SignCatalog = field(default=CATALOG, compare=False, repr=False)
+    """The classes of that file (or :data:`hdmap.geo.signs.CATALOG`), before the
+    ``sign_heights_m`` overrides."""
     source: str = "<dict>"
 
     @property
@@ -69,10 +74,12 @@ class VehicleConfig:
             dist=self.distortion,
         )
 
-    def catalog(self, base: SignCatalog = CATALOG) -> SignCatalog:
+    def catalog(self, base: SignCatalog | None = None) -> SignCatalog:
+        """``base`` (default: :attr:`sign_catalog`) with this vehicle's panel heights."""
+        base = self.sign_catalog if base is None else base
         return base.with_sizes(dict(self.sign_heights_m)) if self.sign_heights_m else base
 
-    def to_model(self, base_catalog: SignCatalog = CATALOG) -> VehicleModel:
+    def to_model(self, base_catalog: SignCatalog | None = None) -> VehicleModel:
         return VehicleModel.forward_camera(
             self.intrinsics,
             camera_xyz=self.camera_xyz,
@@ -161,8 +168,12 @@ def _no_unknown(m: Mapping[str, Any], allowed: set[str], path: str) -> None:
 # --- parsing --------------------------------------------------------------------------
 
 
-def parse_vehicle_config(doc: Mapping[str, Any], source: str = "<dict>") -> VehicleConfig:
-    """Validate a decoded TOML document; raises :class:`VehicleConfigError` naming the key."""
+def parse_vehicle_config(
+    doc: Mapping[str, Any], source: str = "<dict>", base_dir: Path | None = None
+) -> VehicleConfig:
+    """Validate a decoded TOML document; raises :class:`VehicleConfigError` naming the key.
+    A relative ``[signs] catalog`` path is read from ``base_dir`` (the directory of the
+    vehicle file; None: the working directory)."""
     _no_unknown(doc, {"camera", "gnss", "noise", "signs"}, "")
     cam = _table(doc, "camera", "")
     _no_unknown(cam, {"width", "height", "fx", "fy", "cx", "cy", "distortion", "mount"}, "camera")
@@ -200,13 +211,16 @@ def parse_vehicle_config(doc: Mapping[str, Any], source: str = "<dict>") -> Vehi
     min_box = _number(noise, "min_box_px", "noise", default=12.0, lo=1.0)
 
     signs = _table(doc, "signs", "", required=False)
-    _no_unknown(signs, {"heights_m"}, "signs")
+    _no_unknown(signs, {"catalog", "heights_m"}, "signs")
+    catalog_file, catalog = _sign_catalog(signs, base_dir)
     heights = _table(signs, "heights_m", "signs", required=False)
     overrides = []
-    for name in heights:
-        if name not in {c.name for c in CATALOG}:
-            raise VehicleConfigError(f"signs.heights_m.{name}: unknown sign class")
-        overrides.append((name, _number(heights, name, "signs.heights_m", lo=0.0, lo_open=True)))
+    for ref in heights:
+        try:
+            name = catalog.by_ref(ref).name
+        except UnknownSignClass as e:
+            raise VehicleConfigError(f"signs.heights_m.{ref}: {e}") from None
+        overrides.append((name, _number(heights, ref, "signs.heights_m", lo=0.0, lo_open=True)))
 
     return VehicleConfig(
         width=width,
@@ -223,8 +237,26 @@ def parse_vehicle_config(doc: Mapping[str, Any], source: str = "<dict>") -> Vehi
         pitch_sigma_deg=pitch_sigma,
         min_box_px=min_box,
         sign_heights_m=tuple(sorted(overrides)),
+        sign_catalog_file=catalog_file,
+        sign_catalog=catalog,
         source=source,
     )
+
+
+def _sign_catalog(signs: Mapping[str, Any], base_dir: Path | None) -> tuple[str, SignCatalog]:
+    """(resolved path, catalogue) of ``[signs] catalog`` (format: ``deploy/signs.toml``)."""
+    if "catalog" not in signs:
+        return "", CATALOG
+    v = signs["catalog"]
+    if not isinstance(v, str) or not v:
+        raise VehicleConfigError(f"signs.catalog: expected a file path, got {v!r}")
+    path = Path(v)
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    try:
+        return str(path), SignCatalog.from_toml(path)
+    except SignCatalogError as e:
+        raise VehicleConfigError(f"signs.catalog: {e}") from None
 
 
 def default_config_text() -> str:
@@ -233,6 +265,7 @@ def default_config_text() -> str:
 
 def load_vehicle_config(path: str | Path | None = None) -> VehicleConfig:
     """Load and validate a vehicle TOML file (None: the packaged default)."""
+    base_dir = None if path is None else Path(path).parent
     if path is None:
         text, source = default_config_text(), f"vehicle/{DEFAULT_FILE}"
     else:
@@ -245,7 +278,7 @@ def load_vehicle_config(path: str | Path | None = None) -> VehicleConfig:
     except tomllib.TOMLDecodeError as e:
         raise VehicleConfigError(f"{source}: not valid TOML: {e}") from e
     try:
-        return parse_vehicle_config(doc, source)
+        return parse_vehicle_config(doc, source, base_dir)
     except VehicleConfigError as e:
         raise VehicleConfigError(f"{e} (in {source})") from None
 

@@ -175,6 +175,13 @@ class LogConsumer:
     active since the last catch-up, not with every tile the region ever held. The
     watermark is saved only by a transaction that leaves nothing delivered uncommitted,
     so the saved one holds for the saved offsets.
+
+    Pitfall: the watermark trusts the producer's :class:`LogHead`. A forged head (anyone
+    may answer on ``hdmap/v1/log/**`` in default mode; in secured mode only services may)
+    with a large ``through`` makes the consumer skip what it has not seen in tiles with no
+    gap; an entry that arrives later in such a tile reveals the gap and it is filled
+    then. The stage keys and replay queryables must be the services' alone (secured
+    mode's ACL) wherever the bus is not trusted.
     """
 
     SCHEMA = """

@@ -7,8 +7,10 @@ Per upload (``hdmap/v1/upload/<vehicle_id>`` queryable):
    observations/s after; both with ``error.field == "rate"`` and ``retry_after_s``;
 2. decode and validate (:class:`schemas.ObservationBatch`); a broken batch is
    answered with an :class:`schemas.UploadAck` carrying the error, bad rows are
-   rejected one by one with field and reason; admission policy (timestamps,
-   vehicle id matching the key, pass ids the pipeline can carry) rejects more;
+   rejected one by one with field and reason (a class not in the deployment's sign
+   catalogue, ``IngestConfig.catalog``: ``obs.sign_class``, naming the code); admission
+   policy (timestamps, vehicle id matching the key, pass ids the pipeline can carry)
+   rejects more;
    a well-formed batch of a vehicle ingest has never recorded anything from takes a
    token of the budget of new vehicles shared by all (``new_vehicles_per_s``): past it,
    ``error.field == "vehicle.new"`` with ``retry_after_s``, so a client inventing
@@ -44,7 +46,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
+from hdmap.geo.signs import CATALOG, SignCatalog, SignCatalogError
 from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, route_rays
+from hdmap.runtime.config import ConfigError
 from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
@@ -62,8 +66,23 @@ log = logging.getLogger(__name__)
 class IngestConfig:
     max_batch: int = MAX_BATCH
     default_range_m: float = DEFAULT_TARGET_RANGE_M
+    catalog: str = ""
+    """Sign catalogue file of the deployment (TOML, format in ``deploy/signs.toml``): the
+    classes an upload may name, besides the defaults of :data:`hdmap.geo.signs.CATALOG`
+    (""). A relative path is read from the service's working directory."""
     policy: AdmissionPolicy = field(default_factory=AdmissionPolicy)
     rate_limit: RateLimit = field(default_factory=RateLimit)
+
+
+def load_catalog(path: str) -> SignCatalog:
+    """The sign catalogue ``IngestConfig.catalog`` names; a bad file is a
+    :class:`ConfigError` naming the key, the file, the entry and the field."""
+    if not path:
+        return CATALOG
+    try:
+        return SignCatalog.from_toml(path)
+    except SignCatalogError as exc:
+        raise ConfigError(f"ingest.catalog: {exc}") from exc
 
 
 _NO_IDS = np.zeros(0, np.uint64)
@@ -99,8 +118,14 @@ class IngestService(Service):
     """
 
     def __init__(self, opts: ServiceOptions, config: IngestConfig | None = None):
+        config = config or IngestConfig()
+        catalog = load_catalog(config.catalog)  # before the data dir: a bad file touches nothing
         super().__init__(opts)
-        self.config = config or IngestConfig()
+        self.config = config
+        self.catalog = catalog
+        """Sign classes an upload may name; rows of other classes are refused one by one."""
+        if config.catalog:
+            log.info("ingest: sign catalogue %s (%d classes)", config.catalog, len(catalog))
         self.db.executescript(self.SCHEMA)
         self.writer = LogWriter(self.db, "obs", self.instance)
         self._log_server: LogServer | None = None
@@ -204,7 +229,9 @@ class IngestService(Service):
                 key_vehicle, 0, wait, f"more than {lim.uploads_per_s:g} uploads/s"
             ), []
         try:
-            batch, rejected = ObservationBatch.from_bytes_partial(it.payload, self.config.max_batch)
+            batch, rejected = ObservationBatch.from_bytes_partial(
+                it.payload, self.config.max_batch, self.catalog
+            )
             if batch.vehicle_id != key_vehicle:
                 raise DecodeError(
                     "vehicle_id",

@@ -149,3 +149,44 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
         load_vehicle_config(f)
     # It is a ValueError, so callers may treat it as bad input.
     assert issubclass(VehicleConfigError, ValueError)
+
+
+def test_the_vehicle_reads_the_deployment_catalogue_next_to_its_file(tmp_path: Path) -> None:
+    (tmp_path / "signs.toml").write_text(
+        '[[class]]\ncode = 1000\nname = "de_priority_road"\nosm = "DE:306"\nheight_m = 0.6\n'
+    )
+    f = tmp_path / "car.toml"
+    f.write_text(
+        DEFAULT_TEXT + '\n[signs]\ncatalog = "signs.toml"\n'
+        '[signs.heights_m]\n"DE:306" = 0.7\n"FI:231" = 0.8\n'
+    )
+    cfg = load_vehicle_config(f)
+    assert cfg.sign_catalog_file == str(tmp_path / "signs.toml")
+    assert cfg.sign_heights_m == (("de_priority_road", 0.7), ("give_way", 0.8))
+    m = cfg.to_model()
+    assert m.catalog.by_code(1000).height_m == 0.7 and m.catalog.code_of("DE:306") == 1000
+    assert m.catalog.by_name("give_way").height_m == 0.8
+    assert m.catalog.by_name("stop").height_m == CATALOG.by_name("stop").height_m
+    assert 1000 not in CATALOG
+
+
+@pytest.mark.parametrize(
+    ("signs", "message"),
+    [
+        ('catalog = "missing.toml"', r"^signs\.catalog: .*missing\.toml: cannot read"),
+        (
+            'catalog = "bad.toml"',
+            r"^signs\.catalog: .*bad\.toml: class\[0\]\.height_m: must be > 0",
+        ),
+        ("catalog = 3", r"^signs\.catalog: expected a file path"),
+        ('catalog = "bad.toml"\nfoo = 1', r"^signs\.foo: unknown key"),
+    ],
+)
+def test_catalogue_errors_name_the_key(tmp_path: Path, signs: str, message: str) -> None:
+    (tmp_path / "bad.toml").write_text(
+        '[[class]]\ncode = 1000\nname = "x"\nosm = "X:1"\nheight_m = 0.0\n'
+    )
+    f = tmp_path / "car.toml"
+    f.write_text(DEFAULT_TEXT + f"\n[signs]\n{signs}\n")
+    with pytest.raises(VehicleConfigError, match=message):
+        load_vehicle_config(f)
