@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from fleetsim.gnss_replay import course_over_ground
 from fleetsim.noise import GnssErrors, NoiseModel
 from fleetsim.route import Path
 from fleetsim.world import World
@@ -232,11 +233,15 @@ def simulate_pass(
 
     # GNSS fixes.
     err = noise.gnss.sample(rng_gnss, t)
-    lat, lon, h = world.frame.to_geodetic(antenna + err.total_enu)
+    fix_enu = antenna + err.total_enu
+    lat, lon, h = world.frame.to_geodetic(fix_enu)
     lat, lon, h = np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(h)
-    fwd = np.column_stack([np.sin(psi), np.cos(psi), np.zeros(m)])
+    course = course_over_ground(t, fix_enu) if noise.gnss.heading_from_track else psi
+    fwd = np.column_stack([np.sin(course), np.cos(course), np.zeros(m)])
     fwd_local = ecef_to_enu_vectors(world.frame.vectors_to_ecef(fwd), lat, lon)
-    heading = np.arctan2(fwd_local[:, 0], fwd_local[:, 1]) + err.heading_rad
+    heading = np.arctan2(fwd_local[:, 0], fwd_local[:, 1])
+    if not noise.gnss.heading_from_track:
+        heading = heading + err.heading_rad
     s_h, s_v, s_hd = noise.gnss.reported_sigmas()
     fixes = GnssFixes(
         t=t,

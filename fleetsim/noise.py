@@ -37,6 +37,7 @@ reported sigma can be overridden (``GnssNoise.reported_*``).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,6 +68,9 @@ class GnssNoise:
     """What the fix claims; None = the white level."""
     reported_sigma_v_m: float | None = None
     reported_sigma_heading_deg: float | None = None
+    heading_from_track: bool = False
+    """The fix's heading is the course over ground of the noisy fix track (the drive
+    computes it), not the true heading plus ``heading_rad``."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -171,10 +175,21 @@ class DetectorNoise:
                 raise ValueError(f"DetectorNoise.{name} must be in [0, 1]")
 
 
+class GnssModel(Protocol):
+    """What a drive needs of a GNSS error model (:class:`GnssNoise`, or
+    :class:`fleetsim.gnss_replay.ReplayedGnss`)."""
+
+    heading_from_track: bool
+
+    def sample(self, rng: np.random.Generator, t: Array) -> GnssErrors: ...
+
+    def reported_sigmas(self) -> tuple[float, float, float]: ...
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     name: str
-    gnss: GnssNoise
+    gnss: GnssModel
     detector: DetectorNoise
 
     def without_noise(self) -> NoiseModel:

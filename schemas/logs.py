@@ -178,7 +178,7 @@ class LogHead(Message):
     """Producer -> consumer: the last reply to a :class:`LogQuery` with ``after_gseq``.
 
     Every entry the query asked for with ``gseq <= through`` is in this answer; ``head``
-    is the producer's last ``gseq`` when it read (``through == head``: nothing more).
+    is the producer's last ``gseq`` when it read (``through >= head``: nothing more).
     A producer that sent no head did not answer: the consumer learns nothing from it.
     """
 
@@ -199,12 +199,11 @@ class LogHead(Message):
     @classmethod
     def from_bytes(cls, data: bytes) -> LogHead:
         m = cls._open(data)
-        head = get_int(m, "head", 0, 2**63 - 1)
         return cls(
             stage=get_str(m, "stage", _STAGE_RE, _STAGE),
             producer=get_str(m, "producer"),
-            through=get_int(m, "through", 0, head),
-            head=head,
+            through=get_int(m, "through", 0, 2**63 - 1),
+            head=get_int(m, "head", 0, 2**63 - 1),
         )
 
     @property

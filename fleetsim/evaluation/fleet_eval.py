@@ -41,6 +41,7 @@ from fleetsim.evaluation.fleet_scoring import (
     targets,
 )
 from fleetsim.fleet import Fleet, FleetConfig
+from fleetsim.gnss_replay import gsdc
 from fleetsim.noise import FLEET, NoiseModel
 from fleetsim.osm_town import helsinki_town, same_class_pairs
 from fleetsim.pipeline import FleetDriver, model_for
@@ -75,13 +76,22 @@ class FleetEvalConfig:
     """Noise on the detected boxes' width and height, px (``DetectorNoise.size_sigma_px``).
     The issue's noise puts 3 px on the box centre only (0 here, the default); the vehicle
     model assumes ``sqrt(2) * 3`` px on the height (4.24: a sensitivity check)."""
+    gnss: str = "fleet"
+    """``fleet``: FLEET's simulated receiver; ``gsdc``: real phone position errors replayed
+    (:func:`fleetsim.gnss_replay.gsdc`), heading from the fix track, FLEET's detector."""
 
     def noise(self) -> NoiseModel:
-        """The fleet's noise: :data:`fleetsim.noise.FLEET`, with the box-size noise if set."""
+        """The fleet's noise: :data:`fleetsim.noise.FLEET`, with the box-size noise if set,
+        and the replayed GNSS errors with ``gnss == "gsdc"``."""
+        noise = FLEET
+        if self.gnss == "gsdc":
+            noise = replace(noise, name="fleet+gsdc", gnss=gsdc())
+        elif self.gnss != "fleet":
+            raise ValueError(f"gnss {self.gnss!r}: one of fleet, gsdc")
         if self.box_size_sigma_px <= 0:
-            return FLEET
-        det = replace(FLEET.detector, size_sigma_px=self.box_size_sigma_px)
-        return replace(FLEET, name=f"fleet+size{self.box_size_sigma_px:g}px", detector=det)
+            return noise
+        det = replace(noise.detector, size_sigma_px=self.box_size_sigma_px)
+        return replace(noise, name=f"{noise.name}+size{self.box_size_sigma_px:g}px", detector=det)
 
     @staticmethod
     def quick(out: Path) -> FleetEvalConfig:

@@ -47,6 +47,9 @@ class FleetRunOptions:
     """Scoring rounds; None: :class:`FleetEvalConfig`'s (or its ``quick``)."""
     box_size_sigma_px: float = 0.0
     """Noise on the detected boxes' width and height, px."""
+    gnss: str = "fleet"
+    """GNSS errors: ``fleet`` (the simulated receiver of :data:`fleetsim.noise.FLEET`) or
+    ``gsdc`` (real phone errors replayed, :mod:`fleetsim.gnss_replay`)."""
     quick: bool = False
     """A small run for the test suite."""
 
@@ -56,6 +59,7 @@ class FleetRunOptions:
         flags = [f"--passes {self.passes}"] if self.passes else []
         flags += [f"--rounds {self.rounds}"] if self.rounds else []
         flags += [f"--box-size-sigma {self.box_size_sigma_px:g}"] if self.box_size_sigma_px else []
+        flags += [f"--gnss {self.gnss}"] if self.gnss != "fleet" else []
         return flags + (["--quick"] if self.quick else [])
 
 
@@ -137,12 +141,13 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         cfg = replace(cfg, passes=opts.passes)
     if opts.rounds:
         cfg = replace(cfg, rounds=opts.rounds)
-    cfg = replace(cfg, seed=seed, box_size_sigma_px=opts.box_size_sigma_px)
+    cfg = replace(cfg, seed=seed, box_size_sigma_px=opts.box_size_sigma_px, gnss=opts.gnss)
     result, state, final = run_fleet_eval(cfg)
     result["meta"]["command"] = "hdmap eval fleet " + " ".join(
         [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
         + [f"--seed {cfg.seed}"]
         + ([f"--box-size-sigma {cfg.box_size_sigma_px:g}"] if cfg.box_size_sigma_px else [])
+        + ([f"--gnss {cfg.gnss}"] if cfg.gnss != "fleet" else [])
         + (["--quick"] if opts.quick else [])
     )
     figures = write_fleet_figures(result, state.world, final, out)

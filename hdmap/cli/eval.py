@@ -110,6 +110,13 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         help="noise on the detected boxes' width and height, px (default 0: the issue's "
         "noise is on the box centre only; 4.24 is what the vehicle model assumes)",
     )
+    p.add_argument(
+        "--gnss",
+        choices=["fleet", "gsdc"],
+        default="fleet",
+        help="GNSS errors: the simulated receiver (default) or real phone errors replayed "
+        "(GSDC 2020, fleetsim/gnss_replay.py)",
+    )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
 
 
@@ -124,6 +131,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         passes=args.passes,
         rounds=args.rounds,
         box_size_sigma_px=args.box_size_sigma,
+        gnss=args.gnss,
         quick=args.quick,
     )
     try:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+
+import zenoh
 
 from hdmap.cli.common import add_bus_arguments, bus_from_args
 from hdmap.ops.status import collect
@@ -17,8 +20,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    with open_session(bus_from_args(args)) as session:
-        stats = collect(session, args.timeout)
+    bus = bus_from_args(args)
+    try:
+        with open_session(bus) as session:
+            stats = collect(session, args.timeout)
+    except zenoh.ZError as exc:  # no router there: one line, not a traceback
+        where = ", ".join(bus.connect) or "the configured endpoints"
+        print(f"hdmap status: cannot reach the bus at {where}: {exc}", file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps([s._encode() for s in stats], indent=2, default=float))
         return 0

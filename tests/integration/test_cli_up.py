@@ -320,3 +320,10 @@ def test_up_killed_outright_leaves_no_process(tmp_path):
             r: p.pid for r, p in roles.items() if not gone(p)
         }
         assert wait_until(lambda: not listening(ep), 30.0, 0.5)
+
+
+def test_status_without_a_router_says_so_in_one_line():
+    res = status("--connect", f"tcp/127.0.0.1:{free_port()}")
+    assert res.returncode == 2, res
+    assert "hdmap status: cannot reach the bus at tcp/127.0.0.1:" in res.stderr
+    assert "Traceback" not in res.stderr, res.stderr

@@ -27,6 +27,7 @@ from schemas import (
     LandmarkUpdates,
     Links,
     LogEntry,
+    LogHead,
     LogQuery,
     MapDelta,
     MapSnapshot,
@@ -120,7 +121,8 @@ def valid_messages(now: float) -> dict[str, bytes]:
         ObservationBatch("fz-0", 1, 2, now, observations(4)),
         UploadAck("fz-0", 2, ids, ids[:1], [Rejection(9, "obs.lat", "bad")], None, 0.0),
         LogEntry("obs", "fz-producer", tile, 1, 1, group.to_bytes()),
-        LogQuery("obs", {"fz-producer": {tile: 4}}, ["12"], 10),
+        LogQuery("obs", {"fz-producer": {tile: 4}}, ["12"], 10, {"fz-producer": 3}),
+        LogHead("obs", "fz-producer", 3, 8),
         group,
         assoc_group(now, 4)[1],
         LandmarkUpdates(lm, rem),
@@ -176,7 +178,12 @@ RELATED: dict[tuple[str, str], tuple[str, ...]] = {
     ("assoc_group", "links"): ("links",),
     ("assoc_group", "obs"): ("links",),
 }
-OPTIONAL = {("upload_ack", "error"), ("assoc_group", "merged_into"), ("error", "retry_after_s")}
+OPTIONAL = {
+    ("upload_ack", "error"),
+    ("assoc_group", "merged_into"),
+    ("error", "retry_after_s"),
+    ("log_query", "after_gseq"),
+}
 """Fields a message may lack (absent reads as a default)."""
 
 

@@ -16,6 +16,7 @@ from schemas import (
     ErrorReply,
     LandmarkUpdates,
     LogEntry,
+    LogHead,
     LogQuery,
     MapDelta,
     MapSnapshot,
@@ -34,7 +35,7 @@ from tests.support.hostile import (
 
 # --- decoders ---------------------------------------------------------------------------------
 
-MESSAGES = (ObservationBatch, UploadAck, LogEntry, LogQuery, ObsGroup, AssocGroup)
+MESSAGES = (ObservationBatch, UploadAck, LogEntry, LogQuery, LogHead, ObsGroup, AssocGroup)
 MESSAGES += (LandmarkUpdates, MapDelta, MapSnapshot, ErrorReply, Stats)
 DECODERS: dict[str, tuple[str, Callable[[bytes], Any]]] = {
     m.__name__: (m.TYPE, m.from_bytes) for m in MESSAGES

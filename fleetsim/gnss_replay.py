@@ -1,0 +1,177 @@
+"""Real GNSS errors, replayed: what two phones' fixes got wrong, second by second.
+
+The data (``fleetsim/data/gsdc2020_mtv1_phone_gnss_errors.csv``, see
+``fleetsim/data/README.md``) is the Google Smartphone Decimeter Challenge 2020 drive
+``2020-05-14-US-MTV-1``: a Pixel 4 and a Pixel 4 XL in one car for about 29 minutes,
+each chipset fix minus the RTK/INS truth at the same second (east, north, m). Its errors
+do not average out within a drive: they are biases that last minutes, not white noise.
+
+:class:`ReplayedGnss` has the interface of :class:`fleetsim.noise.GnssNoise` (``sample``,
+``reported_sigmas``). Per pass it draws one trace (uniformly) and a start second
+(uniformly over the seconds that leave room for the pass; a pass longer than the trace
+wraps around) and takes that trace's east and north errors at the pass's fix times,
+linearly interpolated between the 1 Hz samples. What the data does not have:
+
+- vertical: the vertical terms of :data:`fleetsim.noise.FLEET` (per-pass bias, drift,
+  white), sampled as there;
+- heading: none is sampled; with ``heading_from_track`` the drive computes the fix's
+  heading as a receiver's course over ground, from the noisy fix track itself
+  (:func:`course_over_ground`), so its error is what the position errors make of it.
+
+What the fixes claim (``reported_sigmas``), measured on the data when the traces are
+loaded, never typed in: per horizontal axis the RMS of all errors; the heading sigma is
+the RMS of the course-over-ground error of the recorded 1 Hz fixes against the truth
+track, at speeds of 3 m/s and more; the vertical sigma is FLEET's white level.
+
+>>> g = gsdc()
+>>> len(g.traces), round(g.reported_sigma_h_m, 2)
+(2, 1.17)
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+
+from fleetsim.noise import FLEET, GnssErrors, GnssNoise
+from hdmap.geo.geodesy import EnuFrame
+
+Array = np.ndarray
+
+DATA = Path(__file__).resolve().parent / "data" / "gsdc2020_mtv1_phone_gnss_errors.csv"
+
+MIN_SPEED_MPS = 3.0
+"""Course-over-ground errors are measured at this speed and above (below it a course from
+positions is dominated by the position noise, and receivers say so)."""
+
+
+@dataclass(frozen=True)
+class Trace:
+    """One receiver's errors over one drive (1 Hz, a few seconds may be missing)."""
+
+    name: str
+    t: Array
+    """Seconds from the trace's first sample, increasing."""
+    east: Array
+    north: Array
+    fix_enu: Array
+    """(N, 2) the receiver's fixes in a local east/north frame, m (for the course)."""
+
+    @property
+    def span_s(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+    def at(self, t: Array) -> tuple[Array, Array]:
+        """East and north errors at trace times ``t`` (s; wrapped into the span)."""
+        tt = np.mod(t, self.span_s) if self.span_s > 0 else np.zeros_like(t)
+        return np.interp(tt, self.t, self.east), np.interp(tt, self.t, self.north)
+
+    def course_errors(self, min_speed_mps: float = MIN_SPEED_MPS) -> Array:
+        """Course over ground of the recorded fixes minus that of the truth track, rad
+        (consecutive 1 Hz samples, where the truth moved at ``min_speed_mps`` or more)."""
+        fix = self.fix_enu
+        truth = fix - np.column_stack([self.east, self.north])
+        dt = np.diff(self.t)
+        d_fix, d_true = np.diff(fix, axis=0), np.diff(truth, axis=0)
+        speed = np.hypot(*d_true.T) / np.maximum(dt, 1e-9)
+        ok = (dt > 0) & (dt <= 1.5) & (speed >= min_speed_mps)
+        err = np.arctan2(d_fix[:, 0], d_fix[:, 1]) - np.arctan2(d_true[:, 0], d_true[:, 1])
+        return np.angle(np.exp(1j * err[ok]))
+
+
+def load_traces(path: Path = DATA) -> tuple[Trace, ...]:
+    """The traces of a GSDC error file (columns ``trace, t_s, err_east_m, err_north_m,
+    fix_lat, fix_lon``), in the order they first appear."""
+    rows: dict[str, list[tuple[float, ...]]] = {}
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            rows.setdefault(r["trace"], []).append(
+                (
+                    float(r["t_s"]),
+                    float(r["err_east_m"]),
+                    float(r["err_north_m"]),
+                    float(r["fix_lat"]),
+                    float(r["fix_lon"]),
+                )
+            )
+    out = []
+    for name, vals in rows.items():
+        a = np.array(sorted(vals))
+        frame = EnuFrame(float(a[0, 3]), float(a[0, 4]), 0.0)
+        enu = frame.from_geodetic(a[:, 3], a[:, 4], np.zeros(len(a)))
+        out.append(Trace(name, a[:, 0] - a[0, 0], a[:, 1], a[:, 2], np.asarray(enu)[:, :2]))
+    return tuple(out)
+
+
+def course_over_ground(t: Array, enu: Array) -> Array:
+    """A receiver's heading from its own fix track: the direction of travel between the
+    fixes around each one (central differences; one-sided at the ends), rad from north."""
+    if len(t) < 2:
+        return np.zeros(len(t))
+    v = np.gradient(np.asarray(enu, float)[:, :2], np.asarray(t, float), axis=0)
+    return np.arctan2(v[:, 0], v[:, 1])
+
+
+@dataclass(frozen=True)
+class ReplayedGnss:
+    """Position errors replayed from real receivers (module docstring)."""
+
+    traces: tuple[Trace, ...]
+    vertical: GnssNoise = field(default_factory=lambda: FLEET.gnss)
+    """Only its vertical terms are used (bias_v_m, walk_v_m_per_sqrt_s, white_v_m)."""
+    heading_from_track: bool = True
+    """The fix's heading is the course over ground of the noisy track (the drive does it)."""
+    reported_sigma_h_m: float = 0.0
+    reported_sigma_v_m: float = 0.0
+    reported_sigma_heading_deg: float = 0.0
+
+    def reported_sigmas(self) -> tuple[float, float, float]:
+        return self.reported_sigma_h_m, self.reported_sigma_v_m, self.reported_sigma_heading_deg
+
+    def sample(self, rng: np.random.Generator, t: Array) -> GnssErrors:
+        """Errors for one pass with fix times ``t`` (s, increasing)."""
+        t = np.asarray(t, float)
+        n = t.size
+        trace = self.traces[int(rng.integers(len(self.traces)))]
+        duration = float(t[-1] - t[0]) if n else 0.0
+        room = max(trace.span_s - duration, 0.0)
+        start = float(rng.uniform(0.0, room)) if room > 0 else float(rng.uniform(0.0, trace.span_s))
+        east, north = trace.at(start + (t - (t[0] if n else 0.0)))
+        v = self.vertical
+        up = (
+            rng.normal(0.0, v.bias_v_m)
+            + np.cumsum(
+                rng.normal(0.0, 1.0, n) * np.sqrt(np.maximum(np.diff(t, prepend=t[:1]), 0.0))
+            )
+            * v.walk_v_m_per_sqrt_s
+        )
+        white_up = rng.normal(0.0, 1.0, n) * v.white_v_m
+        zeros = np.zeros((n, 3))
+        return GnssErrors(
+            bias_enu=np.column_stack([east, north, up]),
+            white_enu=np.column_stack([np.zeros(n), np.zeros(n), white_up]),
+            multipath=np.zeros(n, bool),
+            multipath_enu=zeros,
+            heading_rad=np.zeros(n),
+            heading_bias_rad=0.0,
+        )
+
+
+@cache
+def gsdc() -> ReplayedGnss:
+    """The GSDC 2020 MTV-1 replay with its sigmas measured from the data (module
+    docstring); loaded once."""
+    traces = load_traces()
+    errs = np.concatenate([np.concatenate([tr.east, tr.north]) for tr in traces])
+    course = np.concatenate([tr.course_errors() for tr in traces])
+    _, s_v, _ = FLEET.gnss.reported_sigmas()
+    return ReplayedGnss(
+        traces,
+        reported_sigma_h_m=float(np.sqrt(np.mean(errs**2))),
+        reported_sigma_v_m=s_v,
+        reported_sigma_heading_deg=round(float(np.degrees(np.sqrt(np.mean(course**2)))), 3),
+    )
