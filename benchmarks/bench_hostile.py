@@ -47,8 +47,16 @@ def load_average() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
-def one_run(attack: str, with_attacker: bool, cfg: LoadConfig, drain_timeout: float) -> dict:
-    """One honest load on a fresh stack, with or without ``attack``; its summary."""
+def one_run(
+    attack: str,
+    with_attacker: bool,
+    cfg: LoadConfig,
+    drain_timeout: float,
+    attacker_cpus: frozenset[int] | None = None,
+) -> dict:
+    """One honest load on a fresh stack, with or without ``attack``; its summary.
+    ``attacker_cpus``: the attacker's CPUs (``--pin``: this process, the stack and the
+    honest fleet keep the others)."""
     la0 = load_average()
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp, Stack(Path(tmp) / "stack") as st:
@@ -56,9 +64,9 @@ def one_run(attack: str, with_attacker: bool, cfg: LoadConfig, drain_timeout: fl
         attacks: list = []
         if with_attacker:
             attacks = [
-                CpuBurner(cfg.duration_s)
+                CpuBurner(cfg.duration_s, attacker_cpus)
                 if attack == CONTROL
-                else AttackProcess(attack, st.bus, cfg.duration_s)
+                else AttackProcess(attack, st.bus, cfg.duration_s, cpus=attacker_cpus)
             ]
         with open_session(st.bus) as session:
             r = run_under_attack(session, cfg, attacks, drain_timeout=drain_timeout)
@@ -146,7 +154,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--attacks", nargs="+", choices=names, default=names)
     ap.add_argument("--drain-timeout", type=float, default=300.0)
     ap.add_argument("--json", type=Path)
+    ap.add_argument(
+        "--pin",
+        action="store_true",
+        help="the attacker on the last CPU, everything else (stack, honest fleet) on the "
+        "others, in both runs of a pair: the attacker's own CPU then costs the honest side "
+        "nothing, as from another host",
+    )
     a = ap.parse_args(argv)
+    attacker_cpus: frozenset[int] | None = None
+    if a.pin:
+        cpus = sorted(os.sched_getaffinity(0))
+        if len(cpus) < 2:
+            ap.error("--pin needs at least 2 CPUs")
+        attacker_cpus = frozenset(cpus[-1:])
+        os.sched_setaffinity(0, set(cpus[:-1]))  # the stack's processes inherit it
     cfg = LoadConfig(
         vehicles=a.vehicles or (4 if a.quick else 10),
         rate=a.rate or (500.0 if a.quick else 1000.0),
@@ -168,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": cfg.duration_s,
             "subscribers": cfg.subscribers,
             "drain_timeout_s": a.drain_timeout,
+            "attacker_cpus": sorted(attacker_cpus) if attacker_cpus else None,
         },
         "ratio_max": RATIO_MAX,
         "attacks": [],
@@ -177,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{i}/{len(a.attacks)}] {name}", flush=True)
         runs = []
         for with_attacker in (False, True):
-            runs.append(one_run(name, with_attacker, cfg, a.drain_timeout))
+            runs.append(one_run(name, with_attacker, cfg, a.drain_timeout, attacker_cpus))
             print_run(runs[-1])
         v = verdict(*runs)
         if name == CONTROL:  # no attack: what one busy local core does to the ratio

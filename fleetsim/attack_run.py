@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import multiprocessing
+import os
 import queue
 import sys
 import threading
@@ -158,8 +159,16 @@ def honest_accounting(r: dict, attacks: list[AttackReport]) -> dict:
     }
 
 
-def _attack_main(name: str, bus, duration_s: float, fast: bool, stop, out) -> None:
+def _pin(cpus: frozenset[int] | None) -> None:
+    if cpus:
+        os.sched_setaffinity(0, cpus)
+
+
+def _attack_main(
+    name: str, bus, duration_s: float, fast: bool, stop, out, cpus: frozenset[int] | None = None
+) -> None:
     """Child process: run one attack until its duration or ``stop``; put its report."""
+    _pin(cpus)
     attack = make_attack(name, bus, duration_s, fast)
     attack.start()
     while attack.is_alive() and not stop.wait(0.1):
@@ -176,13 +185,21 @@ class AttackProcess:
     attacker's CPU is a separate process, as an attacker on the network is, instead of
     threads holding the GIL of the process that measures the honest vehicles' latency."""
 
-    def __init__(self, name: str, bus, duration_s: float, fast: bool = False):
+    def __init__(
+        self,
+        name: str,
+        bus,
+        duration_s: float,
+        fast: bool = False,
+        cpus: frozenset[int] | None = None,
+    ):
+        """``cpus``: the CPUs the attacker may run on (None: any)."""
         ctx = multiprocessing.get_context("spawn")
         self._stop = ctx.Event()
         self._out = ctx.Queue()
         self._proc = ctx.Process(
             target=_attack_main,
-            args=(name, bus, duration_s, fast, self._stop, self._out),
+            args=(name, bus, duration_s, fast, self._stop, self._out, cpus),
             name=f"attack-{name}",
             daemon=True,
         )
@@ -217,7 +234,8 @@ class AttackProcess:
         return self._report or AttackReport(self.name_, "?")
 
 
-def _spin(stop, duration_s: float) -> None:
+def _spin(stop, duration_s: float, cpus: frozenset[int] | None = None) -> None:
+    _pin(cpus)
     end = time.monotonic() + duration_s
     while not stop.is_set() and time.monotonic() < end:
         sum(range(10_000))
@@ -228,11 +246,11 @@ class CpuBurner(AttackProcess):
     and sends nothing. What it does to the honest p99 is what any attacker running on
     the same machine does by its CPU alone (on the 2-core benchmark machine, a lot)."""
 
-    def __init__(self, duration_s: float):
+    def __init__(self, duration_s: float, cpus: frozenset[int] | None = None):
         ctx = multiprocessing.get_context("spawn")
         self._stop = ctx.Event()
         self._out = ctx.Queue()
-        self._proc = ctx.Process(target=_spin, args=(self._stop, duration_s), daemon=True)
+        self._proc = ctx.Process(target=_spin, args=(self._stop, duration_s, cpus), daemon=True)
         self.name_ = CONTROL
         self.failure = ""
         self._report = AttackReport(CONTROL, "local-cpu")
