@@ -165,7 +165,7 @@ def _pin(cpus: frozenset[int] | None) -> None:
 
 
 def _attack_main(
-    name: str, bus, duration_s: float, fast: bool, stop, out, cpus: frozenset[int] | None = None
+    name: str, bus, duration_s: float, fast: bool, cpus: frozenset[int] | None, stop, out
 ) -> None:
     """Child process: run one attack until its duration or ``stop``; put its report."""
     _pin(cpus)
@@ -178,12 +178,22 @@ def _attack_main(
     out.put((attack.report().as_dict(), attack.failure))
 
 
+def _spin(duration_s: float, cpus: frozenset[int] | None, stop, out) -> None:
+    """Child process: keep one CPU busy until ``duration_s`` or ``stop``; report nothing."""
+    _pin(cpus)
+    end = time.monotonic() + duration_s
+    while not stop.is_set() and time.monotonic() < end:
+        sum(range(10_000))
+    out.put((AttackReport(CONTROL, "local-cpu").as_dict(), ""))
+
+
 class AttackProcess:
     """An attack of :func:`fleetsim.attacks.make_attack` in a process of its own (spawned,
     not forked: the parent holds Zenoh sessions), with the interface of an
     :class:`~fleetsim.attacks.Attack` that :func:`run_under_attack` uses. Run this way the
     attacker's CPU is a separate process, as an attacker on the network is, instead of
-    threads holding the GIL of the process that measures the honest vehicles' latency."""
+    threads holding the GIL of the process that measures the honest vehicles' latency.
+    ``cpus``: the CPUs the attacker may run on (None: any)."""
 
     def __init__(
         self,
@@ -193,15 +203,14 @@ class AttackProcess:
         fast: bool = False,
         cpus: frozenset[int] | None = None,
     ):
-        """``cpus``: the CPUs the attacker may run on (None: any)."""
+        self._spawn(name, _attack_main, (name, bus, duration_s, fast, cpus))
+
+    def _spawn(self, name: str, target, args: tuple) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._stop = ctx.Event()
         self._out = ctx.Queue()
         self._proc = ctx.Process(
-            target=_attack_main,
-            args=(name, bus, duration_s, fast, self._stop, self._out, cpus),
-            name=f"attack-{name}",
-            daemon=True,
+            target=target, args=(*args, self._stop, self._out), name=f"attack-{name}", daemon=True
         )
         self.name_ = name
         self.failure = ""
@@ -234,26 +243,13 @@ class AttackProcess:
         return self._report or AttackReport(self.name_, "?")
 
 
-def _spin(stop, duration_s: float, cpus: frozenset[int] | None = None) -> None:
-    _pin(cpus)
-    end = time.monotonic() + duration_s
-    while not stop.is_set() and time.monotonic() < end:
-        sum(range(10_000))
-
-
 class CpuBurner(AttackProcess):
     """The control of an attack: a process that keeps one core busy for ``duration_s``
     and sends nothing. What it does to the honest p99 is what any attacker running on
     the same machine does by its CPU alone (on the 2-core benchmark machine, a lot)."""
 
     def __init__(self, duration_s: float, cpus: frozenset[int] | None = None):
-        ctx = multiprocessing.get_context("spawn")
-        self._stop = ctx.Event()
-        self._out = ctx.Queue()
-        self._proc = ctx.Process(target=_spin, args=(self._stop, duration_s, cpus), daemon=True)
-        self.name_ = CONTROL
-        self.failure = ""
-        self._report = AttackReport(CONTROL, "local-cpu")
+        self._spawn(CONTROL, _spin, (duration_s, cpus))
 
 
 CONTROL = "cpu"

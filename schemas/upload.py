@@ -97,10 +97,11 @@ class ObservationBatch(Message):
         unknown = ~catalog.known(obs.sign_class) & ~bad
         if unknown.any():
             fld[unknown] = "sign_class"
-            why[unknown] = [
-                f"unknown sign class {int(c)} (not in the receiver's sign catalogue)"
-                for c in obs.sign_class[unknown]
+            codes, which = np.unique(obs.sign_class[unknown], return_inverse=True)
+            texts = [
+                f"unknown sign class {int(c)} (not in the receiver's sign catalogue)" for c in codes
             ]
+            why[unknown] = np.array(texts, dtype=object)[which]  # one text per distinct code
         bad |= unknown
         _, first = np.unique(obs.obs_id, return_index=True)
         dup = np.ones(n, bool)

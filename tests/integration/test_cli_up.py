@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -18,7 +17,6 @@ import sys
 import textwrap
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import psutil
@@ -28,6 +26,7 @@ from hdmap.cli.common import add_bus_arguments, bus_from_args
 from hdmap.ops.stack import SERVICE_NAMES, Proc, Stack, endpoint_port, free_port
 from hdmap.runtime.bus import DEFAULT_ENDPOINT, BusConfig, open_session, zenoh_config
 from tests.support import wait_until
+from tests.support.processes import running
 
 pytestmark = pytest.mark.integration
 
@@ -36,37 +35,6 @@ REPO = Path(__file__).resolve().parents[2]
 
 def hdmap(*args: str) -> list[str]:
     return [sys.executable, "-m", "hdmap.cli", *args]
-
-
-@contextlib.contextmanager
-def running(argv: list[str], log: Path) -> Iterator[subprocess.Popen]:
-    """A subprocess writing to ``log``; on leaving, it and every descendant it had are killed."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    with open(log, "ab") as out:
-        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, cwd=REPO, env=env)
-    seen: dict[int, psutil.Process] = {}
-    stop = threading.Event()
-
-    def watch() -> None:  # remember descendants, so none outlives a failed test
-        while not stop.wait(0.2):
-            with contextlib.suppress(psutil.Error):
-                for c in psutil.Process(proc.pid).children(recursive=True):
-                    seen.setdefault(c.pid, c)
-
-    t = threading.Thread(target=watch, daemon=True)
-    t.start()
-    try:
-        yield proc
-    finally:
-        stop.set()
-        t.join(5)
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-        for c in seen.values():
-            with contextlib.suppress(psutil.Error):
-                c.kill()
-        psutil.wait_procs(list(seen.values()), timeout=10)
 
 
 def listening(endpoint: str) -> bool:

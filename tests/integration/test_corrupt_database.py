@@ -17,25 +17,23 @@ import signal
 import sqlite3
 import subprocess
 import sys
-import time
-from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import psutil
 import pytest
 
 from fleetsim.synthetic import make_observations
 from hdmap.ops.stack import SERVICE_NAMES, Stack, Supervisor, free_port
 from hdmap.ops.status import collect
-from hdmap.runtime.bus import BusConfig, open_session, query
+from hdmap.runtime.bus import BusConfig, open_session
 from hdmap.runtime.config import EXIT_CONFIG
 from hdmap.runtime.service import ServiceOptions
 from hdmap.runtime.store import EXIT_CORRUPT
-from schemas import ObservationBatch, UploadAck, keys
 from services.ingest.service import CORRUPT_RETRY_S
 from services.matcher.service import MatcherService
 from tests.support import wait_until
+from tests.support.processes import running
+from tests.support.uploads import upload
 from vehicle.uploader import Uploader
 
 pytestmark = pytest.mark.integration
@@ -71,15 +69,6 @@ def corrupt_middle(path: Path) -> int:
     return middle
 
 
-def upload(s, vehicle: str, batch_id: int, first: int, n: int) -> UploadAck:
-    obs = make_observations(n, seed=batch_id)
-    obs.obs_id[:] = np.arange(first, first + n, dtype=np.uint64)
-    payload = ObservationBatch(vehicle, 1, batch_id, time.time(), obs).to_bytes()
-    replies = [ok for _k, ok, _e in query(s, keys.upload(vehicle), payload, 10.0) if ok]
-    assert len(replies) == 1
-    return UploadAck.from_bytes(replies[0])
-
-
 def live_services(s) -> set[str]:
     return {st.service for st in collect(s, 2.0)}
 
@@ -112,36 +101,6 @@ def test_a_corrupt_matcher_database_stops_the_matcher_alone(stack: Stack):
         ack = upload(s, "veh-1", 1, 1, 30)
         assert ack.error is None and len(ack.accepted) == 30
     assert all(stack.procs[f"{n}-all"].alive for n in SERVICE_NAMES if n != "matcher")
-
-
-@contextlib.contextmanager
-def running(argv: list[str], log: Path) -> Iterator[subprocess.Popen]:
-    """A subprocess writing to ``log``; on leaving, it and every descendant seen are ended."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    with open(log, "ab") as out:
-        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, cwd=REPO, env=env)
-    seen: dict[int, psutil.Process] = {}
-
-    def remember() -> None:
-        with contextlib.suppress(psutil.Error):
-            for c in psutil.Process(proc.pid).children(recursive=True):
-                seen.setdefault(c.pid, c)
-
-    try:
-        yield proc
-    finally:
-        remember()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
-        for c in seen.values():
-            with contextlib.suppress(psutil.Error):
-                c.kill()
-        psutil.wait_procs(list(seen.values()), timeout=10)
 
 
 def test_hdmap_up_keeps_running_without_a_matcher_whose_database_is_corrupt(tmp_path):

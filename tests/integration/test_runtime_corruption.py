@@ -11,32 +11,20 @@ from __future__ import annotations
 
 import contextlib
 import sqlite3
-import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from fleetsim.synthetic import make_observations
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
-from hdmap.runtime.bus import open_session, query
+from hdmap.runtime.bus import open_session
 from hdmap.runtime.store import EXIT_CORRUPT
-from schemas import ObservationBatch, UploadAck, keys
 from tests.support import wait_until
+from tests.support.uploads import upload
 
 pytestmark = pytest.mark.integration
 
 PAGE = 4096
-
-
-def upload(s, vehicle: str, batch_id: int, first: int, n: int) -> UploadAck:
-    obs = make_observations(n, seed=batch_id)
-    obs.obs_id[:] = np.arange(first, first + n, dtype=np.uint64)
-    payload = ObservationBatch(vehicle, 1, batch_id, time.time(), obs).to_bytes()
-    replies = [ok for _k, ok, _e in query(s, keys.upload(vehicle), payload, 10.0) if ok]
-    assert len(replies) == 1
-    return UploadAck.from_bytes(replies[0])
 
 
 def damage(path: Path, tables: tuple[str, ...]) -> None:
