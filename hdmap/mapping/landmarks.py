@@ -105,12 +105,15 @@ class PendingTile:
     def __len__(self) -> int:
         return len(self.obs)
 
-    def add(self, obs: Any, vehicle: str, pass_id: int, now: float, received: float) -> None:
-        """Append one pass's rays, added at ``now``, received by ingest at ``received``."""
+    def add(
+        self, obs: Any, vehicle: str, pass_id: int, at: float | NDArray[np.float64], received: float
+    ) -> None:
+        """Append one pass's rays with their event times ``at`` (one per ray, or one for
+        all: what the pending TTL is counted from), received by ingest at ``received``."""
         self.obs = type(obs).concat([self.obs, obs])
         self.vehicle += [vehicle] * len(obs)
         self.pass_id = np.r_[self.pass_id, np.full(len(obs), pass_id, np.int64)]
-        self.added_at = np.r_[self.added_at, np.full(len(obs), now)]
+        self.added_at = np.r_[self.added_at, np.broadcast_to(np.asarray(at, float), len(obs))]
         self.received_at = np.r_[self.received_at, np.full(len(obs), received)]
         self.key = np.r_[self.key, np.full(len(obs), pass_key(vehicle, pass_id), np.int64)]
         self.tried = np.r_[self.tried, np.zeros(len(obs), bool)]
@@ -150,7 +153,8 @@ class PassBudget:
     quarantined: str = ""
     """Why the pass gets no more initiation attempts ("": it does)."""
     last_at: float = 0.0
-    """Clock of its last upload or eviction: the record goes ``pending_ttl_s`` after it."""
+    """Event time of its last upload (the matcher's clock then): the record goes
+    ``pending_ttl_s`` after it."""
 
 
 class LandmarkTable:
@@ -174,8 +178,9 @@ class LandmarkTable:
         the probation time-out looks at the ones due only."""
         self.all_by_seen = SeenIndex()
         """Every trust record, by when its vehicle was last seen (forgetting)."""
-        self.ingest_time = 0.0
-        """The matcher's clock: ingest time, monotone, saved with the table
+        self.event_time = 0.0
+        """The matcher's clock: event time (the observations' own capture times, each
+        entry's clamped by its ingest stamp), monotone, saved with the table
         (:meth:`hdmap.mapping.matching.Matching.entry_time`)."""
         self._dirty: set[int] = set()
         self._pending_dirty: set[str] = set()
@@ -272,7 +277,7 @@ class LandmarkTable:
         return t
 
     def seen(self, vehicle: str, at: float) -> VehicleTrust:
-        """The vehicle sent a unit at ``at`` (ingest time): its record (made if new, marked
+        """The vehicle sent a unit at ``at`` (event time): its record (made if new, marked
         to be saved), last seen at ``at`` at the latest, filed for forgetting."""
         t = self.trust_of(vehicle)
         t.last_seen = max(t.last_seen, at)
@@ -311,11 +316,18 @@ class LandmarkTable:
     # -- pending ----------------------------------------------------------------------------
 
     def add_pending(
-        self, tile: str, obs: Any, vehicle: str, pass_id: int, now: float, received: float
+        self,
+        tile: str,
+        obs: Any,
+        vehicle: str,
+        pass_id: int,
+        at: float | NDArray[np.float64],
+        received: float,
     ) -> None:
-        """Rays of one pass wait in ``tile``'s pool (none: nothing changes)."""
+        """Rays of one pass wait in ``tile``'s pool with their event times ``at`` (none:
+        nothing changes)."""
         if len(obs):
-            self.pending[tile].add(obs, vehicle, pass_id, now, received)
+            self.pending[tile].add(obs, vehicle, pass_id, at, received)
             self._pending_dirty.add(tile)
 
     def drop_pending(self, tile: str, mask_remove: NDArray[np.bool_]) -> None:

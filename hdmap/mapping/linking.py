@@ -123,7 +123,7 @@ def create(m: Matching, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray
     row = int(m.sums.new_rows(1, frame.from_ecef(x_ecef[None]))[0])
     bias = m.config.gate.pass_bias_sigma_m
     gate_cov = cov + np.diag([bias**2, bias**2, m.config.gate.vertical_bias_sigma_m**2])
-    lm = Landmark(lid, cls, home, m.tile_of(x_ecef), x_ecef, gate_cov, row, m.clock())
+    lm = Landmark(lid, cls, home, m.tile_of(x_ecef), x_ecef, gate_cov, row, m.now)
     m.state.put(lm)
     return lm
 

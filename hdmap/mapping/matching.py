@@ -6,12 +6,16 @@ The steps that work on it are functions of a :class:`Matching`: one unit's assoc
 (:mod:`hdmap.mapping.unit`), linking rays and re-solving gating estimates
 (:mod:`hdmap.mapping.linking`), landmarks from pending rays (:mod:`hdmap.mapping.pending`),
 vehicles leaving probation (:mod:`hdmap.mapping.probation`) and merging landmarks of one
-sign (:mod:`hdmap.mapping.merge`). Nothing here does I/O; the clock (wall-clock seconds,
-for landmarks' and pending rays' ages) and the counters are given.
+sign (:mod:`hdmap.mapping.merge`). Nothing here does I/O; the wall clock (only to
+refuse ingest stamps far in the future) and the counters are given.
 
-Time that changes what the map contains (probation time-outs, forgetting trust records)
-is ingest time on the matcher's own monotone clock (:meth:`Matching.entry_time`), never
-the largest time a batch carries and never the wall clock.
+Every time that decides what the map contains (pending TTL, pass closing, probation
+time-outs, forgetting trust records, pass budgets) is event time: the observations' own
+capture times, each entry's clamped by its trusted ingest stamp, on the matcher's monotone
+clock (:meth:`Matching.entry_time`), never the wall clock and never the largest time a
+batch carries. The same entries in the same order give the same map whenever and however
+fast they are applied: live, a day late in one bulk, or replayed
+(:mod:`hdmap.mapping.event_time`).
 """
 
 from __future__ import annotations
@@ -53,7 +57,9 @@ class MatchingConfig:
     """Rays of a vehicle on probation count in full in the matcher's own (gating) sums; the
     solver's, which make the map, get the probation weight."""
     pending_ttl_s: float = 3600.0
-    """Unmatched rays older than this are dropped (counted as expired)."""
+    """Unmatched rays captured this long (event time) before the matcher's clock are
+    dropped (counted ``expired``): rays of passes hours apart never start a landmark
+    together, however they arrive (a day's drives uploaded at once included)."""
     pending_max_per_pass: int = 256
     """Most rays of one pass left waiting in one tile's pending pool after an upload's
     initiation attempt; past it the pass's oldest there are evicted (counted
@@ -95,8 +101,12 @@ class MatchingConfig:
     chance with the rays it sends after the eviction. 0: never."""
     close_passes_after_s: float = 7200.0
     """Close a pass in the gating sums once no ray of it has been linked for this long
-    (wall-clock seconds, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above
+    (event time, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above
     ``pending_ttl_s``: a pending ray can still be linked until it expires."""
+    sweep_every_s: float = 60.0
+    """Expiry, forgotten budgets and pass closing run when the matcher's clock enters a new
+    period of this length (event time; :func:`hdmap.mapping.event_time.advance`): at the
+    same entries live and on a replay, and once a minute of data rather than per entry."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
     matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see
@@ -195,7 +205,8 @@ class Matching:
     ``state`` is the landmark table, ``sums`` the gating sums (rows of ``state``'s
     landmarks), ``quiet`` the open passes, ``fleet`` the fleet's pass offsets and ``out``
     the output of the batch being applied. ``tally(name, n)`` counts events; ``clock``
-    gives wall-clock seconds (ages of landmarks and pending rays)."""
+    gives wall-clock seconds, used only to refuse ingest stamps far ahead of it
+    (:meth:`entry_time`); every age is on :attr:`now`, the event-time clock."""
 
     def __init__(
         self,
@@ -215,7 +226,9 @@ class Matching:
         self.frames = TileFrames()
         self._areas: dict[str, list[str]] = {}
         self.sums = LandmarkSums(config.estimator)
-        self.quiet = QuietPasses(config.close_passes_after_s)
+        self.quiet = QuietPasses(config.close_passes_after_s, clock=lambda: self.now)
+        self.swept = 0
+        """The sweep period (:attr:`MatchingConfig.sweep_every_s`) of the clock's last sweep."""
         self.fleet = FleetOffsets(config.trust)
         self.flagged: dict[str, tuple[float, float]] = {}
         """(weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
@@ -225,6 +238,7 @@ class Matching:
         """After ``state`` was (re)loaded with ``sums``: open passes are quiet from now on,
         the fleet's offsets and the flagged vehicles follow the trust records."""
         self.sums = sums
+        self.swept = self.period(self.now)  # the last entry applied swept what was due
         self.quiet.clear()
         note_open(self.quiet, self.sums, self.state)
         self.flagged = {}
@@ -237,41 +251,50 @@ class Matching:
 
     @property
     def now(self) -> float:
-        """The matcher's clock: ingest time, monotone (:meth:`entry_time`)."""
-        return self.state.ingest_time
+        """The matcher's clock: event time, monotone (:meth:`entry_time`)."""
+        return self.state.event_time
 
-    def entry_time(self, received_at: float) -> float:
-        """The time of an obs entry that ingest stamped ``received_at``, on the matcher's
-        clock, which it advances.
+    def period(self, t: float) -> int:
+        """The sweep period (``sweep_every_s``) time ``t`` falls in."""
+        every = self.config.sweep_every_s
+        return int(t // every) if every > 0 else 0
 
-        The clock (``state.ingest_time``, saved with the table, so a restart does not take
-        it back) is the largest ``received_at`` of the entries applied so far among those
-        at most ``time_tolerance_s`` ahead of the matcher's wall clock when they were
-        applied. An entry further ahead (a forged entry, an ingest with a bad clock) does
-        not move it (counted ``time_clamped``); an entry's time is the smaller of its
-        ``received_at`` and the clock, which for every entry that moved the clock is its
-        own ``received_at``.
+    def is_ahead(self, received_at: float) -> bool:
+        """An ingest stamp too far ahead of the wall clock to be trusted."""
+        return received_at > self.clock() + self.config.time_tolerance_s
 
-        Replays give the map live processing gave: the clock is a maximum, so it depends
-        neither on the order nor on the batching of the entries, only on which of them
-        count; an honest entry was stamped before the matcher applied it, so it is behind
-        the matcher's wall clock (up to the hosts' clock skew, far below the tolerance)
-        live and on every later replay: all honest entries count both times, and the
-        clock follows ingest's exactly. An entry stamped far ahead counts neither live
-        nor on a replay before its date: one entry cannot make the probation time-out
-        release every vehicle, live or replayed. (A statistic of the batch, its median
-        say, would make the map depend on how the entries were batched: a few at a time
-        live, hundreds in a catch-up.) What is given up: while an ingest's clock runs
-        more than the tolerance ahead, its entries move no time (time-outs come late,
-        never early), and a replay after the wall clock passed such an entry's stamp
-        counts it where live processing did not."""
-        now = self.state.ingest_time
-        if received_at > self.clock() + self.config.time_tolerance_s:
+    def entry_time(self, received_at: float, capture_t: np.ndarray) -> float:
+        """The event time of an obs entry whose rays were captured at ``capture_t`` and that
+        ingest stamped ``received_at``; the matcher's clock advances to it.
+
+        An entry's event time is its latest capture time, but never later than its ingest
+        stamp (a vehicle's clock is not trusted: it cannot move the map's time past the
+        moment ingest took the rows) nor later than the clock when the stamp itself is more
+        than ``time_tolerance_s`` ahead of the wall clock (a forged entry, an ingest with
+        a bad clock: counted ``time_clamped``, the clock does not move). The clock
+        (``state.event_time``, saved with the table, so a restart does not take it back)
+        is the largest event time of the entries applied so far.
+
+        Replays give the map live processing gave, and so does the same traffic uploaded
+        a day late in one bulk: the clock is a maximum of capture times, so it depends
+        neither on when nor on how the entries were batched, only on their order and on
+        which of them count; an honest entry's stamp is behind the matcher's wall clock
+        (up to the hosts' clock skew, far below the tolerance) live and on every later
+        replay, and its capture times are behind its stamp. What is given up: when one
+        vehicle uploads a day late while others drive live, its rays are a day behind the
+        clock, so they expire at the next sweep: they still meet the landmarks there and
+        each other in their own unit, not rays of other passes (which is what the TTL
+        means in event time)."""
+        now = self.state.event_time
+        t = capture_t[np.isfinite(capture_t)] if capture_t.size else capture_t
+        newest = float(t.max()) if t.size else received_at
+        if self.is_ahead(received_at):
             self.tally("time_clamped", 1)
-            return min(received_at, now)
-        if received_at > now:
-            self.state.ingest_time = received_at
-        return received_at
+            return min(newest, received_at, now)
+        at = min(newest, received_at)
+        if at > now:
+            self.state.event_time = at
+        return at
 
     def note_trust(self, vehicle: str, t: VehicleTrust, ref: np.ndarray | None) -> None:
         """Keep (weight, offset chi2) of the vehicles stats show: downweighted or suspect."""

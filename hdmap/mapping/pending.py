@@ -62,7 +62,7 @@ def enforce_budget(m: Matching, tile: str, vehicle: str, pass_id: int) -> int:
         m.state.drop_pending(tile, drop)
         m.tally("pending_evicted", n)
     if key in m.state.passes:
-        m.state.budget_of(vehicle, pass_id).last_at = m.clock()
+        m.state.budget_of(vehicle, pass_id).last_at = m.now
     return n
 
 
@@ -226,8 +226,9 @@ def drop_used(m: Matching, where: list[tuple[str, np.ndarray]], used: np.ndarray
 
 
 def expire(m: Matching) -> int:
-    """Drop pending rays added more than ``pending_ttl_s`` ago; returns how many."""
-    cutoff = m.clock() - m.config.pending_ttl_s
+    """Drop pending rays captured more than ``pending_ttl_s`` before the matcher's clock
+    (event time); returns how many."""
+    cutoff = m.now - m.config.pending_ttl_s
     n = 0
     for t, p in list(m.state.pending.items()):
         old = p.added_at < cutoff
@@ -240,7 +241,7 @@ def expire(m: Matching) -> int:
 def forget_budgets(m: Matching) -> int:
     """Drop the budget records of passes silent for ``pending_ttl_s`` (their rays have
     expired: nothing of the pass is left to budget); returns how many."""
-    cutoff = m.clock() - m.config.pending_ttl_s
+    cutoff = m.now - m.config.pending_ttl_s
     gone = [k for k, b in m.state.passes.items() if b.last_at < cutoff]
     m.state.drop_budgets(gone)
     return len(gone)

@@ -44,7 +44,7 @@ def settle(m: Matching, vehicle: str, t: VehicleTrust) -> set[int]:
 
 def freeze_stale(m: Matching, now: float) -> int:
     """Vehicles on probation that stopped driving before they could be settled (none for
-    ``probation_ttl_s`` of ingest time before ``now``): their held passes go in at the
+    ``probation_ttl_s`` of event time before ``now``): their held passes go in at the
     probation weight. Looks at the vehicles with held passes due only (and at those seen
     since they were filed, once: :class:`~hdmap.mapping.trust.SeenIndex`), not at every
     trust record. Returns how many were let go."""
@@ -69,7 +69,7 @@ def freeze_stale(m: Matching, now: float) -> int:
 
 
 def forget_quiet(m: Matching, now: float) -> int:
-    """Forget the trust records of vehicles not seen for ``forget_after_s`` of ingest time
+    """Forget the trust records of vehicles not seen for ``forget_after_s`` of event time
     before ``now`` (``TrustConfig.forget_after_s``; counted ``trust_forgotten``): one that
     returns is new (on probation again). A vehicle with held passes keeps its record (the
     probation time-out lets them go first) and is looked at again ``forget_after_s``

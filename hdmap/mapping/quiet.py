@@ -5,9 +5,9 @@ may come, and closes it (``close_passes(rows, clusters)``) once no ray of it has
 ``after_s``. Closing changes neither the estimate nor the covariance; it keeps the stored
 state to the closed sums. A ray of a pass already closed would start a new cluster (which
 does change the estimate), so ``after_s`` must exceed the longest a ray can wait before it
-is linked: the matcher's pending TTL, in wall-clock time, which is why the quiet time is
-wall-clock time too (a service catching up on hours of log in minutes must not close what
-its pending pool may still link).
+is linked: the matcher's pending TTL. Both are event time (the clock a service is given:
+the rays' capture times, :mod:`hdmap.mapping.event_time`), so a service catching up on
+hours of log in minutes closes what live processing closed, no more.
 
 >>> t = [0.0]
 >>> q = QuietPasses(after_s=100.0, clock=lambda: t[0])

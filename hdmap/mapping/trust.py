@@ -108,11 +108,11 @@ class TrustConfig:
     after several passes: without probation what it sent before stays in the map."""
     probation_weight: float = 0.05
     probation_ttl_s: float = 86400.0
-    """A vehicle still on probation this long after its last pass (by ingest time) has its
+    """A vehicle still on probation this long after its last pass (by event time) has its
     held passes let go at the probation weight: they then close and fold like any pass, so
     vehicles that stop driving before they are settled do not keep passes open for ever."""
     forget_after_s: float = 2_592_000.0
-    """A vehicle not seen for this long (by ingest time) and without held passes has its
+    """A vehicle not seen for this long (by event time) and without held passes has its
     trust record forgotten (counted ``trust_forgotten``), so the records the matcher keeps
     and saves are those of the vehicles that drove in this window, not of every vehicle
     ever seen. A vehicle that comes back after that is new: on probation again (its rays
@@ -170,7 +170,7 @@ class VehicleTrust:
     """Set by :meth:`add_offset` (the configured ``bias_sigma_m``)."""
     status: int = NEW
     last_seen: float = 0.0
-    """Ingest time of its latest unit, on the matcher's trusted clock
+    """Event time of its latest unit, on the matcher's trusted clock
     (:meth:`hdmap.mapping.matching.Matching.entry_time`): probation time-out, forgetting.
     Only grows."""
     held_homes: set[str] = field(default_factory=set)

@@ -92,12 +92,15 @@ def _associate(
 
 
 def match_unit(
-    m: Matching, tile: str, vehicle: str, pass_id: int, received_at: float, obs: Any
+    m: Matching, tile: str, vehicle: str, pass_id: int, at: float, obs: Any, received_at: float
 ) -> None:
     """Associate one unit's rays ``obs`` (an observation table) with the landmarks around
-    ``tile``, link them, pool the rest, start, refresh and merge landmarks."""
+    ``tile``, link them, pool the rest, start, refresh and merge landmarks. ``at`` is the
+    unit's event time (:meth:`Matching.entry_time`): the vehicle is seen then, and a pooled
+    ray waits from its own capture time (never later than ``at``); ``received_at`` (the
+    ingest stamp) only traces latency."""
     frame = m.frames(tile)
-    trust = m.state.seen(vehicle, received_at)
+    trust = m.state.seen(vehicle, at)
     obs, applied = _corrected(m, frame, obs, trust)
     rays = to_local(frame, obs)
     area = m.area(tile)
@@ -114,7 +117,10 @@ def match_unit(
         touched.add(cands[matched[i]].id)
     link(m, obs.take(hit), [cands[k] for k in matched[hit]], vehicle, pass_id, received_at)
     wait = ~hit & ~drop
-    m.state.add_pending(tile, obs.take(wait), vehicle, pass_id, m.clock(), received_at)
+    waiting = obs.take(wait)
+    captured = np.asarray(waiting.t, float)
+    since = np.where(np.isfinite(captured), np.minimum(captured, at), at)
+    m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at)
     new_classes = np.unique(obs.sign_class[wait])
     touched |= initiate(m, tile, area, vehicle, pass_id, new_classes)
     # after initiation took what it could: an honest upload's rays (all of them waiting,

@@ -1,16 +1,18 @@
 """Matcher: the single writer of landmark identities for its region.
 
 Per batch of obs entries (one upload's rays for one tile each, in order; see
-:mod:`hdmap.runtime.stage`): each entry's ingest time moves the matcher's clock
+:mod:`hdmap.runtime.stage`): each entry's event time (its capture times, clamped by its
+ingest stamp) moves the matcher's clock
 (:meth:`hdmap.mapping.matching.Matching.entry_time`: monotone, an entry stamped far ahead
 of the wall clock does not move it), the entry is handed to the domain
 (:func:`hdmap.mapping.unit.match_unit`: association, linking, pending pool, initiation,
 probation, merge), and what the clock's advance settles follows
-(:func:`hdmap.mapping.probation.follow_time`: vehicles on probation that stopped driving
-are let go, trust records of vehicles gone for long are forgotten); then one
-:class:`schemas.AssocGroup` per landmark home tile goes to the assoc log, quiet passes
-close, and the state (with the clock) is saved in the same transaction. A timer expires
-old pending rays (and forgets the budget records of passes silent as long).
+(:func:`hdmap.mapping.event_time.advance`: vehicles on probation that stopped driving are
+let go, trust records of vehicles gone for long are forgotten, and once per minute of
+event time old pending rays expire and quiet passes close); then one
+:class:`schemas.AssocGroup` per landmark home tile goes to the assoc log, and the state
+(with the clock) is saved in the same transaction. No timer changes the map: the wall
+clock only refuses ingest stamps far ahead of it.
 """
 
 from __future__ import annotations
@@ -23,10 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdmap.mapping.estimator import LandmarkSums
+from hdmap.mapping.event_time import advance
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
-from hdmap.mapping.pending import expire, forget_budgets
-from hdmap.mapping.probation import follow_time
-from hdmap.mapping.quiet import close_quiet
 from hdmap.mapping.unit import match_unit
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.service import ServiceOptions
@@ -77,6 +77,11 @@ class MatcherConfig(MatchingConfig):
                 f"({self.trust.probation_ttl_s}), got {forget} (a vehicle on probation would "
                 "be forgotten with its passes held); 0 keeps records for ever"
             )
+        if not self.sweep_every_s > 0:
+            raise ConfigError(
+                f"matcher.sweep_every_s: must be > 0, got {self.sweep_every_s} (pending rays "
+                "would never expire, passes never close)"
+            )
         if 0 < self.close_passes_after_s <= self.pending_ttl_s:
             raise ConfigError(
                 "matcher.close_passes_after_s: must exceed pending_ttl_s "
@@ -86,7 +91,7 @@ class MatcherConfig(MatchingConfig):
 
 
 def wall_clock() -> float:
-    """Wall-clock seconds (ages of landmarks and pending rays)."""
+    """Wall-clock seconds (only to refuse ingest stamps far ahead of it)."""
     return time.time()
 
 
@@ -172,15 +177,17 @@ class MatcherService(StageService):
         return [self]
 
     def setup(self) -> None:
-        """The base service's setup, and the pending-ray expiry every minute."""
+        """The base service's setup, and the stats counts refreshed every minute (expiry
+        runs on event time, in :meth:`apply`)."""
         super().setup()
-        self.every(60.0, lambda _now: self.expire())
+        self.every(60.0, lambda _now: self._snapshot_counts())
 
     # -- apply -----------------------------------------------------------------------------
 
     def apply(self, entries: list[LogEntry]) -> None:
         """Decode each entry, move the clock, match its unit and settle what the clock's
-        advance settles; emit one assoc entry per home tile, close quiet passes and save."""
+        advance settles (:func:`hdmap.mapping.event_time.advance`: probation, expiry, pass
+        closing); emit one assoc entry per home tile and save."""
         self.matching.out = new_output()
         ahead: list[float] = []
         for e in entries:
@@ -189,43 +196,31 @@ class MatcherService(StageService):
             except DecodeError as exc:
                 self.reject(f"obs.{exc.field}")
                 continue
-            if self._unit(e.tile, group) < group.received_at:
+            if self.matching.is_ahead(group.received_at):
                 ahead.append(group.received_at)
-            follow_time(self.matching)
+            self._unit(e.tile, group)
+            advance(self.matching)
         if ahead:
             log.warning(
                 "%d obs entries stamped more than time_tolerance_s ahead of the matcher's "
-                "wall clock (up to %.0f s past its ingest-time clock); their time not taken",
+                "wall clock (up to %.0f s past its event-time clock); their time not taken",
                 len(ahead),
                 max(ahead) - self.matching.now,
             )
         for home, out in sorted(self.matching.out.items()):
             self.emit(home, assoc_body(out))
-        self.count("passes_closed", close_quiet(self.matching.quiet, self.sums, self.state))
         self.state.save(self.sums.pack_rows)
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
 
     def _unit(self, tile: str, g: ObsGroup) -> float:
-        """One decoded unit through the domain, at its time on the matcher's clock
+        """One decoded unit through the domain, at its event time on the matcher's clock
         (returned)."""
-        at = self.matching.entry_time(g.received_at)
-        match_unit(self.matching, tile, g.vehicle_id, g.pass_id, at, g.obs)
+        at = self.matching.entry_time(g.received_at, np.asarray(g.obs.t, float))
+        match_unit(self.matching, tile, g.vehicle_id, g.pass_id, at, g.obs, g.received_at)
         return at
 
     # -- timers and stats -----------------------------------------------------------------------
-
-    def expire(self) -> None:
-        """Drop pending rays older than ``pending_ttl_s`` (saved in a transaction of their
-        own) and refresh the stats counts."""
-        n = expire(self.matching)
-        forgotten = forget_budgets(self.matching)
-        if n or forgotten:
-            with self.transaction([self]):
-                self.state.save(self.sums.pack_rows)
-                if n:
-                    self.count("expired", n)
-        self._snapshot_counts()
 
     def after_commit(self) -> None:
         """Refresh the stats counts after each committed batch."""

@@ -133,7 +133,7 @@ class MatcherState(LandmarkTable):
         gone_v = [(v,) for v in sorted(self._trust_gone)]
         for table in ("trust", "trust_status", "trust_pass"):
             c.executemany(f"DELETE FROM {table} WHERE vehicle=?", gone_v)
-        c.execute("INSERT OR REPLACE INTO clock(name, t) VALUES ('ingest', ?)", (self.ingest_time,))
+        c.execute("INSERT OR REPLACE INTO clock(name, t) VALUES ('event', ?)", (self.event_time,))
         c.executemany(
             "INSERT OR REPLACE INTO trust(vehicle, n, i_ee, i_en, i_nn, sx, sy, offered, passed) "
             "VALUES (?,?,?,?,?,?,?,?,?)",
@@ -235,8 +235,12 @@ class MatcherState(LandmarkTable):
             if t is not None:
                 t.status, t.held_homes, t.last_seen = int(status), set(homes.split()), float(seen)
         self.index_trust()
-        clock = c.execute("SELECT t FROM clock WHERE name='ingest'").fetchone()
-        self.ingest_time = 0.0 if clock is None else float(clock[0])
+        # 'ingest': the clock of a matcher from before event time (ingest time, within the
+        # upload delay of it); it is replaced by 'event' at the first save
+        clock = c.execute(
+            "SELECT t FROM clock WHERE name IN ('event', 'ingest') ORDER BY name='event' DESC"
+        ).fetchone()
+        self.event_time = 0.0 if clock is None else float(clock[0])
         rows = c.execute(
             "SELECT id, cls, home, tile, x, cov, sums, created_at FROM landmarks ORDER BY id"
         ).fetchall()

@@ -64,15 +64,21 @@ class SolverConfig:
     and 15, has the measurement."""
     close_passes_after_s: float = 7200.0
     """Close a pass (``LandmarkSums.close_passes``) once no ray of it has come for this long
-    (wall-clock seconds, :mod:`hdmap.mapping.quiet`); 0 keeps passes open until evicted
+    (event time: the solver's clock, :meth:`SolverService.group_time`;
+    :mod:`hdmap.mapping.quiet`); 0 keeps passes open until evicted
     (``max_open_passes`` per landmark). The estimate and covariance do not change (an open
     pass enters the solve exactly as a closed one); the stored state shrinks about
     threefold (BENCHMARKS.md "Scale"). Twice the matcher's ``pending_ttl_s``: a ray can be
     linked long after its upload (it waits in the matcher's pending pool until a landmark is
     initiated), and a ray of a pass already closed would start a new cluster, which changes
     the estimate (closing a vehicle's passes as soon as it uploads another costs seed 3 of
-    the fleet evaluation precision, 1.000 -> 0.982). The bookkeeping is in memory:
-    passes open at a restart count as quiet from then on (:func:`hdmap.mapping.quiet.note_open`)."""
+    the fleet evaluation precision, 1.000 -> 0.982). Passes close when the clock enters a
+    new ``sweep_every_s`` period, so at the same entries live and on a replay. The
+    bookkeeping is in memory: passes open at a restart count as quiet from the restored
+    clock on (:func:`hdmap.mapping.quiet.note_open`)."""
+    sweep_every_s: float = 60.0
+    """Quiet passes are closed when the solver's clock enters a new period of this length
+    (event time)."""
 
 
 @dataclass(frozen=True)
@@ -110,7 +116,7 @@ class SolverService(StageService):
         self.config = config or SolverConfig()
         self.frames = TileFrames()
         self.state = SolverState(self.db)
-        self._quiet = QuietPasses(self.config.close_passes_after_s)
+        self._quiet = QuietPasses(self.config.close_passes_after_s, clock=self._now)
         self._reload()
         self._counts: dict[str, float] = {}
         self._snapshot_counts()
@@ -118,8 +124,38 @@ class SolverService(StageService):
     def _reload(self) -> None:
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
+        self._swept = self._period(self.state.event_time)
         self._quiet.clear()
         note_open(self._quiet, self.sums, self.state)
+
+    def _now(self) -> float:
+        """The solver's clock (event time, :meth:`group_time`)."""
+        return self.state.event_time
+
+    def _period(self, t: float) -> int:
+        every = self.config.sweep_every_s
+        return int(t // every) if every > 0 else 0
+
+    @staticmethod
+    def group_time(g: AssocGroup) -> float | None:
+        """An assoc group's event time: the latest capture time of its linked rays, each
+        no later than its ingest stamp (the matcher's :meth:`~hdmap.mapping.matching.
+        Matching.entry_time` rule on what reaches the solver); None without links. The
+        solver's clock is the largest so far: a function of the entries alone, so passes
+        close at the same entry live, a day late and on a replay."""
+        if not len(g.links):
+            return None
+        t = np.minimum(np.asarray(g.obs.t, float), np.asarray(g.links.received_at, float))
+        t = t[np.isfinite(t)]
+        return float(t.max()) if t.size else None
+
+    def _sweep(self) -> None:
+        """After a group: close the passes due if the clock entered a new sweep period
+        (counted ``passes_closed``)."""
+        period = self._period(self.state.event_time)
+        if period != self._swept:
+            self._swept = period
+            self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
 
     def on_commit(self) -> None:
         pass
@@ -140,12 +176,15 @@ class SolverService(StageService):
             except DecodeError as exc:
                 self.reject(f"assoc.{exc.field}")
                 continue
+            at = self.group_time(g)  # the clock moves, the group's passes are noted, then
+            if at is not None and at > self.state.event_time:  # the due ones close
+                self.state.event_time = at
             touched |= self._apply_group(g)
+            self._sweep()
         touched -= {lm.id for lm in self._retired}
         self._publish(sorted(touched))
         for lid in touched:  # their sums changed, published or not: save them
             self.state.put(self.state.landmarks[lid])
-        self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
         self.state.save(self.sums.pack_rows)
 
     def _apply_group(self, g: AssocGroup) -> set[int]:

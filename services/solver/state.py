@@ -13,6 +13,7 @@ SCHEMA = """
 CREATE TABLE IF NOT EXISTS landmarks (
     id INTEGER PRIMARY KEY, cls INTEGER NOT NULL, home TEXT NOT NULL, tile TEXT NOT NULL,
     revision INTEGER NOT NULL, sums BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
 """
 
 
@@ -34,6 +35,9 @@ class SolverState:
         self.landmarks: dict[int, SolverLandmark] = {}
         self._dirty: set[int] = set()
         self._deleted: set[int] = set()
+        self.event_time = 0.0
+        """The solver's clock: event time, monotone, saved with the landmarks
+        (:meth:`services.solver.service.SolverService.group_time`)."""
 
     def put(self, lm: SolverLandmark) -> None:
         self.landmarks[lm.id] = lm
@@ -60,6 +64,9 @@ class SolverState:
             ],
         )
         self._dirty.clear()
+        self._conn.execute(
+            "INSERT OR REPLACE INTO clock(name, t) VALUES ('event', ?)", (self.event_time,)
+        )
 
     def load(self, unpack_rows) -> None:
         self.landmarks.clear()
@@ -72,3 +79,5 @@ class SolverState:
         for r, srow in zip(rows, srows, strict=True):
             lid = id_from_sql(r[0])
             self.landmarks[lid] = SolverLandmark(lid, int(r[1]), r[2], int(srow), r[3], int(r[4]))
+        clock = self._conn.execute("SELECT t FROM clock WHERE name='event'").fetchone()
+        self.event_time = 0.0 if clock is None else float(clock[0])

@@ -1,7 +1,7 @@
-"""The solver and the matcher close passes quiet for ``close_passes_after_s`` (wall-clock;
-a stand-in clock here): the estimate and covariance are those of the open passes, the
-stored state shrinks. In-process services on real SQLite, through their transactions
-(scene of tests/test_merge.py).
+"""The solver and the matcher close passes quiet for ``close_passes_after_s`` of event
+time (the rays' capture times, each no later than its ingest stamp): the estimate and
+covariance are those of the open passes, the stored state shrinks. In-process services on
+real SQLite, through their transactions (scene of tests/test_merge.py).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from hdmap.mapping.estimator.packing import OPEN_DTYPE_V4
+from hdmap.mapping.event_time import advance
 from hdmap.mapping.linking import create, link, refresh
 from hdmap.mapping.matching import AssocOutput as _Out
 from hdmap.mapping.quiet import QuietPasses
@@ -35,13 +36,25 @@ from tests.support.services import (
 )
 
 
-def solver(path: Path, close: bool, clock: Clock) -> SolverService:
+def solver(path: Path, close: bool) -> SolverService:
     cfg = SolverConfig(close_passes_after_s=7200.0 if close else 0.0)
     svc = SolverService(ServiceOptions(data_dir=path), cfg)
-    svc._quiet = QuietPasses(cfg.close_passes_after_s, clock)
-    svc._reload()  # as at start-up, with the stand-in clock
     svc.pubs = Sink()  # type: ignore[assignment]
     return svc
+
+
+T0 = 1.7e9
+"""Event time of the scenes' start (capture times; ingest stamps 5 s after)."""
+
+
+def at(obs: Observations, t: float) -> Observations:
+    """``obs`` captured at ``t``."""
+    return replace(obs, t=np.full(len(obs), t))
+
+
+def open_on(svc, row: int) -> int:
+    """Passes open on sums row ``row``."""
+    return sum(1 for r, _c in svc.sums.open_passes() if r == row)
 
 
 def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
@@ -55,7 +68,7 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
         np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h
     )  # fmt: skip
     # two vehicles, 12 passes each; every pass uploaded in two groups (its halves), one
-    # group every 10 minutes: group seq at 600 seq
+    # group every 10 minutes of event time: group seq captured at T0 + 600 seq
     groups = []
     for p in range(12):
         for v in ("veh-a", "veh-b"):
@@ -69,24 +82,23 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
     late = sign_rays(frame, 12, rng)
     groups.append(("veh-c", 0, replace(late, obs_id=late.obs_id + 900_000)))
 
-    def entry(seq: int, v: str, p: int, obs: Observations):
+    def entry(seq: int, v: str, p: int, obs: Observations, t: float):
         n = len(obs)
         links = Links(
             np.full(n, lid, np.uint64),
             np.zeros(n, np.uint32),
             np.full(n, p, np.uint64),
-            np.full(n, time.time()),
+            np.full(n, t + 5.0),  # ingest's stamp, after the capture
             np.ones(n, np.float32),
         )
         kw = {"created": created} if seq == 1 else {}
-        return assoc_entry(seq, tile, vehicles=[v], obs=obs, links=links, **kw)
+        return assoc_entry(seq, tile, vehicles=[v], obs=at(obs, t), links=links, **kw)
 
-    clock = Clock(0.0)
-    svcs = {c: solver(tmp_path / f"s{c}", c, clock) for c in (False, True)}
+    svcs = {c: solver(tmp_path / f"s{c}", c) for c in (False, True)}
     for seq, (v, p, obs) in enumerate(groups, start=1):
-        clock.t = 600.0 * seq + (3 * 3600.0 if v == "veh-c" else 0.0)
+        t = T0 + 600.0 * seq + (3 * 3600.0 if v == "veh-c" else 0.0)
         for s in svcs.values():
-            s._apply_in_transaction([entry(seq, v, p, obs)])
+            s._apply_in_transaction([entry(seq, v, p, obs, t)])
     last = {c: updates(s)[-1].landmarks for c, s in svcs.items()}
     kept, closed = last[False], last[True]
     np.testing.assert_allclose(closed.lat, kept.lat, rtol=0, atol=1e-12)
@@ -104,23 +116,45 @@ def test_quiet_passes_close_and_the_map_is_the_same(tmp_path: Path):
         c: s.db.execute("SELECT length(sums) FROM landmarks").fetchone()[0] for c, s in svcs.items()
     }
     assert blob[False] - blob[True] == 7 * OPEN_DTYPE_V4.itemsize  # no pull: v4 rows
-    # restart: the stored (closed) state gives the same map
-    again = solver(tmp_path / "sTrue", True, clock)
+    # restart: the stored (closed) state and clock give the same map
+    again = solver(tmp_path / "sTrue", True)
+    assert again.state.event_time == svcs[True].state.event_time
     sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
     ref = svcs[True].sums.solve(np.array([row[True]]), update_reference=False)
     np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
-    # the pass open at the restart is quiet from then on: closed two hours later
+    # the pass open at the restart is quiet from the restored clock on: it closes when
+    # data two hours later moves the clock (a pass elsewhere), not before
     assert again.sums.n_open_passes == 1 and len(again._quiet) == 1
-    clock.t += 7200.0 + 1.0
-    again._apply_in_transaction([])
-    assert again.sums.n_open_passes == 0
+    t_last = again.state.event_time
+    lid2 = lid + 1
+    lat2, lon2, h2 = frame.to_geodetic((SIGN + np.array([40.0, 0.0, 0.0]))[None])
+    other = NewLandmarks(np.array([lid2], np.uint64), np.full(1, CLS, np.uint16), lat2, lon2, h2)
+    far = sign_rays(frame, 20, rng, at=SIGN + np.array([40.0, 0.0, 0.0]))
+    n = len(far)
+    for k, dt in enumerate((3600.0, 7200.0 + 61.0)):
+        links = Links(
+            np.full(n, lid2, np.uint64), np.zeros(n, np.uint32), np.full(n, 20 + k, np.uint64),
+            np.full(n, t_last + dt + 5.0), np.ones(n, np.float32),
+        )  # fmt: skip
+        obs = at(replace(far, obs_id=far.obs_id + 10_000 * (k + 1)), t_last + dt)
+        kw = {"created": other} if k == 0 else {}
+        seq = len(groups) + 1 + k
+        again._apply_in_transaction(
+            [assoc_entry(seq, tile, vehicles=["veh-d"], obs=obs, links=links, **kw)]
+        )
+        assert open_on(again, again.state.landmarks[lid].row) == (1 if k == 0 else 0)
     sol = again.sums.solve(np.array([again.state.landmarks[lid].row]), update_reference=False)
     np.testing.assert_allclose(sol.x, ref.x, rtol=0, atol=1e-12)
     np.testing.assert_allclose(sol.cov, ref.cov, rtol=1e-9, atol=1e-15)
 
 
+def tick(svc: MatcherService, t: float) -> None:
+    """The matcher's clock moved to ``t`` by an entry (what :meth:`apply` runs after it)."""
+    svc.state.event_time = max(svc.state.event_time, t)
+    advance(svc.matching)
+
+
 def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> None:
-    clock = Clock(0.0)
     svcs = {}
     for close in (False, True):
         cfg = MatcherConfig(  # no probation: held passes are never closed (nor evicted)
@@ -128,7 +162,6 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
             trust=TrustConfig(probation_passes=0),
         )
         svc = MatcherService(ServiceOptions(data_dir=tmp_path / f"m{close}"), cfg)
-        svc.matching.quiet = QuietPasses(cfg.close_passes_after_s, clock)
         svc.pubs = Sink()  # type: ignore[assignment]
         svcs[close] = svc
     rng = np.random.default_rng(4)
@@ -139,10 +172,10 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
     for close, svc in svcs.items():
         svc.matching.out = defaultdict(_Out)
         lms[close] = create(svc.matching, tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 4.0)
-    for p, obs in enumerate(passes):  # one pass every 20 minutes
-        clock.t = 1200.0 * p
+    for p, obs in enumerate(passes):  # one pass every 20 minutes of event time
         for close, svc in svcs.items():
-            svc._apply_in_transaction([])  # a batch: quiet passes are closed at its end
+            tick(svc, T0 + 1200.0 * p)  # its entry moved the clock: due passes close
+            svc._apply_in_transaction([])  # saved
             svc.matching.out = defaultdict(_Out)
             link(svc.matching, obs, [lms[close]] * len(obs), "veh-1", p, time.time())
             # as a unit does: re-solved, saved with the batch
@@ -151,15 +184,14 @@ def test_the_matcher_closes_quiet_passes_in_its_gating_sums(tmp_path: Path) -> N
     # the restart on
     svcs[True]._apply_in_transaction([])
     restarted = MatcherService(ServiceOptions(data_dir=tmp_path / "mTrue"), svcs[True].config)
-    restarted.matching.quiet = QuietPasses(restarted.config.close_passes_after_s, clock)
-    restarted._reload()
     restarted.pubs = Sink()  # type: ignore[assignment]
     n_open = svcs[True].sums.n_open_passes
+    assert restarted.state.event_time == svcs[True].state.event_time == T0 + 1200.0 * 11
     assert len(restarted.matching.quiet) == restarted.sums.n_open_passes == n_open
     svcs[True].db.close()
     svcs[True] = restarted
-    clock.t = 1200.0 * 11 + 7200.0 + 1.0  # two hours after the last pass
-    for svc in svcs.values():
+    for svc in svcs.values():  # an entry two hours after the last pass
+        tick(svc, T0 + 1200.0 * 11 + 7200.0 + 61.0)
         svc._apply_in_transaction([])
     assert svcs[True].sums.n_open_passes == 0
     assert svcs[False].sums.n_open_passes == 8

@@ -1,5 +1,6 @@
-"""The matcher's clock: ingest time, monotone, and not moved by an entry stamped far
-ahead of the wall clock (``Matching.entry_time``); the probation time-out and forgetting
+"""The matcher's clock: event time (an entry's latest capture time, no later than its
+ingest stamp), monotone, and not moved by an entry stamped far ahead of the wall clock
+(``Matching.entry_time``); the probation time-out and forgetting
 look at the vehicles due only (``SeenIndex``). In-process matcher on real SQLite (scene of
 tests/support/services.py: one sign, passes along a road, 10 rays each)."""
 
@@ -8,6 +9,7 @@ from __future__ import annotations
 import time
 from collections import defaultdict
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -46,10 +48,15 @@ def held_passes(m: MatcherService, vehicles: list[str], passes: int, seen: float
         m.state.save(m.sums.pack_rows)
 
 
-def entry(m: MatcherService, vehicle: str, received_at: float, seq: int) -> LogEntry:
-    """An obs entry of one pass of ``vehicle`` at the sign, stamped ``received_at``."""
+def entry(
+    m: MatcherService, vehicle: str, received_at: float, seq: int, captured: float | None = None
+) -> LogEntry:
+    """An obs entry of one pass of ``vehicle`` at the sign, stamped ``received_at``, its
+    rays captured over the 10 s before ``captured`` (default: the stamp)."""
     tile = tile_of(m.opts.zoom)
     obs = sign_rays(m.frames(tile), 500 + seq, np.random.default_rng(seq))
+    end = received_at if captured is None else captured
+    obs = replace(obs, t=end - np.linspace(10.0, 0.0, len(obs)))
     body = ObsGroup(vehicle, 500 + seq, seq, received_at, obs).to_bytes()
     return LogEntry("obs", "ingest-t", tile, seq, seq, body)
 
@@ -84,6 +91,23 @@ def test_an_honest_entry_still_lets_stale_vehicles_go(tmp_path: Path) -> None:
     m._apply_in_transaction([entry(m, "veh-h", now, 1)])
     assert m.counters["probation_timed_out"] == 1 and "time_clamped" not in m.counters
     assert not m.state.trust["veh-1"].held_homes and on_probation(m, "veh-2")
+
+
+def test_the_clock_is_capture_time_clamped_by_the_ingest_stamp(tmp_path: Path) -> None:
+    now = time.time()
+    m = matcher(tmp_path)
+    m._apply_in_transaction([entry(m, "veh-a", now - 50.0, 1, captured=now - 60.0)])
+    assert m.matching.now == now - 60.0  # its latest capture, not its stamp
+    # a vehicle whose clock runs ahead of ingest's: no later than the stamp
+    m._apply_in_transaction([entry(m, "veh-b", now - 40.0, 2, captured=now + 200.0)])
+    assert m.matching.now == now - 40.0
+    # a day's drive uploaded now: the clock does not go back; the vehicle was seen then
+    m._apply_in_transaction([entry(m, "veh-c", now - 30.0, 3, captured=now - DAY)])
+    assert m.matching.now == now - 40.0
+    assert m.state.trust["veh-c"].last_seen == now - DAY
+    again = matcher(tmp_path)  # saved with the state, under its new name
+    assert again.matching.now == now - 40.0
+    assert again.db.execute("SELECT name FROM clock").fetchall() == [("event",)]
 
 
 def test_time_is_monotone_across_batches_and_restarts(tmp_path: Path) -> None:
