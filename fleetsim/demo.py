@@ -24,6 +24,7 @@ from fleetsim.mapplot import plot_convergence, plot_map
 from fleetsim.town_run import TownRunConfig, TownRunResult, run_town
 from fleetsim.truth import match_landmarks
 from hdmap.geo.signs import CATALOG
+from schemas.map import as_map_landmarks
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,7 @@ def geojson(result: TownRunResult) -> dict:
     m = match_landmarks(w, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=5.0)
     truth_of = dict(zip(m.landmark.tolist(), m.sign_row.tolist(), strict=True))
     err_of = dict(zip(m.landmark.tolist(), m.horizontal_error_m.tolist(), strict=True))
+    az, az_sigma, known = as_map_landmarks(lm).facing()
     feats = []
     for i in range(len(lm)):
         c = lm.cov[i]
@@ -86,6 +88,9 @@ def geojson(result: TownRunResult) -> dict:
             "cov_enu_m2": [float(v) for v in c],
             "true_sign": int(w.signs.id[truth_of[i]]) if i in truth_of else None,
             "error_m": err_of.get(i),
+            # the direction the sign is seen from (not its panel normal); None: unknown
+            "facing_deg": float(az[i]) if known[i] else None,
+            "facing_sigma_deg": float(az_sigma[i]) if known[i] else None,
         }
         feats.append(
             {
@@ -104,6 +109,7 @@ def geojson(result: TownRunResult) -> dict:
                     "id": int(w.signs.id[k]),
                     "class": CATALOG.by_code(int(w.signs.sign_class[k])).name,
                     "h_m": float(h[k]),
+                    "panel_normal_deg": float(w.signs.facing_azimuth_deg[k]),
                 },
                 "geometry": {"type": "Point", "coordinates": [float(lon[k]), float(lat[k])]},
             }

@@ -1,23 +1,35 @@
 """One simulated pass: the true trajectory, GNSS fixes and sign detections.
 
-Per image (at ``frame_rate_hz``) the vehicle's TRUE pose places the camera
+**Timing.** The camera and the GNSS receiver run on their own clocks' rates, on one time
+axis (s from the fleet's epoch): camera frames every ``1 / frame_rate_hz`` from a random
+phase after the pass's start; fixes in slots every ``1 / gnss_rate_hz`` from the start,
+each at its slot plus a time jitter (``gnss_jitter_s`` std, kept within a quarter period so
+the times increase), each slot empty with ``gnss_miss_prob`` (at least two fixes remain).
+A fix is the antenna's true pose at the fix's own time plus the receiver's errors; only
+frames with detections appear in :class:`vehicle.geoloc.Detections`, with their frame
+number (``image``) and capture time (``t``). ``fix_per_frame=True`` is the older timing:
+a fix at every frame (same times), ``Detections.t`` still given.
+
+Per frame the vehicle's TRUE pose places the camera
 (``VehicleModel`` mount and intrinsics). A sign is visible when its panel
 centre is in front of the camera and inside the image, within ``max_range_m``,
 facing the camera (angle between the panel normal and the direction to the
 camera below ``max_view_angle_deg``), not hidden by a building footprint, and
 its box is at least ``min_box_px`` tall. The box spans the projections of the
 panel's top/bottom and left/right edge points (panel width = panel height).
-Each visible sign is detected with the detector's probability; the box centre
+Each visible sign is detected with the detector's probability per frame; the box centre
 gets pixel noise, its width and height ``size_sigma_px`` (0 in the presets: size kept),
 and it is clipped to the image as real detectors do
-(a clipped box gives no range in :func:`vehicle.geoloc.box_range`). An image
+(a clipped box gives no range in :func:`vehicle.geoloc.box_range`). A frame
 holds one false positive (random class, random plausible box) with the false
 positive rate.
 
 The GNSS antenna's true position and heading get the noise model's errors
 (per-pass bias + random walk, white, multipath) and become geodetic fixes; the
 heading is turned to the local North at the fix (meridian convergence), so a
-noise-free pass is geometrically exact through :func:`vehicle.geoloc.geolocate`.
+noise-free pass with ``fix_per_frame`` is geometrically exact through
+:func:`vehicle.geoloc.geolocate`; with its own fix times, exact on straight stretches
+and within the interpolation's motion model elsewhere (:mod:`vehicle.pose`).
 
 Headings inside the simulator are radians clockwise from the world frame's North.
 """
@@ -42,20 +54,34 @@ IntArray = NDArray[np.int64]
 
 @dataclass(frozen=True)
 class DriveParams:
-    """How the vehicle drives and what its camera can see."""
+    """How the vehicle drives, what its camera can see, and when its sensors sample."""
 
     speed_mps: float = 11.0
     frame_rate_hz: float = 5.0
+    """Camera frames per second (not above the GNSS rate by default: the map's estimator
+    takes rays as independent, docs/experiments/2026-12-sensor-timing.md)."""
     max_range_m: float = 60.0
     max_view_angle_deg: float = 70.0
     min_box_px: float | None = None
     """Smallest detectable box height, px; None = the vehicle model's ``min_box_px``."""
     false_positive_max_px: float = 80.0
+    gnss_rate_hz: float = 5.0
+    """GNSS fix slots per second."""
+    gnss_jitter_s: float = 0.01
+    """Std of a fix's time about its slot, s (clipped to a quarter of the period)."""
+    gnss_miss_prob: float = 0.05
+    """Share of fix slots without a fix."""
+    fix_per_frame: bool = False
+    """The older timing: one fix at every frame's time (the gnss_* fields unused)."""
 
     def __post_init__(self) -> None:
-        for name in ("speed_mps", "frame_rate_hz", "max_range_m"):
+        for name in ("speed_mps", "frame_rate_hz", "max_range_m", "gnss_rate_hz"):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"DriveParams.{name} must be > 0")
+        if not self.gnss_jitter_s >= 0.0:
+            raise ValueError("DriveParams.gnss_jitter_s must be >= 0")
+        if not 0.0 <= self.gnss_miss_prob < 1.0:
+            raise ValueError("DriveParams.gnss_miss_prob must be in [0, 1)")
 
 
 @dataclass(frozen=True)
@@ -69,24 +95,57 @@ class DriveTruth:
     distance_m: Array
     """Per detection: true camera-to-panel-centre distance, m; NaN for false positives."""
     t: Array
-    """Per image: capture time, s."""
+    """Per camera frame (``Detections.image`` indexes these): capture time, s."""
     vehicle_enu: Array
-    """Per image: (M, 3) vehicle reference point (on the ground), world ENU m."""
+    """Per frame: (M, 3) vehicle reference point (on the ground), world ENU m."""
     heading_rad: Array
-    """Per image: true heading, rad clockwise from the world frame's North."""
+    """Per frame: true heading, rad clockwise from the world frame's North."""
     camera_enu: Array
+    """Per frame: the camera centre, world ENU m."""
+    fix_t: Array
+    """Per GNSS fix (the rows of the pass's fixes): its time, s."""
     antenna_enu: Array
+    """Per fix: the true antenna position, world ENU m."""
+    fix_heading_rad: Array
+    """Per fix: the true heading, rad clockwise from the world frame's North."""
     gnss: GnssErrors
-    """The GNSS errors added to the antenna pose, by component."""
+    """Per fix: the GNSS errors added to the antenna pose, by component."""
     visible_image: IntArray
     visible_sign: IntArray
-    """Every (image, sign id) pair that passed the geometric visibility test."""
+    """Every (frame, sign id) pair that passed the geometric visibility test."""
 
 
-def poses_along(path: Path, t: Array, speed_mps: float) -> tuple[Array, Array]:
-    """Vehicle reference points (M, 3) and headings (M,) at times ``t`` from the start."""
-    xy, psi = path.at(speed_mps * (np.asarray(t, float) - float(t[0])))
+def poses_along(
+    path: Path, t: Array, speed_mps: float, t0: float | None = None
+) -> tuple[Array, Array]:
+    """Vehicle reference points (M, 3) and headings (M,) at times ``t`` from ``t0``
+    (default: ``t[0]``); the vehicle stands at the path's ends beyond them."""
+    t = np.asarray(t, float)
+    start = float(t[0]) if t0 is None else t0
+    xy, psi = path.at(speed_mps * (t - start))
     return np.column_stack([xy, np.zeros(len(xy))]), psi
+
+
+def sensor_times(
+    rng: np.random.Generator, t0: float, duration_s: float, params: DriveParams
+) -> tuple[Array, Array]:
+    """(camera frame times, GNSS fix times) of a pass from ``t0`` lasting ``duration_s``
+    (module docstring); both strictly increasing, inside [t0, t0 + duration]."""
+    if params.fix_per_frame:
+        t = t0 + np.arange(0.0, duration_s, 1.0 / params.frame_rate_hz)
+        return t, t
+    frame_dt, fix_dt = 1.0 / params.frame_rate_hz, 1.0 / params.gnss_rate_hz
+    phase = float(rng.uniform(0.0, frame_dt))
+    frames = t0 + np.arange(phase, duration_s, frame_dt)
+    slots = np.arange(0.0, duration_s, fix_dt)
+    jitter = np.clip(rng.normal(0.0, params.gnss_jitter_s, slots.size), -fix_dt / 4, fix_dt / 4)
+    fix = np.clip(slots + jitter, 0.0, duration_s)
+    present = rng.random(slots.size) >= params.gnss_miss_prob
+    if present.sum() < 2:
+        present[: min(2, slots.size)] = True
+    fix = fix[present]
+    keep = np.r_[True, np.diff(fix) > 0.0]  # clipping at the ends may tie two times
+    return frames, t0 + fix[keep]
 
 
 def _occluded(p0: Array, p1: Array, boxes: Array) -> NDArray[np.bool_]:
@@ -186,14 +245,18 @@ def simulate_pass(
 ) -> tuple[GnssFixes, Detections, DriveTruth]:
     """One pass along ``path`` starting at time ``t0`` (s); see the module docstring."""
     params = params or DriveParams()
-    rng_gnss, rng_det = rng.spawn(2)
+    # spawn(3): the first two streams are those of the older spawn(2), so that
+    # fix_per_frame at 5 Hz draws what the drive always drew.
+    rng_gnss, rng_det, rng_time = rng.spawn(3)
     duration = path.length / params.speed_mps
-    t = t0 + np.arange(0.0, duration, 1.0 / params.frame_rate_hz)
-    veh, psi = poses_along(path, t, params.speed_mps)
+    t, t_fix = sensor_times(rng_time, t0, duration, params)
+    veh, psi = poses_along(path, t, params.speed_mps, t0)
     r_wv = vehicle_to_enu(psi)  # (M, 3, 3)
     camera = veh + r_wv @ model.camera_mount.t
-    antenna = veh + r_wv @ model.gnss_mount.t
     r_wc = r_wv @ model.camera_mount.rotation
+    veh_fix, psi_fix = poses_along(path, t_fix, params.speed_mps, t0)
+    antenna = veh_fix + vehicle_to_enu(psi_fix) @ model.gnss_mount.t
+    n_fix = t_fix.size
 
     # Detections.
     det = noise.detector
@@ -229,29 +292,30 @@ def simulate_pass(
         sign_class=all_cls[order].astype(np.int64),
         box=all_box[order],
         score=all_score[order],
+        t=t[all_img[order]],
     )
 
     # GNSS fixes.
-    err = noise.gnss.sample(rng_gnss, t)
+    err = noise.gnss.sample(rng_gnss, t_fix)
     fix_enu = antenna + err.total_enu
     lat, lon, h = world.frame.to_geodetic(fix_enu)
     lat, lon, h = np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(h)
-    course = course_over_ground(t, fix_enu) if noise.gnss.heading_from_track else psi
-    fwd = np.column_stack([np.sin(course), np.cos(course), np.zeros(m)])
+    course = course_over_ground(t_fix, fix_enu) if noise.gnss.heading_from_track else psi_fix
+    fwd = np.column_stack([np.sin(course), np.cos(course), np.zeros(n_fix)])
     fwd_local = ecef_to_enu_vectors(world.frame.vectors_to_ecef(fwd), lat, lon)
     heading = np.arctan2(fwd_local[:, 0], fwd_local[:, 1])
     if not noise.gnss.heading_from_track:
         heading = heading + err.heading_rad
     s_h, s_v, s_hd = noise.gnss.reported_sigmas()
     fixes = GnssFixes(
-        t=t,
+        t=t_fix,
         lat=lat,
         lon=lon,
         h=h,
         heading_deg=np.degrees(heading) % 360.0,
-        sigma_h_m=np.full(m, s_h),
-        sigma_v_m=np.full(m, s_v),
-        sigma_heading_deg=np.full(m, s_hd),
+        sigma_h_m=np.full(n_fix, s_h),
+        sigma_v_m=np.full(n_fix, s_v),
+        sigma_heading_deg=np.full(n_fix, s_hd),
     )
     truth = DriveTruth(
         sign_id=all_id[order].astype(np.int64),
@@ -261,7 +325,9 @@ def simulate_pass(
         vehicle_enu=veh,
         heading_rad=psi,
         camera_enu=camera,
+        fix_t=t_fix,
         antenna_enu=antenna,
+        fix_heading_rad=psi_fix,
         gnss=err,
         visible_image=img.astype(np.int64),
         visible_sign=world.signs.id[row].astype(np.int64),

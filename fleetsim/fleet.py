@@ -40,13 +40,19 @@ def vehicle_id(index: int) -> str:
 class FleetConfig:
     n_vehicles: int = 10
     speed_range_mps: tuple[float, float] = (8.0, 14.0)
-    frame_rate_hz: float = 5.0
+    frame_rate_hz: float = DriveParams.frame_rate_hz
+    """Camera frames per second (:class:`fleetsim.drive.DriveParams`, like the next ones)."""
     max_range_m: float = 60.0
     route_length_m: tuple[float, float] = (400.0, 900.0)
     start_time: float = 1.7e9
     """Unix time of the first pass, s."""
     pass_interval_s: float = 60.0
     """Time between consecutive pass starts across the fleet, s."""
+    gnss_rate_hz: float = DriveParams.gnss_rate_hz
+    gnss_jitter_s: float = DriveParams.gnss_jitter_s
+    gnss_miss_prob: float = DriveParams.gnss_miss_prob
+    fix_per_frame: bool = DriveParams.fix_per_frame
+    """The older timing: a fix at every camera frame."""
 
     def __post_init__(self) -> None:
         if self.n_vehicles < 1:
@@ -110,7 +116,13 @@ class Fleet:
         speed = float(rng_route.uniform(*c.speed_range_mps))
         path = Path.along(self.world, route)
         params = DriveParams(
-            speed_mps=speed, frame_rate_hz=c.frame_rate_hz, max_range_m=c.max_range_m
+            speed_mps=speed,
+            frame_rate_hz=c.frame_rate_hz,
+            max_range_m=c.max_range_m,
+            gnss_rate_hz=c.gnss_rate_hz,
+            gnss_jitter_s=c.gnss_jitter_s,
+            gnss_miss_prob=c.gnss_miss_prob,
+            fix_per_frame=c.fix_per_frame,
         )
         t0 = self.start_time(vehicle, k)
         fixes, det, truth = simulate_pass(

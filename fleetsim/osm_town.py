@@ -23,6 +23,11 @@ What OSM lacks is filled in per sign:
   heading for the nearer junction), +- 8 deg.
 - mounting height: U(2.0, 2.8) m.
 
+Added (not in OSM): :data:`CORNER_PAIRS` same-class pairs at junctions, one sign facing
+each of two crossing streets, 5-10 m apart (:func:`fleetsim.world.corner_pairs`; rows
+after the OSM signs, ``osm_id`` -1): the case of two landmarks of one class that only
+their facing tells apart.
+
 Draws are made for every sign of the extract in OSM id order, so a sign keeps
 them whatever ``bbox`` or ``max_signs`` select.
 
@@ -45,7 +50,7 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from fleetsim.world import Signs, World, tile_border_distance
+from fleetsim.world import Signs, World, corner_pairs, tile_border_distance
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.signs import CATALOG
 
@@ -63,6 +68,11 @@ KERB_M = 3.5
 LATERAL_M = (2.5, 4.0)
 HEIGHT_M = (2.0, 2.8)
 FACING_JITTER_DEG = 8.0
+CORNER_PAIRS = 6
+"""Same-class pairs added at junctions, one sign facing each of two crossing streets
+(:func:`fleetsim.world.corner_pairs`): up to 6 in any selection (the whole extract or a
+bbox; fewer where it has fewer junctions that fit: 5 in the fleet evaluation's area at
+seed 0)."""
 
 FI_CLASSES: dict[str, str] = {
     "FI:142": "road_works",  # tietyö (not in this extract)
@@ -138,7 +148,8 @@ class OsmTown:
     code: tuple[str, ...]
     """The OSM code that gave the class ('' when the class was drawn)."""
     placement: NDArray[np.int8]
-    """0: at its OSM node; 1: pushed out from < 3.5 m; 2: moved off the centreline."""
+    """0: at its OSM node; 1: pushed out from < 3.5 m; 2: moved off the centreline; 3: not
+    from OSM, a corner pair added by the simulator (``osm_id`` -1)."""
     n_far: int
     """Signs (in the bbox) dropped for being farther than 25 m from every road."""
     n_in_road: int
@@ -241,8 +252,14 @@ def build_helsinki(
     max_signs: int | None = None,
     bbox: tuple[float, float, float, float] | None = None,
     lane_offset_m: float = 1.75,
+    corner_pairs_n: int | None = None,
 ) -> OsmTown:
-    """The Helsinki town with the provenance of its sign classes; see :func:`helsinki_town`."""
+    """The Helsinki town with the provenance of its sign classes; see :func:`helsinki_town`.
+
+    ``corner_pairs_n`` corner pairs are added (None: :data:`CORNER_PAIRS`, none with
+    ``max_signs``, a subset of the OSM signs for small tests)."""
+    if corner_pairs_n is None:
+        corner_pairs_n = CORNER_PAIRS if max_signs is None else 0
     data = load_extract()
     lat = np.asarray(data["nodes"]["lat_e7"], np.int64) / 1e7
     lon = np.asarray(data["nodes"]["lon_e7"], np.int64) / 1e7
@@ -311,11 +328,44 @@ def build_helsinki(
     pick = np.flatnonzero(fits)
     if max_signs is not None and max_signs < pick.size:
         pick = np.sort(np.random.default_rng([seed, 1]).choice(pick, max_signs, replace=False))
-    signs = Signs.build(cls[pick], np.column_stack([p[pick], z[rows[pick]]]), az[pick] % 360.0)
+    # Same-class pairs at junctions facing the two crossing streets (OSM has no such
+    # detail): drawn on the graph of the selection with their own generator.
+    corners = corner_pairs(
+        nodes,
+        edges,
+        corner_pairs_n,
+        np.random.default_rng([seed, 2]),
+        CATALOG.codes,
+        lane_offset_m=lane_offset_m,
+        min_leg_m=10.0,
+        keep_clear=p[pick],
+        keep_clear_cls=cls[pick],
+        clear_m=3.0,
+    )
+    nc = len(corners.xy)
+    signs = Signs.build(
+        np.r_[cls[pick], corners.sign_class],
+        np.column_stack(
+            [np.vstack([p[pick], corners.xy]), np.r_[z[rows[pick]], _corner_heights(seed, nc)]]
+        ),
+        np.r_[az[pick], corners.facing_az_deg] % 360.0,
+    )
     world = World(frame, nodes, edges, signs, lane_offset_m)
-    osm_id = np.array([sg[r]["id"] for r in rows[pick]], np.int64)
+    osm_id = np.r_[np.array([sg[r]["id"] for r in rows[pick]], np.int64), np.full(nc, -1)]
     n_far, n_in_road = int(s_keep.sum() - ok.sum()), int((~fits).sum())
-    return OsmTown(world, osm_id, tuple(codes[i] for i in pick), placement[pick], n_far, n_in_road)
+    return OsmTown(
+        world,
+        osm_id.astype(np.int64),
+        tuple(codes[i] for i in pick) + ("",) * nc,
+        np.r_[placement[pick], np.full(nc, 3, np.int8)].astype(np.int8),
+        n_far,
+        n_in_road,
+    )
+
+
+def _corner_heights(seed: int, n: int) -> Array:
+    """Mounting heights of ``n`` added corner signs (their own generator)."""
+    return np.random.default_rng([seed, 3]).uniform(*HEIGHT_M, n)
 
 
 def helsinki_town(

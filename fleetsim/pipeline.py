@@ -62,12 +62,18 @@ class SeenCounts:
 
 @dataclass
 class FleetDriver:
-    """Runs passes vehicle by vehicle (deterministic order) and uploads them."""
+    """Runs passes vehicle by vehicle (deterministic order) and uploads them.
+
+    A vehicle in ``bulk`` uploads only at :meth:`flush` (a day's drives on Wi-Fi at home):
+    its passes reach the services after later passes of the others, a whole batch at once.
+    """
 
     world: World
     fleet: Fleet
     queue_dir: Path
     agents: dict[str, VehicleAgent] = field(default_factory=dict)
+    bulk: frozenset[str] = frozenset()
+    """Vehicles that upload only at :meth:`flush`."""
 
     def __post_init__(self) -> None:
         self.seen = SeenCounts(np.zeros(len(self.world.signs), np.int64))
@@ -87,14 +93,33 @@ class FleetDriver:
         for p in passes:
             a = self.agent(p.vehicle_id)
             obs = a.record(p.pass_id, p.fixes, p.detections)
-            res = a.upload(session)
             self.seen.add(self.world, p)
             self.seen.observations += len(obs)
-            self.seen.uploaded += res.sent
-            self.seen.accepted += res.accepted
-            self.seen.failed_batches += res.failed_batches
+            if p.vehicle_id not in self.bulk:
+                self._count(a.upload(session))
             if on_pass is not None:
                 on_pass(p)
+
+    def flush(self, session: zenoh.Session, timeout_s: float = 300.0) -> int:
+        """The ``bulk`` vehicles upload what they queued (in vehicle order), each as a
+        vehicle's upload loop does: again after the ``retry_after_s`` ingest answers (its
+        per-vehicle rate limit holds a large upload to its rate), for at most ``timeout_s``
+        in all. Returns the observations still queued."""
+        deadline = time.monotonic() + timeout_s
+        for v in sorted(self.bulk & self.agents.keys()):
+            a = self.agents[v]
+            while a.uploader.pending and time.monotonic() < deadline:
+                res = a.upload(session)
+                self._count(res)
+                if res.permanent_fault:
+                    break
+                time.sleep(min(max(res.retry_after_s, 0.0), 5.0))
+        return sum(self.agents[v].uploader.pending for v in self.bulk & self.agents.keys())
+
+    def _count(self, res) -> None:
+        self.seen.uploaded += res.sent
+        self.seen.accepted += res.accepted
+        self.seen.failed_batches += res.failed_batches
 
     def retry_pending(self, session: zenoh.Session) -> int:
         """Upload whatever is still queued (after an outage); what remains queued."""

@@ -130,7 +130,8 @@ def run_vehicle_demo(opts: VehicleDemoOptions) -> VehicleDemoResult:
     duration = float(p.fixes.t[-1] - p.fixes.t[0]) if len(p.fixes) else 0.0
     summary = (
         f"hdmap vehicle-demo: {p.vehicle_id} pass {p.pass_id}, {p.path.length:.0f} m at "
-        f"{p.speed_mps:.1f} m/s ({duration:.0f} s, {len(p.fixes)} images), FLEET noise: "
+        f"{p.speed_mps:.1f} m/s ({duration:.0f} s, {len(p.truth.t)} frames, {len(p.fixes)} "
+        f"fixes), FLEET noise: "
         f"{len(lines)} rays of {n_signs} signs, {n_fp} false positives"
     )
 

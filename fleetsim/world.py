@@ -258,6 +258,7 @@ def demo_town(
     block_m: float = 100.0,
     n_pairs: int = 4,
     n_border: int = 4,
+    n_corner_pairs: int = 2,
     anchor: tuple[float, float, float] = HELSINKI,
     lane_offset_m: float = 1.75,
 ) -> World:
@@ -266,8 +267,11 @@ def demo_town(
     ``n_blocks`` x ``n_blocks`` blocks of ``block_m`` metres, buildings inset 10 m
     from the street centrelines. Signs stand 2.5-4 m right of the lane centre,
     panel centre 2.0-2.8 m high, facing oncoming traffic (+-8 deg). Included:
-    ``n_pairs`` same-class pairs 3-10 m apart along the same kerb and ``n_border``
-    signs within 15 m of a zoom-16 tile border (where streets cross one).
+    ``n_pairs`` same-class pairs 3-10 m apart along the same kerb, ``n_border``
+    signs within 15 m of a zoom-16 tile border (where streets cross one) and
+    ``n_corner_pairs`` same-class pairs at junctions facing the two crossing streets
+    (:func:`corner_pairs`, 8.5-10 m apart; drawn with their own generator; fewer when
+    ``n_signs`` leaves no room).
     """
     rng = np.random.default_rng(seed)
     nodes, edges = _grid(n_blocks, block_m)
@@ -324,9 +328,29 @@ def demo_town(
         az_l.append(az)
         cls_l.append(cls_p)
 
+    # Same-class pairs at junctions, one facing each of two crossing streets.
+    placed = np.concatenate(xy_l) if xy_l else np.zeros((0, 2))
+    lat_c = (lane_offset_m + 2.5, lane_offset_m + 3.0)  # 2.5-3 m right of the lane centre
+    corners = corner_pairs(
+        nodes,
+        edges,
+        min(n_corner_pairs, n_rest // 2),  # within n_signs
+        np.random.default_rng([seed, 7]),
+        codes,
+        lane_offset_m=lane_offset_m,
+        lateral_m=(2.5, 3.0),
+        setback_m=lat_c,
+        keep_clear=placed,
+    )
+    if len(corners.xy):
+        xy_l.append(corners.xy)
+        az_l.append(corners.facing_az_deg)
+        cls_l.append(corners.sign_class)
+        placed = np.vstack([placed, corners.xy])
+    n_rest = max(n_rest - len(corners.xy), 0)
+
     # The rest: anywhere along the streets, kept >= 12 m from the designed signs
     # and from each other (so the only close same-class signs are the pairs).
-    placed = np.concatenate(xy_l) if xy_l else np.zeros((0, 2))
     rest_xy, rest_az = [], []
     while len(rest_xy) < n_rest:
         e = edges[rng.integers(len(edges))][None]
@@ -351,3 +375,140 @@ def demo_town(
     z = rng.uniform(2.0, 2.8, n)
     signs = Signs.build(np.concatenate(cls_l), np.column_stack([xy_all, z]), az_all)
     return World(frame, nodes, edges, signs, lane_offset_m, buildings)
+
+
+# --- same-class pairs at intersections, facing different streets -----------------------
+
+
+@dataclass(frozen=True)
+class CornerPairs:
+    """Same-class sign pairs at intersections, one for each of two crossing approaches.
+
+    Rows ``2k`` and ``2k + 1`` are pair ``k``: each stands ``setback`` before the junction
+    on the right of its approach (``lateral`` from the centreline) and faces that approach's
+    traffic, so the two normals are the angle between the streets apart (60-120 deg) and
+    the signs 5-10 m apart: one car stream sees one of them (the other is beyond the
+    70-degree visibility cone of the panel), and their rays cross near both.
+    """
+
+    xy: Array
+    """(2k, 2) positions, ENU m."""
+    facing_az_deg: Array
+    """(2k,) facing azimuths, degrees clockwise from North."""
+    sign_class: IntArray
+    """(2k,) class codes (one per pair, twice)."""
+    node: IntArray
+    """(k,) the junction (row of ``World.nodes``) of each pair."""
+
+
+def _segment_distance(p: Array, a: Array, b: Array) -> Array:
+    """(n,) distance of each point to the nearest of the segments ``a[i] -> b[i]``."""
+    t = b - a
+    tt = np.maximum(np.sum(t * t, axis=1), 1e-12)
+    u = np.clip(np.sum((p[:, None] - a) * t, axis=-1) / tt, 0.0, 1.0)
+    f = a + u[..., None] * t
+    return np.sqrt(np.min(np.sum((p[:, None] - f) ** 2, axis=-1), axis=1))
+
+
+def corner_pairs(
+    nodes: Array,
+    edges: IntArray,
+    n_pairs: int,
+    rng: np.random.Generator,
+    codes: NDArray,
+    *,
+    lane_offset_m: float = 1.75,
+    lateral_m: tuple[float, float] = (2.5, 3.0),
+    setback_m: tuple[float, float] = (3.6, 5.0),
+    gap_m: tuple[float, float] = (5.0, 10.0),
+    min_leg_m: float = 25.0,
+    kerb_m: float = 3.5,
+    angle_deg: tuple[float, float] = (60.0, 120.0),
+    keep_clear: NDArray | None = None,
+    keep_clear_cls: NDArray | None = None,
+    clear_m: float = 12.0,
+    class_clear_m: float = 20.0,
+) -> CornerPairs:
+    """Up to ``n_pairs`` :class:`CornerPairs` on the road graph (``nodes``, directed
+    ``edges``), at distinct junctions: two approaches (edges into the junction at least
+    ``min_leg_m`` long) crossing at ``angle_deg``; each sign ``setback_m`` before the
+    junction, ``lane_offset_m + lateral_m`` right of the centreline, at least ``kerb_m``
+    from every road, the two ``gap_m`` apart, both ``clear_m`` from the points
+    ``keep_clear`` (other signs) and from earlier pairs, of a class (of ``codes``) that no
+    sign of ``keep_clear`` (classes ``keep_clear_cls``; None: any) has within
+    ``class_clear_m``. Fewer when the graph has fewer such junctions (drawn with ``rng``:
+    deterministic per seed)."""
+    a_all, b_all = nodes[edges[:, 0]], nodes[edges[:, 1]]
+    leg = np.linalg.norm(b_all - a_all, axis=1)
+    t_all = (b_all - a_all) / np.maximum(leg, 1e-9)[:, None]
+    placed = np.zeros((0, 2)) if keep_clear is None else np.asarray(keep_clear, float)
+    placed_cls = (
+        np.full(len(placed), -1, np.int64)
+        if keep_clear_cls is None
+        else np.asarray(keep_clear_cls, np.int64)
+    )
+    xy_l: list[Array] = []
+    az_l: list[float] = []
+    cls_l: list[int] = []
+    node_l: list[int] = []
+    cos_lo, cos_hi = np.cos(np.radians(angle_deg[1])), np.cos(np.radians(angle_deg[0]))
+    for v in rng.permutation(len(nodes)).tolist():
+        if len(node_l) >= n_pairs:
+            break
+        into = np.flatnonzero((edges[:, 1] == v) & (leg >= min_leg_m))
+        pairs = [
+            (i, j)
+            for i in into.tolist()
+            for j in into.tolist()
+            if i < j and cos_lo <= float(t_all[i] @ t_all[j]) <= cos_hi
+        ]
+        if not pairs:
+            continue
+        i, j = pairs[int(rng.integers(len(pairs)))]
+        pts, azs = [], []
+        for e in (i, j):
+            t = t_all[e]
+            right = np.array([t[1], -t[0]])
+            back = rng.uniform(*setback_m)
+            lateral = lane_offset_m + rng.uniform(*lateral_m)
+            pts.append(nodes[v] - t * back + right * lateral)
+            azs.append(float(np.degrees(np.arctan2(-t[0], -t[1])) % 360.0))
+        p = np.array(pts)
+        gap = float(np.linalg.norm(p[0] - p[1]))
+        if not gap_m[0] <= gap <= gap_m[1]:
+            continue
+        if (_segment_distance(p, a_all, b_all) < kerb_m).any():
+            continue
+        dist = np.linalg.norm(placed[None] - p[:, None], axis=-1).min(axis=0)
+        if dist.size and dist.min() < clear_m:
+            continue
+        near = placed_cls[dist < class_clear_m]
+        free = [] if (near < 0).any() else [int(c) for c in np.asarray(codes) if c not in near]
+        if not free:
+            continue
+        c = free[int(rng.integers(len(free)))]
+        placed = np.vstack([placed, p])
+        placed_cls = np.r_[placed_cls, c, c]
+        xy_l.append(p)
+        az_l += azs
+        cls_l += [c, c]
+        node_l.append(v)
+    return CornerPairs(
+        np.concatenate(xy_l) if xy_l else np.zeros((0, 2)),
+        np.array(az_l, float),
+        np.array(cls_l, np.int64),
+        np.array(node_l, np.int64),
+    )
+
+
+def corner_pair_rows(
+    world: World, max_gap_m: float = 10.0, min_angle_deg: float = 45.0
+) -> IntArray:
+    """(K, 2) sign rows i < j of one class at most ``max_gap_m`` apart whose facings differ
+    by at least ``min_angle_deg``: signs at a corner facing different streets."""
+    s = world.signs
+    dd = np.linalg.norm(s.position[:, None, :2] - s.position[None, :, :2], axis=-1)
+    same = s.sign_class[:, None] == s.sign_class[None, :]
+    cos = s.facing[:, :2] @ s.facing[:, :2].T
+    turned = cos <= np.cos(np.radians(min_angle_deg))
+    return np.argwhere(np.triu(same & (dd <= max_gap_m) & turned, 1))

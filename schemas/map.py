@@ -1,5 +1,7 @@
 """Publisher -> vehicles: a tile's change (:class:`MapDelta`) and the whole tile
-(:class:`MapSnapshot`).
+(:class:`MapSnapshot`), whose landmark rows are :class:`MapLandmarks` (the ``Landmarks``
+columns and the landmark's facing, optional columns: a message without them reads as
+"facing unknown").
 
 >>> from schemas.tables import Landmarks
 >>> s = MapSnapshot("0123", 4, Landmarks.empty())
@@ -12,7 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from schemas.codec import DecodeError, get_float, get_int, get_str
+import numpy as np
+
+from schemas.codec import DecodeError, col, get_float, get_int, get_str, table
+from schemas.logs import LandmarkUpdates
 from schemas.messages import (
     FLOAT_EPOCH_MAX,
     MAX_TABLE_ROWS,
@@ -23,6 +28,58 @@ from schemas.messages import (
     put_table,
 )
 from schemas.tables import Landmarks, Removals
+
+
+@table
+class MapLandmarks(Landmarks):
+    """Published landmark rows: :class:`~schemas.tables.Landmarks` and the facing.
+
+    The facing is the direction the sign is *seen from* (the circular mean of the
+    horizontal azimuths from the sign toward the cameras that saw it,
+    :mod:`hdmap.mapping.facing`), not the panel normal: cars see a roadside sign 5-70
+    degrees off its normal, from the road's side. ``facing_sigma_deg`` 0 = unknown (too
+    few rays; an older sender), and then ``facing_deg`` is 0 and means nothing."""
+
+    facing_deg: np.ndarray = col(
+        "f4",
+        lo=0.0,
+        hi=360.0,
+        unit_label="deg",
+        optional=True,
+        doc="azimuth the sign is seen from, clockwise from true North; see facing_sigma_deg",
+    )
+    facing_sigma_deg: np.ndarray = col(
+        "f4",
+        lo=0.0,
+        hi=180.0,
+        unit_label="deg",
+        optional=True,
+        doc="standard error of facing_deg; 0 = facing unknown",
+    )
+
+    def facing(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(azimuth deg, sigma deg, known) per row; azimuth and sigma NaN where unknown."""
+        known = self.facing_sigma_deg > 0
+        az = np.where(known, self.facing_deg.astype(float), np.nan)
+        return az, np.where(known, self.facing_sigma_deg.astype(float), np.nan), known
+
+
+def as_map_landmarks(lm: Landmarks) -> MapLandmarks:
+    """``lm`` as :class:`MapLandmarks` (itself if it is one; else facing unknown)."""
+    if isinstance(lm, MapLandmarks):
+        return lm
+    return MapLandmarks(**{name: getattr(lm, name) for name, _ in Landmarks.CODEC.cols})
+
+
+def updates_from_bytes(data: bytes) -> LandmarkUpdates:
+    """:meth:`LandmarkUpdates.from_bytes` with its landmarks read as :class:`MapLandmarks`
+    (the solver sends the facing columns in its update log; ``LandmarkUpdates`` itself
+    ignores extra columns). Same checks and :class:`DecodeError` fields."""
+    m = LandmarkUpdates._open(data)
+    return LandmarkUpdates(
+        landmarks=get_table(m, "landmarks", MapLandmarks, MAX_TABLE_ROWS),
+        removed=get_table(m, "removed", Removals, MAX_TABLE_ROWS),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,7 +117,7 @@ class MapDelta(Message):
             from_version=frm,
             to_version=to,
             published_at=get_float(m, "published_at", 0.0, FLOAT_EPOCH_MAX),
-            upserts=get_table(m, "upserts", Landmarks, MAX_TABLE_ROWS),
+            upserts=get_table(m, "upserts", MapLandmarks, MAX_TABLE_ROWS),
             removed=get_table(m, "removed", Removals, MAX_TABLE_ROWS),
         )
 
@@ -85,5 +142,5 @@ class MapSnapshot(Message):
         return cls(
             tile=get_str(m, "tile", TILE_RE, TILE_TEXT),
             version=get_int(m, "version"),
-            landmarks=get_table(m, "landmarks", Landmarks, MAX_TABLE_ROWS),
+            landmarks=get_table(m, "landmarks", MapLandmarks, MAX_TABLE_ROWS),
         )

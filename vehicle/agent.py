@@ -13,15 +13,18 @@ import zenoh
 
 from schemas import Observations
 from vehicle.geoloc import (
+    DEFAULT_TIMING,
     Detections,
     FixCheck,
     GnssFixes,
     ProjectionLines,
     VehicleModel,
+    detection_reach,
     fix_outliers,
     geolocate,
 )
 from vehicle.mapclient import MapClient
+from vehicle.pose import PoseTiming
 from vehicle.tracking import TrackConfig, smoothed_rays, track_rays
 from vehicle.uploader import Uploader, UploadResult
 
@@ -64,34 +67,53 @@ class VehicleAgent:
         batch_size: int = 500,
         fix_check: FixCheck | None = DEFAULT_FIX_CHECK,
         tracking: TrackConfig | None = DEFAULT_TRACKING,
+        timing: PoseTiming = DEFAULT_TIMING,
     ):
         self.vehicle_id = vehicle_id
         self.model = model
         self.fix_check = fix_check
         """Drop detections of fixes that jump off the track (None: keep every one)."""
         self.tracking = tracking
-        """Label detections of one sign followed through the images (None: untracked)."""
+        """Label detections of one sign followed through the frames (None: untracked)."""
+        self.timing = timing
+        """How a detection's pose is interpolated from the fixes (:mod:`vehicle.pose`)."""
         self.uploader = Uploader(vehicle_id, Path(queue_dir) / f"{vehicle_id}.sqlite", batch_size)
         self.last_kept = np.zeros(0, bool)
         """Per detection of the last :meth:`record`, whether it was queued."""
         self.dropped = 0
-        """Detections dropped for a suspect fix so far."""
+        """Detections dropped so far: of a suspect fix, or (timed detections) with no
+        usable fix within ``timing.max_gap_s``."""
+        self.dropped_gap = 0
+        """Of those, timed detections with no usable fix near enough (never extrapolated)."""
 
     def record(self, pass_id: int, fixes: GnssFixes, det: Detections) -> Observations:
-        """Geolocate a pass's detections and queue them (durably, before any upload);
-        detections of suspect fixes (:func:`fix_outliers`) are dropped."""
-        lines = geolocate(fixes, det, self.model)
-        keep = np.ones(len(lines), bool)
+        """Geolocate a pass's detections and queue them (durably, before any upload).
+
+        Suspect fixes (:func:`fix_outliers`) are not used: with detection times
+        (``det.t``) the poses are interpolated from the other fixes, and a detection no
+        remaining fix reaches within ``timing.max_gap_s`` is dropped (``dropped_gap``);
+        without times (one fix per image) a suspect fix's detections are dropped.
+        :attr:`last_kept` says which detections were queued, in ``det``'s row order."""
+        keep = np.ones(len(det), bool)
         bad_fix = None
-        if self.fix_check is not None and len(lines):
+        use = fixes
+        if self.fix_check is not None and len(det):
             bad_fix = fix_outliers(fixes, self.fix_check)
-            keep = ~bad_fix[np.asarray(det.image, np.int64)]
-            lines = lines.take(keep)
+            if det.t is None:
+                keep = ~bad_fix[np.asarray(det.image, np.int64)]
+            else:
+                use, bad_fix = fixes.take(np.flatnonzero(~bad_fix)), None
+        if det.t is not None and len(det):
+            reach = detection_reach(use, det, self.timing) if len(use) else np.zeros(len(det), bool)
+            self.dropped_gap += int((keep & ~reach).sum())
+            keep &= reach
+        lines = geolocate(use, det.take(np.flatnonzero(keep)), self.model, timing=self.timing)
         self.last_kept = keep
         self.dropped += int((~keep).sum())
         track = None
         if self.tracking is not None and len(lines):
-            track = track_rays(smoothed_rays(fixes, lines, self.tracking, bad_fix), self.tracking)
+            rays = smoothed_rays(use, lines, self.tracking, bad_fix, timing=self.timing)
+            track = track_rays(rays, self.tracking)
         obs = to_observations(lines, self.uploader.next_obs_ids(len(lines)), track)
         self.uploader.enqueue(pass_id, obs)
         return obs

@@ -29,8 +29,26 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hdmap.geo.camera import R_VEHICLE_CAMERA_FORWARD, Intrinsics, Mount
-from hdmap.geo.geodesy import GEODESY, Geodesy, ecef_to_enu_vectors, enu_to_ecef_vectors
+from hdmap.geo.geodesy import (
+    GEODESY,
+    EnuFrame,
+    Geodesy,
+    ecef_to_enu_vectors,
+    enu_to_ecef_vectors,
+)
 from hdmap.geo.signs import CATALOG, SignCatalog
+from vehicle.pose import (
+    Bracket,
+    PoseTiming,
+    bracket,
+    check_increasing,
+    interpolate,
+    interpolate_angle,
+    interpolate_sigma,
+    motion_sigma,
+    observed_accels,
+    reachable,
+)
 
 Array = NDArray[np.float64]
 
@@ -87,9 +105,17 @@ class VehicleModel:
 
 @dataclass(frozen=True)
 class GnssFixes:
-    """GNSS fixes, one row per image (struct of arrays).
+    """GNSS fixes of one pass (struct of arrays): a time series of their own.
 
-    Heading is the course over ground, degrees clockwise from true North.
+    ``t`` is the fix's time, s, on the clock of :attr:`Detections.t` (the vehicle's, e.g.
+    Unix seconds); any rate, gaps allowed; strictly increasing where detections carry
+    times (:func:`geolocate` refuses it otherwise, naming ``GnssFixes.t``). ``lat``,
+    ``lon`` (deg), ``h`` (m, ellipsoidal) place the GNSS antenna; ``heading_deg`` is the
+    course over ground, degrees clockwise from true North at the fix. The sigmas are what
+    the receiver claims, 1 sigma: horizontal per axis and vertical (m), heading (deg).
+
+    Older callers give one fix per camera image (:attr:`Detections.image` indexes the rows,
+    no :attr:`Detections.t`); that form still works.
     """
 
     t: Array
@@ -104,19 +130,42 @@ class GnssFixes:
     def __len__(self) -> int:
         return int(np.asarray(self.t).size)
 
+    def take(self, idx: NDArray) -> GnssFixes:
+        return GnssFixes(
+            **{k: np.asarray(getattr(self, k))[idx] for k in self.__dataclass_fields__}
+        )
+
 
 @dataclass(frozen=True)
 class Detections:
-    """Detections (struct of arrays); ``image`` indexes the row of :class:`GnssFixes`."""
+    """Sign detections of one pass (struct of arrays), one row per box.
+
+    ``image`` is the camera frame's number within the pass (increasing with the frame's
+    time; frames without detections are not listed); ``t`` its capture time, s, on the
+    clock of :attr:`GnssFixes.t` (mid-exposure; every row of one frame has the same
+    time). The pose at ``t`` is interpolated from the fixes around it
+    (:mod:`vehicle.pose`). Without ``t`` (None, the older form) ``image`` indexes the row
+    of :class:`GnssFixes` taken at that image.
+    """
 
     image: NDArray[np.int64]
     sign_class: NDArray[np.int64]
     box: Array
     """(N, 4) pixels: u_min, v_min, u_max, v_max."""
     score: Array
+    t: Array | None = None
+    """Per detection: its frame's capture time, s (None: ``image`` indexes the fixes)."""
 
     def __len__(self) -> int:
         return int(np.asarray(self.image).size)
+
+    def take(self, idx: NDArray) -> Detections:
+        return Detections(
+            **{
+                k: None if getattr(self, k) is None else np.asarray(getattr(self, k))[idx]
+                for k in self.__dataclass_fields__
+            }
+        )
 
 
 @dataclass(frozen=True)
@@ -213,23 +262,131 @@ def fix_outliers(
     return dev > limit
 
 
+@dataclass(frozen=True)
+class AntennaPoses:
+    """The GNSS antenna's pose and claimed sigmas at each detection (struct of arrays)."""
+
+    t: Array
+    lat: Array
+    lon: Array
+    h: Array
+    heading_rad: Array
+    sigma_h_m: Array
+    sigma_v_m: Array
+    sigma_heading_rad: Array
+
+
+DEFAULT_TIMING = PoseTiming()
+
+
+def detection_reach(
+    fixes: GnssFixes, det: Detections, timing: PoseTiming = DEFAULT_TIMING
+) -> NDArray[np.bool_]:
+    """Per detection: whether it has a pose (:func:`vehicle.pose.reachable`: a fix within
+    ``timing.max_gap_s``); always true for detections without times (the index form).
+    Raises ValueError naming ``GnssFixes.t`` unless the fix times increase strictly."""
+    if det.t is None:
+        return np.ones(len(det), bool)
+    ft = check_increasing(fixes.t, "GnssFixes.t")
+    return reachable(bracket(ft, np.asarray(det.t, float)), timing)
+
+
+def antenna_poses(
+    fixes: GnssFixes,
+    det: Detections,
+    timing: PoseTiming = DEFAULT_TIMING,
+    geodesy: Geodesy = GEODESY,
+) -> AntennaPoses:
+    """The antenna's pose at each detection: the fix of its image (no ``det.t``), or
+    interpolated at ``det.t`` from the fixes around it (:mod:`vehicle.pose`: position
+    linearly in an ENU frame at the first fix, heading on the circle, sigmas grown with
+    the gap). A detection no fix reaches (:func:`detection_reach`) is refused with a
+    ValueError naming ``Detections.t``: filter first, it is never extrapolated."""
+    if det.t is None:
+        idx = np.asarray(det.image, np.int64)
+        return AntennaPoses(
+            t=np.asarray(fixes.t, float)[idx],
+            lat=np.asarray(fixes.lat, float)[idx],
+            lon=np.asarray(fixes.lon, float)[idx],
+            h=np.asarray(fixes.h, float)[idx],
+            heading_rad=np.radians(np.asarray(fixes.heading_deg, float)[idx]),
+            sigma_h_m=np.asarray(fixes.sigma_h_m, float)[idx],
+            sigma_v_m=np.asarray(fixes.sigma_v_m, float)[idx],
+            sigma_heading_rad=np.radians(np.asarray(fixes.sigma_heading_deg, float)[idx]),
+        )
+    t = np.asarray(det.t, float).reshape(-1)
+    if t.size == 0:
+        e = np.zeros(0)
+        return AntennaPoses(e, e, e, e, e, e, e, e)
+    if not np.isfinite(t).all():
+        raise ValueError("Detections.t: must be finite")
+    ft = check_increasing(fixes.t, "GnssFixes.t")
+    br = bracket(ft, t)
+    far = ~reachable(br, timing)
+    if far.any():
+        k = int(np.flatnonzero(far)[0])
+        raise ValueError(
+            f"Detections.t: {int(far.sum())} detection(s) more than {timing.max_gap_s:g} s "
+            f"from a fix (first: row {k}, t={float(t[k])!r}); drop them first (detection_reach)"
+        )
+    lat, lon = np.asarray(fixes.lat, float), np.asarray(fixes.lon, float)
+    h = np.asarray(fixes.h, float)
+    frame = EnuFrame(float(lat[0]), float(lon[0]), float(h[0]), geodesy)
+    xyz = frame.from_geodetic(lat, lon, h)
+    lat_i, lon_i, h_i = frame.to_geodetic(interpolate(br, xyz))
+    psi = np.radians(np.asarray(fixes.heading_deg, float))
+    m_h, m_psi = turn_sigmas(br, ft, psi, xyz, timing)
+    m_v = motion_sigma(br, timing.accel_v_sigma_mps2)
+    s_psi = np.radians(np.asarray(fixes.sigma_heading_deg, float))
+    return AntennaPoses(
+        t=t,
+        lat=np.atleast_1d(lat_i),
+        lon=np.atleast_1d(lon_i),
+        h=np.atleast_1d(h_i),
+        heading_rad=interpolate_angle(br, psi),
+        sigma_h_m=np.hypot(interpolate_sigma(br, fixes.sigma_h_m), m_h),
+        sigma_v_m=np.hypot(interpolate_sigma(br, fixes.sigma_v_m), m_v),
+        sigma_heading_rad=np.hypot(interpolate_sigma(br, s_psi), m_psi),
+    )
+
+
+def turn_sigmas(
+    br: Bracket, fix_t: Array, psi: Array, xyz: Array, timing: PoseTiming
+) -> tuple[Array, Array]:
+    """The interpolation's horizontal (m, per axis) and heading (rad) sigmas at the
+    bracketed times: the configured accelerations, with ``timing.observed_turns`` raised
+    in quadrature by what the fixes show of the interval's turn
+    (:func:`vehicle.pose.observed_accels`)."""
+    if fix_t.size < 2 or not timing.observed_turns:
+        return motion_sigma(br, timing.accel_sigma_mps2), motion_sigma(
+            br, timing.yaw_accel_sigma_radps2
+        )
+    yaw, across = observed_accels(fix_t, psi, xyz[:, :2])
+    a_h = np.hypot(timing.accel_sigma_mps2, across[br.ia])
+    a_psi = np.hypot(timing.yaw_accel_sigma_radps2, yaw[br.ia])
+    return motion_sigma(br, a_h), motion_sigma(br, a_psi)
+
+
 def geolocate(
-    fixes: GnssFixes, det: Detections, model: VehicleModel, geodesy: Geodesy = GEODESY
+    fixes: GnssFixes,
+    det: Detections,
+    model: VehicleModel,
+    geodesy: Geodesy = GEODESY,
+    timing: PoseTiming = DEFAULT_TIMING,
 ) -> ProjectionLines:
-    """Vectorised projection lines for detections against their images' GNSS fixes."""
+    """Vectorised projection lines for detections, from the antenna pose at each
+    (:func:`antenna_poses`: the fix of its image, or interpolated at its time)."""
+    pose = antenna_poses(fixes, det, timing, geodesy)
     idx = np.asarray(det.image, np.int64)
     box = np.asarray(det.box, float).reshape(-1, 4)
     intr, cam = model.intrinsics, model.camera_mount
     uv = np.stack([(box[:, 0] + box[:, 2]) / 2.0, (box[:, 1] + box[:, 3]) / 2.0], axis=-1)
 
-    psi = np.radians(np.asarray(fixes.heading_deg, float)[idx])
-    r_wv = vehicle_to_enu(psi)
+    r_wv = vehicle_to_enu(pose.heading_rad)
     d_v, _, _ = _angles_in_vehicle(intr, cam, uv)
     d_fix = np.einsum("nij,nj->ni", r_wv, d_v)
 
-    lat_f = np.asarray(fixes.lat, float)[idx]
-    lon_f = np.asarray(fixes.lon, float)[idx]
-    h_f = np.asarray(fixes.h, float)[idx]
+    lat_f, lon_f, h_f = pose.lat, pose.lon, pose.h
     lever = cam.t - model.gnss_mount.t
     offset_enu = np.einsum("nij,j->ni", r_wv, lever)
     origin_ecef = geodesy.to_ecef(lat_f, lon_f, h_f) + enu_to_ecef_vectors(offset_enu, lat_f, lon_f)
@@ -248,18 +405,18 @@ def geolocate(
         grads.append((_wrap(a_p - a_m) / (2 * step), (e_p - e_m) / (2 * step)))
     (da_du, de_du), (da_dv, de_dv) = grads
     s_px2 = model.pixel_sigma**2
-    s_psi = np.radians(np.asarray(fixes.sigma_heading_deg, float)[idx])
+    s_psi = pose.sigma_heading_rad
     sigma_az = np.sqrt(s_px2 * (da_du**2 + da_dv**2) + s_psi**2)
     sigma_el = np.sqrt(s_px2 * (de_du**2 + de_dv**2) + model.pitch_sigma_rad**2)
 
     lever_xy = float(np.hypot(lever[0], lever[1]))
-    sigma_pos_h = np.hypot(np.asarray(fixes.sigma_h_m, float)[idx], s_psi * lever_xy)
-    sigma_pos_v = np.asarray(fixes.sigma_v_m, float)[idx].copy()
+    sigma_pos_h = np.hypot(pose.sigma_h_m, s_psi * lever_xy)
+    sigma_pos_v = pose.sigma_v_m.copy()
 
     range_m, sigma_range = box_range(box, np.asarray(det.sign_class), model)
 
     return ProjectionLines(
-        t=np.asarray(fixes.t, float)[idx],
+        t=pose.t,
         image=idx,
         sign_class=np.asarray(det.sign_class, np.int64),
         score=np.asarray(det.score, float),

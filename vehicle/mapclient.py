@@ -42,8 +42,9 @@ import zenoh
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.tiles import DEFAULT_ZOOM, tiles_around
 from hdmap.runtime.bus import query
-from schemas import DecodeError, ErrorReply, Landmarks, MapDelta, MapSnapshot, keys
+from schemas import DecodeError, ErrorReply, MapDelta, MapSnapshot, keys
 from schemas.codec import valid_id
+from schemas.map import MapLandmarks, as_map_landmarks
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,7 @@ def _refusal(err: bytes) -> ErrorReply | None:
 class TileCopy:
     version: int = -1
     """-1 until the snapshot arrived."""
-    rows: dict[int, Landmarks] = field(default_factory=dict)
+    rows: dict[int, MapLandmarks] = field(default_factory=dict)
     buffered: list[MapDelta] = field(default_factory=list)
     fetching: bool = False
     """A snapshot fetch is queued, in flight, or scheduled again after a refusal."""
@@ -336,13 +337,16 @@ class MapClient:
         with self._lock:
             return {t: c.version for t, c in self._tiles.items()}
 
-    def landmarks(self) -> Landmarks:
-        """Every landmark held, over all followed tiles."""
+    def landmarks(self) -> MapLandmarks:
+        """Every landmark held, over all followed tiles, with its facing
+        (``facing_deg``, ``facing_sigma_deg``: the direction the sign is seen from, degrees
+        clockwise from North, and its standard error; 0 = unknown; :meth:`MapLandmarks.
+        facing` gives NaN for unknown)."""
         with self._lock:
             rows = [r for c in self._tiles.values() for r in c.rows.values()]
-        return Landmarks.concat(rows)
+        return MapLandmarks.concat([as_map_landmarks(r) for r in rows])
 
-    def near(self, lat: float, lon: float, radius_m: float) -> Landmarks:
+    def near(self, lat: float, lon: float, radius_m: float) -> MapLandmarks:
         """Landmarks within ``radius_m`` (horizontal) of a point."""
         lm = self.landmarks()
         if len(lm) == 0:

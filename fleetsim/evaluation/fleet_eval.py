@@ -35,12 +35,13 @@ from fleetsim.evaluation.fleet_scoring import (
     ObsKeys,
     assoc_shares,
     bin_table,
+    landmark_counts,
     landmark_rows,
     score_round,
     sign_table,
     targets,
 )
-from fleetsim.fleet import Fleet, FleetConfig
+from fleetsim.fleet import Fleet, FleetConfig, vehicle_id
 from fleetsim.gnss_replay import gsdc
 from fleetsim.noise import FLEET, NoiseModel
 from fleetsim.osm_town import helsinki_town, same_class_pairs
@@ -79,6 +80,17 @@ class FleetEvalConfig:
     gnss: str = "fleet"
     """``fleet``: FLEET's simulated receiver; ``gsdc``: real phone position errors replayed
     (:func:`fleetsim.gnss_replay.gsdc`), heading from the fix track, FLEET's detector."""
+    bulk_every: int = 4
+    """Every ``bulk_every``-th vehicle (indices 3, 7, ...) uploads its round's passes at once
+    at the round's end, after the others' later passes (0: every vehicle uploads each pass
+    as it ends). The map must not depend on it (event time, docs/operations.md)."""
+
+    def bulk_vehicles(self) -> frozenset[str]:
+        """The vehicles that upload in bulk (:attr:`bulk_every`)."""
+        k = self.bulk_every
+        if k <= 0:
+            return frozenset()
+        return frozenset(vehicle_id(i) for i in range(self.vehicles) if i % k == k - 1)
 
     def noise(self) -> NoiseModel:
         """The fleet's noise: :data:`fleetsim.noise.FLEET`, with the box-size noise if set,
@@ -169,11 +181,12 @@ def run_fleet_eval(
         with open_session(stack.bus) as session:
             client = MapClient(session, radius_m=0.0)
             follow_town(client, world)
-            driver = FleetDriver(world, fleet, run_dir / "vehicles")
+            driver = FleetDriver(world, fleet, run_dir / "vehicles", bulk=cfg.bulk_vehicles())
             try:
                 for r in range(cfg.rounds):
                     passes = fleet.passes(per_round, r * per_round)
                     driver.run(session, passes, on_pass=lambda p: _remember(state, driver, p))
+                    left = driver.flush(session)
                     quiet = wait_quiet(session, timeout=cfg.quiet_timeout_s)
                     time.sleep(0.8)
                     client.wait_idle(20.0)
@@ -182,11 +195,15 @@ def run_fleet_eval(
                     state.records.append(rec)
                     lms.append(lm)
                     e = rec.err[rec.found]
+                    kinds = landmark_counts(world, lm, driver.seen.passes, cfg.match_m)
                     row = {
                         "round": r + 1,
                         "passes": (r + 1) * per_round,
                         "median_passes_per_sign": float(np.median(rec.n)),
                         "landmarks": len(lm),
+                        "false_landmarks": int((~kinds["paired"]).sum()),
+                        "left_queued": left,
+                        "duplicates": int(kinds["dup"].sum()),
                         "recall": float(rec.found.mean()),
                         "mean_err_m": float(e.mean()) if e.size else None,
                         "coverage95": float(rec.inside[rec.found].mean()) if e.size else None,
@@ -197,7 +214,8 @@ def run_fleet_eval(
                     state.rounds.append(row)
                     say(
                         f"round {r + 1}/{cfg.rounds}: median {row['median_passes_per_sign']:.0f} "
-                        f"passes/sign, {len(lm)} landmarks, recall {row['recall']:.3f}, "
+                        f"passes/sign, {len(lm)} landmarks ({row['false_landmarks']} false), "
+                        f"recall {row['recall']:.3f}, "
                         f"error {row['mean_err_m'] or float('nan'):.2f} m, "
                         f"coverage {row['coverage95'] or float('nan'):.2f}, "
                         f"{row['wall_s']:.0f} s"
@@ -225,6 +243,7 @@ def run_fleet_eval(
             "passes": total,
             "rounds": cfg.rounds,
             "vehicles": cfg.vehicles,
+            "bulk_vehicles": sorted(cfg.bulk_vehicles()),
             "seed": cfg.seed,
             "noise": f"{noise.name} (fleetsim/noise.py)",
             "box_size_sigma_px": cfg.box_size_sigma_px,

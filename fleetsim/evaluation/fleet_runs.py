@@ -50,6 +50,9 @@ class FleetRunOptions:
     gnss: str = "fleet"
     """GNSS errors: ``fleet`` (the simulated receiver of :data:`fleetsim.noise.FLEET`) or
     ``gsdc`` (real phone errors replayed, :mod:`fleetsim.gnss_replay`)."""
+    bulk_every: int | None = None
+    """Every this-th vehicle uploads a round at once (None: :class:`FleetEvalConfig`'s;
+    0: none)."""
     quick: bool = False
     """A small run for the test suite."""
 
@@ -60,6 +63,7 @@ class FleetRunOptions:
         flags += [f"--rounds {self.rounds}"] if self.rounds else []
         flags += [f"--box-size-sigma {self.box_size_sigma_px:g}"] if self.box_size_sigma_px else []
         flags += [f"--gnss {self.gnss}"] if self.gnss != "fleet" else []
+        flags += [f"--bulk-every {self.bulk_every}"] if self.bulk_every is not None else []
         return flags + (["--quick"] if self.quick else [])
 
 
@@ -142,12 +146,15 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
     if opts.rounds:
         cfg = replace(cfg, rounds=opts.rounds)
     cfg = replace(cfg, seed=seed, box_size_sigma_px=opts.box_size_sigma_px, gnss=opts.gnss)
+    if opts.bulk_every is not None:
+        cfg = replace(cfg, bulk_every=opts.bulk_every)
     result, state, final = run_fleet_eval(cfg)
     result["meta"]["command"] = "hdmap eval fleet " + " ".join(
         [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
         + [f"--seed {cfg.seed}"]
         + ([f"--box-size-sigma {cfg.box_size_sigma_px:g}"] if cfg.box_size_sigma_px else [])
         + ([f"--gnss {cfg.gnss}"] if cfg.gnss != "fleet" else [])
+        + [f"--bulk-every {cfg.bulk_every}"]
         + (["--quick"] if opts.quick else [])
     )
     figures = write_fleet_figures(result, state.world, final, out)

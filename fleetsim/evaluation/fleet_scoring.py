@@ -44,8 +44,9 @@ from scipy.stats import binom
 
 from fleetsim.score import cov_en, duplicate_mask, inside_ellipse95
 from fleetsim.truth import match_landmarks
-from fleetsim.world import World
+from fleetsim.world import World, corner_pair_rows
 from schemas import Landmarks
+from schemas.map import as_map_landmarks
 
 BINS = (1, 2, 3, 5, 10, 20, 30, 50, 75, 100, 150)
 """Lower edges of the pass-count bins."""
@@ -65,6 +66,12 @@ class SignRecord:
     """(k, 3) landmark minus truth, world ENU m (NaN: not found; None: not recorded)."""
     sigma_en: np.ndarray | None = None
     """(k, 2) reported standard deviations East and North, m (NaN: not found)."""
+    facing_err_deg: np.ndarray | None = None
+    """(k,) published facing minus the panel's true normal, wrapped to [-180, 180) degrees
+    (NaN: not found or facing unknown). The facing is the direction the sign is seen from,
+    so this is the viewing offset plus the estimate's error."""
+    facing_sigma_deg: np.ndarray | None = None
+    """(k,) published facing sigma, degrees (NaN: not found or unknown)."""
 
 
 @dataclass
@@ -124,6 +131,8 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
     landmark = np.zeros(k, np.uint64)
     err_enu = np.full((k, 3), np.nan)
     sigma_en = np.full((k, 2), np.nan)
+    facing_err = np.full(k, np.nan)
+    facing_sigma = np.full(k, np.nan)
     found[m.sign_row] = True
     err[m.sign_row] = m.horizontal_error_m
     if m.landmark.size:
@@ -132,7 +141,13 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
         err_enu[m.sign_row] = m.error_enu
         c = cov_en(lm.cov[m.landmark])
         sigma_en[m.sign_row] = np.sqrt(np.maximum(np.stack([c[:, 0, 0], c[:, 1, 1]], -1), 0.0))
-    return SignRecord(n.copy(), found, err, inside, landmark, err_enu, sigma_en)
+        az, az_sigma, _known = as_map_landmarks(lm).facing()
+        normal = world.signs.facing_azimuth_deg[m.sign_row]
+        facing_err[m.sign_row] = (az[m.landmark] - normal + 180.0) % 360.0 - 180.0
+        facing_sigma[m.sign_row] = az_sigma[m.landmark]
+    return SignRecord(
+        n.copy(), found, err, inside, landmark, err_enu, sigma_en, facing_err, facing_sigma
+    )
 
 
 def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> dict:
@@ -245,6 +260,9 @@ def sign_table(state: EvalState, linked: Linked) -> list[dict]:
     world = state.world
     enu = final.err_enu if final.err_enu is not None else np.full((k, 3), np.nan)
     sig = final.sigma_en if final.sigma_en is not None else np.full((k, 2), np.nan)
+    nan = np.full(k, np.nan)
+    f_err = final.facing_err_deg if final.facing_err_deg is not None else nan
+    f_sig = final.facing_sigma_deg if final.facing_sigma_deg is not None else nan
     out = []
     for s in range(k):
         found = bool(final.found[s])
@@ -261,9 +279,31 @@ def sign_table(state: EvalState, linked: Linked) -> list[dict]:
                 "inside95": bool(final.inside[s]) if found else None,
                 "observations": int(n_obs[s]),
                 "assoc_right": float(n_right[s] / n_obs[s]) if n_obs[s] else None,
+                "facing_err_deg": float(f_err[s]) if np.isfinite(f_err[s]) else None,
+                "facing_sigma_deg": float(f_sig[s]) if np.isfinite(f_sig[s]) else None,
             }
         )
     return out
+
+
+def facing_report(world: World, signs: list[dict]) -> dict:
+    """Facing and corner pairs from :func:`sign_table` rows (``fleet.json`` ``signs``):
+    the published facing against the true panel normals (mean and 95th percentile of the
+    absolute difference, over found signs with a facing), and the same-class pairs at most
+    10 m apart facing 45+ degrees apart (:func:`fleetsim.world.corner_pair_rows`), with
+    how many came out as two landmarks (both signs paired: the pairing is one-to-one, so
+    one landmark for both leaves one sign unfound)."""
+    err = np.array([abs(r["facing_err_deg"]) for r in signs if r.get("facing_err_deg") is not None])
+    pairs = corner_pair_rows(world)
+    found = np.array([r["found"] for r in signs], bool)
+    two = [bool(found[i] and found[j]) for i, j in pairs.tolist()]
+    return {
+        "facing_signs": int(err.size),
+        "facing_err_mean_deg": float(err.mean()) if err.size else None,
+        "facing_err_p95_deg": float(np.percentile(err, 95)) if err.size else None,
+        "corner_pairs": len(two),
+        "corner_pairs_two_landmarks": int(sum(two)),
+    }
 
 
 def assoc_shares(state: EvalState, linked: Linked, lo: int = 50) -> dict:

@@ -38,6 +38,17 @@ def setup_logging(level: str = "INFO") -> None:
     )
 
 
+def non_negative_int(text: str) -> int:
+    """An argument type: a whole number >= 0."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"need a whole number >= 0, got {text!r}")
+    return n
+
+
 def positive_int(text: str) -> int:
     """An argument type: a whole number >= 1."""
     try:

@@ -20,7 +20,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from hdmap.cli.common import non_negative_float, positive_int, seed_list
+from hdmap.cli.common import non_negative_float, non_negative_int, positive_int, seed_list
 
 
 def add_paper_sim_arguments(p: argparse.ArgumentParser) -> None:
@@ -117,6 +117,14 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         help="GNSS errors: the simulated receiver (default) or real phone errors replayed "
         "(GSDC 2020, fleetsim/gnss_replay.py)",
     )
+    p.add_argument(
+        "--bulk-every",
+        type=non_negative_int,
+        default=None,
+        metavar="K",
+        help="every K-th vehicle uploads each round's passes at once, at the round's end "
+        "(default 4; 0: every vehicle uploads each pass as it ends)",
+    )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
 
 
@@ -132,6 +140,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         rounds=args.rounds,
         box_size_sigma_px=args.box_size_sigma,
         gnss=args.gnss,
+        bulk_every=args.bulk_every,
         quick=args.quick,
     )
     try:

@@ -34,7 +34,7 @@ small linear assignment problem (:func:`hdmap.mapping.assignment.min_cost_assign
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from hdmap.mapping.assignment import min_cost_assignment
 from hdmap.mapping.estimator.gating import angle_jacobian, wrap
 from hdmap.mapping.estimator.model import ray_angles as angles
+from hdmap.mapping.facing import Facing, FacingConfig, ray_compatible, viewing_azimuth
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -82,6 +83,10 @@ class GateConfig:
     """An alternative replaces the fit it is compared with only when its score (the linked
     pairs' summed margins ``chi2_gate - chi2`` minus the offset's prior chi-square) is
     higher by this much (one ``chi2_gate``: about one more well-fitting ray)."""
+    facing: FacingConfig = field(default_factory=FacingConfig)
+    """The facing gate (:mod:`hdmap.mapping.facing`): a ray seen from beyond a landmark's
+    visibility cone is not a candidate of it (applies only when :func:`associate` is given
+    the candidates' facings)."""
 
 
 @dataclass(frozen=True)
@@ -484,8 +489,17 @@ def _alternative_seeds(
     return seeds
 
 
-def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateConfig) -> Association:
-    """Associate a unit's rays with landmarks (positions ``x``, covariances, classes).
+def associate(
+    rays: LocalRays,
+    x: Array,
+    cov: Array,
+    cls: IntArray,
+    cfg: GateConfig,
+    facing: Facing | None = None,
+) -> Association:
+    """Associate a unit's rays with landmarks (positions ``x``, covariances, classes and,
+    if given, facings: a pair whose ray is seen from an incompatible direction,
+    :func:`hdmap.mapping.facing.ray_compatible`, is no candidate).
 
     First every ray against every candidate under the wide origin covariance (the pass's
     unknown GNSS bias), then under the unit's offset estimated from that assignment
@@ -497,6 +511,9 @@ def associate(rays: LocalRays, x: Array, cov: Array, cls: IntArray, cfg: GateCon
     if n == 0 or m == 0:
         return none
     ri, li = np.nonzero(rays.sign_class[:, None] == cls[None, :])
+    if facing is not None and ri.size:
+        seen = ray_compatible(viewing_azimuth(rays.direction[ri]), facing.take(li), cfg.facing)
+        ri, li = ri[seen], li[seen]
     if ri.size == 0:
         return none
     bias_h, bias_v = cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m

@@ -2,7 +2,8 @@
 
 A touched landmark and another of its class whose estimates agree (chi-square of the
 difference under both gating covariances, and at most ``merge_max_m`` apart), that are
-seen from the same side and were seldom detected in one image together
+seen from the same side (compatible facings, :mod:`hdmap.mapping.facing`) and were
+seldom detected in one image together
 (``merge_max_covis``), are one sign: the one with fewer rays (equal: the younger id) folds
 its sums into the other's (:meth:`LandmarkSums.merge_rows`) and is retired with
 ``merged_into`` in the assoc output, so the solver does the same and the publisher
@@ -14,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap.geo.tiles import frame_map
+from hdmap.mapping.facing import Facing, facing_from_sums, facings_compatible
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
 from hdmap.mapping.matching import Matching
@@ -83,12 +85,37 @@ def _seen_together(m: Matching, a: Landmark, b: Landmark) -> bool:
     return m.state.covis_count(a.id, b.id) > m.config.merge_max_covis * max(n.min(), 1)
 
 
+def facings_of(m: Matching, lms: list[Landmark]) -> Facing:
+    """The landmarks' facings (:mod:`hdmap.mapping.facing`) from their view sums, their
+    rays in the gating sums and, as independent looks, their passes.
+
+    Pitfall: the view sum keeps the rays of a vehicle whose held passes were taken out of
+    the sums (``TrustChanges`` action 2), so its length can exceed the ray count; the mean
+    resultant length is clipped to 1 (spread 0) and the direction keeps those rays."""
+    rows = np.array([lm.row for lm in lms], np.int64)
+    view = np.array([lm.view for lm in lms], float).reshape(-1, 2)
+    return facing_from_sums(
+        view, m.sums.n_obs(rows), m.sums.n_passes(rows), m.config.gate.facing.min_rays
+    )
+
+
 def _same_side(m: Matching, a: Landmark, b: Landmark) -> bool:
-    """Whether ``a`` and ``b`` are seen from the same side (mean viewing directions within
-    ``merge_min_view_cos``; no direction yet counts as the same side)."""
-    va, vb = a.view, b.view
-    norm = float(np.linalg.norm(va) * np.linalg.norm(vb))
-    return not (norm > 0 and float(va @ vb) < m.config.merge_min_view_cos * norm)
+    """Whether ``a`` and ``b`` are seen from the same side: their facings within
+    ``acos(merge_min_view_cos)`` (60 degrees) plus ``k_sigma`` standard errors of the
+    difference (:func:`hdmap.mapping.facing.facings_compatible`; a landmark with too few
+    rays for a facing counts as the same side); closer than ``FacingConfig.same_place_m``,
+    within ``2 max_view_deg`` (one sign seen from two streets, not two panels back to
+    back)."""
+    cfg = m.config.gate.facing
+    f = facings_of(m, [a, b])
+    fa, fb = f.take([0]), f.take([1])
+    d = (b.x - a.x) @ m.frames(a.home).rotation.T  # ENU difference
+    if float(np.hypot(d[0], d[1])) < cfg.same_place_m:
+        # one place: one sign seen from two streets, unless seen from farther apart than
+        # one panel's cone allows (2 V: two panels back to back)
+        return bool(facings_compatible(fa, fb, 2 * cfg.max_view_deg, cfg.k_sigma)[0])
+    max_deg = float(np.degrees(np.arccos(np.clip(m.config.merge_min_view_cos, -1.0, 1.0))))
+    return bool(facings_compatible(fa, fb, max_deg, cfg.k_sigma)[0])
 
 
 def merge(m: Matching, keep: Landmark, drop: Landmark) -> None:

@@ -25,7 +25,7 @@ from hdmap.mapping.initiation import triangulate_groups
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import link, refresh, to_local
 from hdmap.mapping.matching import Matching
-from hdmap.mapping.merge import merge_touched
+from hdmap.mapping.merge import facings_of, merge_touched
 from hdmap.mapping.pending import enforce_budget, initiate
 from hdmap.mapping.probation import settle
 from hdmap.mapping.trust import VehicleTrust
@@ -71,7 +71,7 @@ def _associate(
     x = frame.from_ecef(np.array([c.x for c in cands]))
     cov = np.array([c.cov for c in cands])
     cls = np.array([c.cls for c in cands], np.int64)
-    res: Association = associate(rays, x, cov, cls, m.config.gate)
+    res: Association = associate(rays, x, cov, cls, m.config.gate, facings_of(m, cands))
     matched = group_check(m, rays, res, x, cov)
     drop = np.zeros(len(rays), bool)
     if res.unlinked is not None and m.config.track_drop_unlinked:

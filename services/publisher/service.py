@@ -30,7 +30,8 @@ from hdmap.geo.tiles import in_region, valid_quadkey
 from hdmap.runtime.queries import QueryServer
 from hdmap.runtime.stage import StageService
 from hdmap.runtime.store import StorageError
-from schemas import DecodeError, ErrorReply, LandmarkUpdates, LogEntry, keys
+from schemas import DecodeError, ErrorReply, LogEntry, keys
+from schemas.map import updates_from_bytes
 from services.publisher.limits import SnapshotLimiter, SnapshotLimits
 from services.publisher.tilemap import TileMaps, read_snapshot
 
@@ -87,7 +88,7 @@ class PublisherService(StageService):
     def apply(self, entries: list[LogEntry]) -> None:
         for e in entries:
             try:
-                upd = LandmarkUpdates.from_bytes(e.body)
+                upd = updates_from_bytes(e.body)
             except DecodeError as exc:
                 self.reject(f"update.{exc.field}")
                 continue

@@ -23,6 +23,7 @@ import numpy as np
 
 from hdmap.runtime.store import i64_to_u64, u64_to_i64
 from schemas import Landmarks, LandmarkUpdates, MapDelta, MapSnapshot, Removals
+from schemas.map import MapLandmarks, as_map_landmarks
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,8 @@ _FIELDS = (
     "revision",
     "updated_at",
     "source_time",
+    "facing_deg",
+    "facing_sigma_deg",
 )
 _COLS = "id, " + ", ".join(_FIELDS)
 _MARKS = ",".join("?" * (len(_FIELDS) + 2))  # tile, id, fields
@@ -46,11 +49,13 @@ SCHEMA = """
 CREATE TABLE IF NOT EXISTS current (
     id INTEGER PRIMARY KEY, tile TEXT NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
     cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
-    updated_at REAL, source_time REAL);
+    updated_at REAL, source_time REAL, facing_deg REAL NOT NULL DEFAULT 0,
+    facing_sigma_deg REAL NOT NULL DEFAULT 0);
 CREATE TABLE IF NOT EXISTS published (
     tile TEXT NOT NULL, id INTEGER NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
     cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
-    updated_at REAL, source_time REAL, PRIMARY KEY (tile, id)) WITHOUT ROWID;
+    updated_at REAL, source_time REAL, facing_deg REAL NOT NULL DEFAULT 0,
+    facing_sigma_deg REAL NOT NULL DEFAULT 0, PRIMARY KEY (tile, id)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS versions (tile TEXT PRIMARY KEY, version INTEGER NOT NULL)
     WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS dirty (
@@ -60,6 +65,10 @@ CREATE TABLE IF NOT EXISTS quarantine (
     tile TEXT NOT NULL, id INTEGER NOT NULL, field TEXT NOT NULL, reason TEXT NOT NULL,
     row BLOB NOT NULL, at REAL NOT NULL);
 """
+
+_ADDED = ("facing_deg", "facing_sigma_deg")
+"""Columns added to ``current`` and ``published`` after their first release (a database
+from before gets them, 0 = facing unknown, when it is opened)."""
 
 # integer columns of a row (index in ``_COLS`` order) and the range their wire type holds
 _INT_RANGES = {
@@ -72,6 +81,7 @@ _INT_RANGES = {
 
 
 def _rows(lm: Landmarks) -> list[tuple]:
+    lm = as_map_landmarks(lm)
     ids = u64_to_i64(lm.id)
     cov = np.ascontiguousarray(lm.cov, dtype="<f8")
     return [
@@ -88,17 +98,20 @@ def _rows(lm: Landmarks) -> list[tuple]:
             int(lm.revision[i]),
             float(lm.updated_at[i]),
             float(lm.source_time[i]),
+            float(lm.facing_deg[i]),
+            float(lm.facing_sigma_deg[i]),
         )
         for i in range(len(lm))
     ]
 
 
-def landmarks_from_rows(rows: list[tuple]) -> Landmarks:
-    """Rows (id, sign_class, ..., revision, updated_at, source_time) as in ``_COLS``."""
+def landmarks_from_rows(rows: list[tuple]) -> MapLandmarks:
+    """Rows (id, sign_class, ..., source_time, facing_deg, facing_sigma_deg) as in
+    ``_COLS``."""
     if not rows:
-        return Landmarks.empty()
+        return MapLandmarks.empty()
     cols = list(zip(*rows, strict=True))
-    return Landmarks(
+    return MapLandmarks(
         id=i64_to_u64(np.array(cols[0], np.int64)),
         sign_class=np.array(cols[1], np.uint16),
         lat=np.array(cols[2], float),
@@ -111,6 +124,8 @@ def landmarks_from_rows(rows: list[tuple]) -> Landmarks:
         revision=np.array(cols[9], np.uint64),
         updated_at=np.array(cols[10], float),
         source_time=np.array(cols[11], float),
+        facing_deg=np.array(cols[12], np.float32),
+        facing_sigma_deg=np.array(cols[13], np.float32),
     )
 
 
@@ -139,9 +154,9 @@ def split_valid(
         else:
             bad.append((r, *why))
     if not typed:
-        return [], Landmarks.empty(), bad
+        return [], MapLandmarks.empty(), bad
     table = landmarks_from_rows(typed)
-    flags, fld, reason = Landmarks.CODEC.row_errors(table)
+    flags, fld, reason = MapLandmarks.CODEC.row_errors(table)
     if not flags.any():
         return typed, table, bad
     good = [r for r, f in zip(typed, flags, strict=True) if not f]
@@ -155,6 +170,11 @@ class TileMaps:
     def __init__(self, conn: sqlite3.Connection):
         self._conn = conn
         conn.executescript(SCHEMA)
+        for name in ("current", "published"):
+            have = {r[1] for r in conn.execute(f"PRAGMA table_info({name})")}
+            for column in _ADDED:
+                if column not in have:
+                    conn.execute(f"ALTER TABLE {name} ADD COLUMN {column} REAL NOT NULL DEFAULT 0")
         self.quarantined = 0
         """Rows the last :meth:`flush` quarantined instead of publishing."""
 

@@ -25,6 +25,7 @@ from hdmap.geo.geodesy import enu_rotation
 from hdmap.geo.tiles import TileFrames, frame_map, quadkeys_of
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.estimator.provisional import usable
+from hdmap.mapping.facing import FacingConfig, to_wire
 from hdmap.mapping.quiet import QuietPasses, close_quiet, merge_rows, note_open
 from hdmap.runtime.stage import StageService
 from schemas import (
@@ -39,6 +40,7 @@ from schemas import (
     Removals,
 )
 from schemas.ids import hold_key, home_tile, pass_key
+from schemas.map import MapLandmarks
 from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
@@ -79,6 +81,8 @@ class SolverConfig:
     sweep_every_s: float = 60.0
     """Quiet passes are closed when the solver's clock enters a new period of this length
     (event time)."""
+    facing_min_rays: int = FacingConfig.min_rays
+    """Rays a landmark needs before its facing is published (:mod:`hdmap.mapping.facing`)."""
 
 
 @dataclass(frozen=True)
@@ -223,6 +227,7 @@ class SolverService(StageService):
             )
             rows = np.array([self.state.landmarks[int(ids[k])].row for k in idx], np.int64)
             self.sums.accumulate(rows, keys_[sel], rays, holds[sel])
+            self.state.note_views([self.state.landmarks[int(ids[k])] for k in idx], obs.direction)
             for k in idx:
                 lid = int(ids[k])
                 touched.add(lid)
@@ -285,6 +290,7 @@ class SolverService(StageService):
                     continue
                 rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
                 merge_rows(self._quiet, self.sums, keep, drop, rot, t)
+                keep.view, keep.view_n = keep.view + drop.view, keep.view_n + drop.view_n
                 touched.add(keep.id)
                 src = self._source.pop(drop.id, 0.0)
                 self._source[keep.id] = max(self._source.get(keep.id, 0.0), src)
@@ -364,7 +370,12 @@ class SolverService(StageService):
             else:
                 ks = sol.ok[sel]
                 lms = [sol.lms[k] for k in ks]
-                landmarks = Landmarks(
+                facing_deg, facing_sigma_deg = to_wire(
+                    self.state.facings(lms, sol.n_clusters[ks], self.config.facing_min_rays)
+                )
+                landmarks = MapLandmarks(
+                    facing_deg=facing_deg,
+                    facing_sigma_deg=facing_sigma_deg,
                     id=np.array([lm.id for lm in lms], np.uint64),
                     sign_class=np.array([lm.cls for lm in lms], np.uint16),
                     lat=sol.lat[sel],

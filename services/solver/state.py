@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import sqlite3
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from hdmap.mapping.facing import Facing, facing_from_sums, view_vectors
 from hdmap.runtime.store import id_from_sql, id_to_sql
 
 SCHEMA = """
@@ -14,6 +15,8 @@ CREATE TABLE IF NOT EXISTS landmarks (
     id INTEGER PRIMARY KEY, cls INTEGER NOT NULL, home TEXT NOT NULL, tile TEXT NOT NULL,
     revision INTEGER NOT NULL, sums BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS views (
+    id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL, count INTEGER NOT NULL);
 """
 
 
@@ -26,6 +29,11 @@ class SolverLandmark:
     tile: str = ""
     """Tile it was last published in ('' = never published)."""
     revision: int = 0
+    view: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """Sum of its rays' horizontal unit directions (East, North), for the published facing
+    (:mod:`hdmap.mapping.facing`); ``views`` table (absent in an older database: zero)."""
+    view_n: int = 0
+    """Rays in ``view`` (a caught vehicle's rays taken out of the sums stay in it)."""
 
 
 class SolverState:
@@ -43,15 +51,26 @@ class SolverState:
         self.landmarks[lm.id] = lm
         self._dirty.add(lm.id)
 
+    def note_views(self, lms: list[SolverLandmark], direction: np.ndarray) -> None:
+        """Ray ``k`` (unit ``direction[k]``, camera toward sign) was linked to ``lms[k]``."""
+        for lm, v in zip(lms, view_vectors(direction), strict=True):
+            lm.view = lm.view + v
+            lm.view_n += 1
+
+    def facings(self, lms: list[SolverLandmark], n_passes: np.ndarray, min_rays: int) -> Facing:
+        """The landmarks' facings, over their passes as independent looks."""
+        view = np.array([lm.view for lm in lms], float).reshape(-1, 2)
+        return facing_from_sums(view, [lm.view_n for lm in lms], n_passes, min_rays)
+
     def delete(self, lid: int) -> SolverLandmark:
         self._dirty.discard(lid)
         self._deleted.add(lid)
         return self.landmarks.pop(lid)
 
     def save(self, pack_rows) -> None:
-        self._conn.executemany(
-            "DELETE FROM landmarks WHERE id=?", [(id_to_sql(i),) for i in sorted(self._deleted)]
-        )
+        gone = [(id_to_sql(i),) for i in sorted(self._deleted)]
+        self._conn.executemany("DELETE FROM landmarks WHERE id=?", gone)
+        self._conn.executemany("DELETE FROM views WHERE id=?", gone)
         self._deleted.clear()
         dirty = [self.landmarks[i] for i in sorted(self._dirty)]
         blobs = pack_rows(np.array([lm.row for lm in dirty], np.int64)) if dirty else []
@@ -62,6 +81,10 @@ class SolverState:
                 (id_to_sql(lm.id), lm.cls, lm.home, lm.tile, lm.revision, blob)
                 for lm, blob in zip(dirty, blobs, strict=True)
             ],
+        )
+        self._conn.executemany(
+            "INSERT OR REPLACE INTO views(id, e, n, count) VALUES (?,?,?,?)",
+            [(id_to_sql(lm.id), *map(float, lm.view), lm.view_n) for lm in dirty if lm.view_n],
         )
         self._dirty.clear()
         self._conn.execute(
@@ -79,5 +102,9 @@ class SolverState:
         for r, srow in zip(rows, srows, strict=True):
             lid = id_from_sql(r[0])
             self.landmarks[lid] = SolverLandmark(lid, int(r[1]), r[2], int(srow), r[3], int(r[4]))
+        for i, e, n, count in self._conn.execute("SELECT id, e, n, count FROM views"):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.view, lm.view_n = np.array([e, n], float), int(count)
         clock = self._conn.execute("SELECT t FROM clock WHERE name='event'").fetchone()
         self.event_time = 0.0 if clock is None else float(clock[0])

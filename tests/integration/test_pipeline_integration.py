@@ -21,6 +21,7 @@ from fleetsim.noise import FLEET
 from fleetsim.pipeline import FleetDriver, fleet_config_ending_now, model_for
 from fleetsim.score import score
 from fleetsim.town_run import follow_town
+from fleetsim.truth import match_landmarks
 from fleetsim.world import World, demo_town
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import SERVICE_NAMES, Stack
@@ -76,6 +77,11 @@ def by_id(lm: Landmarks) -> dict[int, np.ndarray]:
     return {int(i): np.r_[lm.lat[k], lm.lon[k], lm.h[k], lm.cov[k]] for k, i in enumerate(lm.id)}
 
 
+def facing_by_id(lm) -> dict[int, float]:
+    """Published facing (deg) of each landmark, by id."""
+    return dict(zip(lm.id.tolist(), lm.facing_deg.tolist(), strict=True))
+
+
 def drive(stack: Stack, town: Town, tmp, restart_after: dict[int, tuple[str, str]] | None = None):
     """Drive every pass; optionally stop/restart a service after pass k. The final map."""
     restart_after = restart_after or {}
@@ -120,6 +126,17 @@ def test_fleet_through_the_pipeline_builds_the_town(stack, tmp_path):
     assert m["received"] == kept + m.get("track_discarded", 0)
     assert all(v >= 1 for v in versions.values() if v > 0)
     assert all(stats[n]["lag_entries"] == 0 for n in ("matcher", "solver", "publisher"))
+    # the facing (docs/estimator.md section 17) is published for nearly every landmark of a
+    # sign, from the sign's front: the direction it is seen from lies in the panel's
+    # 70-degree cone, plus the rays' origin errors (2.5 m pass bias at >= 10 m: 15 deg),
+    # for all but a landmark that took another sign's rays (a sign convention error would
+    # put nearly all 110-180 degrees off)
+    mt = match_landmarks(town.world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=5.0)
+    az, _sigma, known = lm.facing()
+    assert known[mt.landmark].mean() >= 0.9
+    normal = town.world.signs.facing_azimuth_deg[mt.sign_row]
+    off = np.abs((az[mt.landmark] - normal + 180.0) % 360.0 - 180.0)[known[mt.landmark]]
+    assert (off <= 85.0).mean() >= 0.9, off
 
     # a vehicle that joins late starts from the snapshots and holds the same map
     with open_session(stack.bus) as s:
@@ -131,6 +148,7 @@ def test_fleet_through_the_pipeline_builds_the_town(stack, tmp_path):
             while len(late.landmarks()) < len(lm) and time.monotonic() < deadline:
                 time.sleep(0.1)
             assert by_id(late.landmarks()).keys() == by_id(lm).keys()
+            assert facing_by_id(late.landmarks()) == facing_by_id(lm)  # snapshots carry it
             assert late.stats.snapshots >= 1
         finally:
             late.close()

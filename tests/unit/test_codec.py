@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
-import msgpack
 import numpy as np
 import pytest
 
-from hdmap.geo.signs import CATALOG
 from schemas import (
     AssocGroup,
     DecodeError,
@@ -20,208 +17,33 @@ from schemas import (
     LogEntry,
     LogQuery,
     MapDelta,
-    MapSnapshot,
     NewLandmarks,
     ObservationBatch,
     Observations,
-    ObsGroup,
-    Rejection,
     Removals,
     Stats,
-    TrustChanges,
     UploadAck,
 )
-from schemas.codec import MAX_MESSAGE_BYTES, Table, unpack
-
-T0 = 1.7e9
-
-# --- realistic random content -------------------------------------------------------------
-
-
-def make_obs(n: int, seed: int = 0) -> Observations:
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3)) * [1.0, 1.0, 0.1]
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    rng_m = np.where(rng.random(n) < 0.3, 0.0, rng.uniform(5.0, 80.0, n))
-    return Observations(
-        obs_id=rng.permutation(
-            np.arange(n, dtype=np.uint64) * np.uint64(2**53 - 1) + np.uint64(2**63)
-        ),
-        t=T0 + np.sort(rng.uniform(0, 600, n)),
-        image=np.sort(rng.integers(0, 2**32, n, dtype=np.uint64)).astype(np.uint32),
-        sign_class=rng.choice(CATALOG.codes, n).astype(np.uint16),
-        lat=60.17 + rng.normal(0, 0.01, n),
-        lon=24.94 + rng.normal(0, 0.01, n),
-        h=rng.uniform(10, 40, n),
-        direction=d,
-        sigma_az=rng.uniform(0.002, 0.05, n),
-        sigma_el=rng.uniform(0.002, 0.02, n),
-        sigma_pos_h=rng.uniform(0.5, 10, n),
-        sigma_pos_v=rng.uniform(1, 15, n),
-        range_m=rng_m,
-        sigma_range_m=rng_m * 0.12,
-        score=rng.uniform(0, 1, n).astype(np.float32),
-    )
-
-
-def make_landmarks(n: int, seed: int = 1) -> Landmarks:
-    rng = np.random.default_rng(seed)
-    return Landmarks(
-        id=rng.integers(0, 2**63, n, dtype=np.uint64) | np.uint64(2**63),
-        sign_class=rng.choice(CATALOG.codes, n).astype(np.uint16),
-        lat=60.17 + rng.normal(0, 0.01, n),
-        lon=24.94 + rng.normal(0, 0.01, n),
-        h=rng.uniform(10, 40, n),
-        cov=np.column_stack(
-            [
-                rng.uniform(0.1, 4, n),
-                rng.normal(0, 0.1, (n, 2)),
-                rng.uniform(0.1, 4, n),
-                rng.normal(0, 0.1, n),
-                rng.uniform(1, 9, n),
-            ]
-        ),
-        status=rng.integers(0, 3, n).astype(np.uint8),
-        n_obs=rng.integers(1, 10_000, n).astype(np.uint32),
-        n_passes=rng.integers(1, 500, n).astype(np.uint32),
-        revision=rng.integers(1, 2**40, n).astype(np.uint64),
-        updated_at=T0 + rng.uniform(0, 1e5, n),
-        source_time=T0 + rng.uniform(0, 1e5, n),
-    )
-
-
-def make_removals(n: int, seed: int = 2) -> Removals:
-    rng = np.random.default_rng(seed)
-    return Removals(
-        id=rng.integers(0, 2**64 - 1, n, dtype=np.uint64),
-        revision=rng.integers(1, 1000, n).astype(np.uint64),
-    )
-
-
-def make_links(n: int, n_vehicles: int, seed: int = 3) -> Links:
-    rng = np.random.default_rng(seed)
-    return Links(
-        landmark_id=rng.integers(0, 2**64 - 1, n, dtype=np.uint64),
-        vehicle=rng.integers(0, n_vehicles, n).astype(np.uint32),
-        pass_id=rng.integers(0, 2**64 - 1, n, dtype=np.uint64),
-        received_at=T0 + rng.uniform(0, 1e5, n),
-        weight=rng.uniform(0, 1, n).astype(np.float32),
-    )
-
-
-def make_new(n: int, seed: int = 4) -> NewLandmarks:
-    lm = make_landmarks(n, seed)
-    return NewLandmarks(id=lm.id, sign_class=lm.sign_class, lat=lm.lat, lon=lm.lon, h=lm.h)
-
-
-def ids(*v: int) -> np.ndarray:
-    return np.array(v, np.uint64)
-
-
-def messages(n: int = 5) -> dict[str, object]:
-    """One realistic instance of every message type."""
-    return {
-        "ObservationBatch": ObservationBatch("veh-0042", 2**40 + 3, 17, T0 + 1.5, make_obs(n)),
-        "UploadAck": UploadAck(
-            "veh-0042",
-            17,
-            ids(1, 3, 2**64 - 1),
-            ids(3),
-            [Rejection(7, "obs.lat", "out of range [-90, 90]")],
-            DecodeError("obs.lat", "out of range", 4),
-            2.5,
-        ),
-        "LogEntry": LogEntry("obs", "ingest-1", "1201202110133102", 5, 99, b"\x00\x01body"),
-        "LogQuery": LogQuery(
-            "assoc",
-            {"matcher-1": {"1201": 3, "1202": 0}, "m.2": {}},
-            prefixes=["120", "1213"],
-            limit=250,
-        ),
-        "ObsGroup": ObsGroup("veh-1", 4, 5, T0 + 2, make_obs(n, 7)),
-        "AssocGroup": AssocGroup(
-            ["veh-1", "veh-2", "veh-3"],
-            make_links(n, 3),
-            make_obs(n, 8),
-            make_new(3),
-            ids(11, 12),
-            held=np.arange(n) % 2 == 0,
-            trust=TrustChanges(
-                np.array([0, 2], np.uint32), np.array([1, 2], np.uint8), np.array([1.0, 0.0])
-            ),
-        ),
-        "LandmarkUpdates": LandmarkUpdates(make_landmarks(n), make_removals(2)),
-        "MapDelta": MapDelta(
-            "1201202110133102", 41, 42, T0 + 3, make_landmarks(n), make_removals(3)
-        ),
-        "MapSnapshot": MapSnapshot("1201202110133102", 42, make_landmarks(n)),
-        "ErrorReply": ErrorReply("rate", "snapshot.client", "client 'veh-1' asks too often", 2.5),
-        "Stats": Stats(
-            "matcher", "m-1", ["120", "121"], T0, {"obs_in": 1234, "lag_s": 0.25}, {"obs.lat": 3}
-        ),
-    }
-
-
-CLASSES = {name: type(m) for name, m in messages().items()}
-ALL = list(CLASSES)
-
-# --- helpers -------------------------------------------------------------------------------
-
-
-def assert_table_equal(a: Table, b: Table) -> None:
-    assert type(a) is type(b)
-    for name, c in type(a).CODEC.cols:
-        x, y = getattr(a, name), getattr(b, name)
-        assert y.dtype == np.dtype(c.dtype), name
-        assert y.shape == x.shape, name
-        np.testing.assert_array_equal(y, np.asarray(x, c.dtype), err_msg=name)
-
-
-def assert_message_equal(a: object, b: object) -> None:
-    assert type(a) is type(b)
-    for f in dataclasses.fields(a):  # type: ignore[arg-type]
-        x, y = getattr(a, f.name), getattr(b, f.name)
-        if isinstance(x, Table):
-            assert_table_equal(x, y)
-        elif isinstance(x, np.ndarray):
-            assert y.dtype == x.dtype and np.array_equal(x, y), f.name
-        elif isinstance(x, DecodeError):
-            assert y.as_dict() == x.as_dict()
-        else:
-            assert y == x, f.name
-
-
-def raw(msg: object) -> dict:
-    return msgpack.unpackb(msg.to_bytes(), raw=False)  # type: ignore[attr-defined]
-
-
-def enc(d: object) -> bytes:
-    return msgpack.packb(d, use_bin_type=True)
-
-
-def expect(cls: type, data: bytes, field: str, **kw) -> DecodeError:
-    with pytest.raises(DecodeError) as exc:
-        cls.from_bytes(data, **kw)  # type: ignore[attr-defined]
-    assert exc.value.field == field, str(exc.value)
-    assert exc.value.reason
-    return exc.value
-
-
-def with_(msg: object, **changes) -> bytes:
-    d = raw(msg)
-    d.update(changes)
-    return enc(d)
-
-
-def without(msg: object, key: str) -> bytes:
-    d = raw(msg)
-    del d[key]
-    return enc(d)
-
-
-def batch(obs: Observations) -> ObservationBatch:
-    return ObservationBatch("veh-1", 1, 2, T0, obs)
-
+from schemas.codec import MAX_MESSAGE_BYTES, unpack
+from schemas.map import MapLandmarks, updates_from_bytes
+from tests.support.messages import (
+    ALL,
+    CLASSES,
+    T0,
+    assert_message_equal,
+    assert_table_equal,
+    batch,
+    enc,
+    expect,
+    make_landmarks,
+    make_map_landmarks,
+    make_obs,
+    make_removals,
+    messages,
+    raw,
+    with_,
+    without,
+)
 
 # --- round trips -------------------------------------------------------------------------------
 
@@ -461,9 +283,9 @@ TABLES = [
     ("AssocGroup", "created", NewLandmarks),
     ("LandmarkUpdates", "landmarks", Landmarks),
     ("LandmarkUpdates", "removed", Removals),
-    ("MapDelta", "upserts", Landmarks),
+    ("MapDelta", "upserts", MapLandmarks),
     ("MapDelta", "removed", Removals),
-    ("MapSnapshot", "landmarks", Landmarks),
+    ("MapSnapshot", "landmarks", MapLandmarks),
 ]
 
 
@@ -660,6 +482,55 @@ def test_landmark_rows_are_checked(name: str, tname: str) -> None:
     msg = messages(4)[name]
     getattr(msg, tname).cov[3, 5] = math.inf
     expect(CLASSES[name], msg.to_bytes(), f"{tname}.cov")  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("name,tname", [("MapDelta", "upserts"), ("MapSnapshot", "landmarks")])
+def test_facing_round_trips_and_bad_facings_are_refused(name: str, tname: str) -> None:
+    msg = messages(7)[name]
+    got = getattr(CLASSES[name].from_bytes(msg.to_bytes()), tname)  # type: ignore[attr-defined]
+    sent = getattr(msg, tname)
+    np.testing.assert_array_equal(got.facing_deg, sent.facing_deg)
+    np.testing.assert_array_equal(got.facing_sigma_deg, sent.facing_sigma_deg)
+    az, sigma, known = got.facing()
+    assert known.tolist() == (np.arange(7) % 3 != 2).tolist()
+    assert np.isnan(az[~known]).all() and np.isnan(sigma[~known]).all()
+    for col, value in [
+        ("facing_deg", math.nan),
+        ("facing_deg", -0.5),
+        ("facing_deg", 360.5),
+        ("facing_sigma_deg", math.inf),
+        ("facing_sigma_deg", -1.0),
+        ("facing_sigma_deg", 181.0),
+    ]:
+        msg = messages(4)[name]
+        getattr(getattr(msg, tname), col)[1] = value
+        e = expect(CLASSES[name], msg.to_bytes(), f"{tname}.{col}")  # type: ignore[attr-defined]
+        assert e.index == 1
+
+
+@pytest.mark.parametrize("name,tname", [("MapDelta", "upserts"), ("MapSnapshot", "landmarks")])
+def test_a_message_without_facing_columns_reads_as_facing_unknown(name: str, tname: str) -> None:
+    d = raw(messages(4)[name])  # as an older publisher sends it
+    for col in ("facing_deg", "facing_sigma_deg"):
+        del d[tname][col]
+    got = getattr(CLASSES[name].from_bytes(enc(d)), tname)  # type: ignore[attr-defined]
+    assert isinstance(got, MapLandmarks) and not got.facing()[2].any()
+    np.testing.assert_array_equal(got.lat, getattr(messages(4)[name], tname).lat)
+
+
+def test_updates_carry_the_facing_to_the_publisher() -> None:
+    upd = LandmarkUpdates(make_map_landmarks(5), make_removals(2))
+    data = upd.to_bytes()
+    assert not hasattr(LandmarkUpdates.from_bytes(data).landmarks, "facing_deg")  # ignored
+    got = updates_from_bytes(data)
+    np.testing.assert_array_equal(got.landmarks.facing_sigma_deg, upd.landmarks.facing_sigma_deg)
+    old = LandmarkUpdates(make_landmarks(3), make_removals(0)).to_bytes()  # an older solver
+    assert not updates_from_bytes(old).landmarks.facing()[2].any()
+    d = raw(upd)
+    d["landmarks"]["facing_deg"] = np.array([1, 2, 3, 4, np.nan], "<f4").tobytes()
+    with pytest.raises(DecodeError) as exc:
+        updates_from_bytes(enc(d))
+    assert (exc.value.field, exc.value.index) == ("landmarks.facing_deg", 4)
 
 
 def test_new_landmarks_rows_are_checked() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,11 +15,14 @@ from vehicle.geoloc import (
     Detections,
     GnssFixes,
     VehicleModel,
+    antenna_poses,
     azimuth_elevation,
     box_range,
+    detection_reach,
     geolocate,
     vehicle_to_enu,
 )
+from vehicle.pose import PoseTiming
 
 FX = FY = 1400.0
 CX, CY = 960.0, 540.0
@@ -319,3 +323,170 @@ def test_vectorised_over_images_and_detections() -> None:
     np.testing.assert_allclose(np.remainder(az - expected + np.pi, 2 * np.pi) - np.pi, 0, atol=1e-6)
     np.testing.assert_array_equal(lines.image, [2, 0, 1, 0])
     np.testing.assert_allclose(lines.t, 1.7e9)
+
+
+# --- pose at a frame's time, interpolated from the fixes (vehicle.pose) ---------------
+
+ENU0 = EnuFrame(LAT, LON, HGT)
+
+
+def timed_fixes(t, enu, heading_deg, sigma_h=1.0, sigma_v=1.5, sigma_heading_deg=0.5):
+    lat, lon, h = ENU0.to_geodetic(np.asarray(enu, float))
+    n = len(t)
+    return GnssFixes(
+        t=np.asarray(t, float),
+        lat=lat,
+        lon=lon,
+        h=h,
+        heading_deg=np.asarray(heading_deg, float) % 360.0,
+        sigma_h_m=np.broadcast_to(np.asarray(sigma_h, float), (n,)).copy(),
+        sigma_v_m=np.broadcast_to(np.asarray(sigma_v, float), (n,)).copy(),
+        sigma_heading_deg=np.full(n, sigma_heading_deg),
+    )
+
+
+def timed_dets(t) -> Detections:
+    t = np.asarray(t, float)
+    d = dets(boxes_at(np.tile([CX, CY], (t.size, 1))), image=np.arange(t.size))
+    return replace(d, t=t)
+
+
+def antenna_enu(pose) -> np.ndarray:
+    return ENU0.from_geodetic(pose.lat, pose.lon, pose.h)
+
+
+def test_pose_is_exact_on_a_straight_drive_whatever_the_timing() -> None:
+    """11 m/s on a 30 deg course, climbing 0.1 m/s; fixes at about 1 Hz with one missing
+    (a 1.9 s gap), frames at 30 Hz, also just past the last fix (within max_gap_s)."""
+    t_fix = 100.0 + np.array([0.0, 1.02, 1.97, 3.9, 5.25, 6.3])
+    az = np.radians(30.0)
+
+    def truth(t):
+        s = 11.0 * (t - 100.0)
+        return np.column_stack([s * np.sin(az), s * np.cos(az), 0.1 * (t - 100.0)])
+
+    fixes = timed_fixes(t_fix, truth(t_fix), np.full(t_fix.size, 30.0))
+    t = 100.0 + np.arange(0.0, 6.9, 1.0 / 30.0)
+    pose = antenna_poses(fixes, timed_dets(t))
+    np.testing.assert_allclose(antenna_enu(pose), truth(t), atol=1e-6)
+    np.testing.assert_allclose(np.degrees(pose.heading_rad), 30.0, atol=1e-9)
+    np.testing.assert_array_equal(pose.t, t)
+    # the camera centre follows: the lever arm turned by the heading
+    lines = geolocate(fixes, timed_dets(t), model())
+    cam = ENU0.from_geodetic(lines.lat, lines.lon, lines.h)
+    fwd = np.array([np.sin(az), np.cos(az), 0.0])
+    # (to 0.1 mm: the lever arm is level at the antenna, 70 m from the frame's origin)
+    np.testing.assert_allclose(cam, truth(t) + 1.5 * fwd + [0.0, 0.0, -0.1], atol=1e-4)
+    np.testing.assert_array_equal(lines.t, t)
+
+
+def test_pose_on_a_curve_errs_by_the_chord_and_no_more() -> None:
+    """A circle of radius 30 m at 10 m/s (3.3 m/s^2 across the path), fixes at 1 Hz: the
+    linear interpolant's error is the constant-acceleration remainder a/2 |tau_a tau_b|
+    (vehicle.pose): a bound everywhere, attained to 1 % in the middle of a gap (the
+    sagitta); the heading grows linearly in time on a circle and is interpolated exactly,
+    also across North (359 -> 18 deg)."""
+    r, v = 30.0, 10.0
+    omega = v / r
+    t_fix = np.arange(0.0, 8.0)
+    t = np.arange(0.0, 7.0, 1.0 / 30.0)
+
+    def truth(tt):  # clockwise from North, starting at 340 deg
+        psi = np.radians(340.0) + omega * tt
+        centre = np.array([r * np.cos(np.radians(340.0)), -r * np.sin(np.radians(340.0))])
+        pos = centre + r * np.column_stack([-np.cos(psi), np.sin(psi)])
+        return np.column_stack([pos, np.zeros(tt.size)]), psi
+
+    enu_f, psi_f = truth(t_fix)
+    fixes = timed_fixes(t_fix, enu_f, np.degrees(psi_f))
+    pose = antenna_poses(fixes, timed_dets(t))
+    enu_t, psi_t = truth(t)
+    np.testing.assert_allclose(np.diff(enu_t[:2], axis=0)[0] * 30.0, v * np.array(
+        [np.sin(psi_t[0]), np.cos(psi_t[0]), 0.0]), rtol=0.02)  # fmt: skip
+    err = np.linalg.norm(antenna_enu(pose) - enu_t, axis=1)
+    tau = t - np.floor(t)
+    bound = 0.5 * (v * v / r) * tau * (1.0 - tau)
+    assert (err <= bound * 1.0 + 1e-6).all()
+    mid = np.isclose(tau, 0.5)
+    assert mid.sum() >= 6 and (err[mid] >= 0.99 * bound[mid]).all()
+    dpsi = np.angle(np.exp(1j * (pose.heading_rad - psi_t)))
+    assert np.abs(dpsi).max() < 1e-6
+    # the motion term (the fix sigma is 1 m): the 2 m/s^2 floor by default; with
+    # observed_turns the fixes' v^2 / R = 3.3 m/s^2 joins it and covers the chord error
+    motion = np.sqrt(pose.sigma_h_m**2 - 1.0)
+    np.testing.assert_allclose(motion, 0.5 * 2.0 * tau * (1.0 - tau), atol=1e-6)
+    turn = antenna_poses(fixes, timed_dets(t), PoseTiming(observed_turns=True))
+    motion = np.sqrt(turn.sigma_h_m**2 - 1.0)
+    np.testing.assert_allclose(
+        motion, 0.5 * np.hypot(2.0, v * v / r) * tau * (1.0 - tau), rtol=0.01, atol=1e-6
+    )  # rtol: the chord speed is 0.5 % below the arc speed
+    assert (err <= motion + 1e-6).all()
+    assert np.round(np.degrees(psi_f[1:3]) % 360.0).tolist() == [359.0, 18.0]  # across North
+
+
+def test_pose_sigmas_grow_with_the_gap() -> None:
+    """At a fix: the fix's claims; between fixes a and b: (1 - w) s_a + w s_b in
+    quadrature with the motion term sigma_acc / 2 |tau_a tau_b| (m; rad for the heading)."""
+    t_fix = np.array([0.0, 0.2, 1.2])
+    fixes = timed_fixes(t_fix, np.zeros((3, 3)), np.zeros(3), sigma_h=[1.0, 1.0, 2.0],
+                        sigma_v=[1.5, 1.5, 1.5])  # fmt: skip
+    timing = PoseTiming(accel_sigma_mps2=2.0, accel_v_sigma_mps2=0.5, yaw_accel_sigma_radps2=0.5)
+    t = np.array([0.0, 0.1, 0.2, 0.45, 0.7, 1.2])
+    pose = antenna_poses(fixes, timed_dets(t), timing)
+    w = np.array([0.0, 0.5, 0.0, 0.25, 0.5, 1.0])
+    ta = np.array([0.0, 0.1, 0.0, 0.25, 0.5, 1.0])
+    tb = ta - np.array([0.2, 0.2, 1.0, 1.0, 1.0, 1.0])
+    s_fix = np.where(t <= 0.2, 1.0, (1 - w) * 1.0 + w * 2.0)
+    np.testing.assert_allclose(pose.sigma_h_m, np.hypot(s_fix, 1.0 * np.abs(ta * tb)))
+    np.testing.assert_allclose(pose.sigma_v_m, np.hypot(1.5, 0.25 * np.abs(ta * tb)))
+    np.testing.assert_allclose(
+        pose.sigma_heading_rad, np.hypot(np.radians(0.5), 0.25 * np.abs(ta * tb))
+    )
+    assert pose.sigma_h_m[4] == pytest.approx(np.hypot(1.5, 2.0 * 1.0**2 / 8.0))  # mid-gap
+    # the rays carry them: horizontal with the lever arm's heading term, vertical as is
+    lines = geolocate(fixes, timed_dets(t), model(), timing=timing)
+    np.testing.assert_allclose(lines.sigma_pos_v, pose.sigma_v_m)
+    np.testing.assert_allclose(
+        lines.sigma_pos_h, np.hypot(pose.sigma_h_m, pose.sigma_heading_rad * 1.5)
+    )
+
+
+def test_a_detection_far_from_every_fix_is_refused_not_extrapolated() -> None:
+    t_fix = np.array([0.0, 0.2, 0.4, 2.0, 2.2])
+    fixes = timed_fixes(t_fix, np.zeros((5, 3)), np.zeros(5))
+    t = np.array([-1.5, -0.5, 0.3, 1.2, 1.5, 2.9, 3.5])
+    reach = detection_reach(fixes, timed_dets(t), PoseTiming(max_gap_s=0.7))
+    assert reach.tolist() == [False, True, True, False, True, True, False]
+    with pytest.raises(ValueError, match=r"^Detections.t: 3 detection\(s\) more than 0.7 s"):
+        antenna_poses(fixes, timed_dets(t), PoseTiming(max_gap_s=0.7))
+    assert (
+        len(geolocate(fixes, timed_dets(t[reach]), model(), timing=PoseTiming(max_gap_s=0.7))) == 4
+    )
+    one = fixes.take(np.array([1]))  # one fix: only detections at its time
+    assert detection_reach(one, timed_dets([0.2, 0.25])).tolist() == [True, False]
+
+
+@pytest.mark.parametrize(
+    "t_fix, match",
+    [
+        ([0.0, 0.2, 0.2], r"GnssFixes.t: must be strictly increasing, row 2"),
+        ([0.0, 0.4, 0.2], r"GnssFixes.t: must be strictly increasing, row 2"),
+        ([0.0, np.nan, 0.4], r"GnssFixes.t: must be finite"),
+    ],
+)
+def test_bad_fix_times_are_refused_naming_the_field(t_fix, match) -> None:
+    fixes = timed_fixes(np.array(t_fix), np.zeros((3, 3)), np.zeros(3))
+    with pytest.raises(ValueError, match=match):
+        geolocate(fixes, timed_dets([0.1]), model())
+    with pytest.raises(ValueError, match=match):
+        detection_reach(fixes, timed_dets([0.1]))
+    with pytest.raises(ValueError, match=r"^Detections.t: must be finite"):
+        geolocate(timed_fixes([0.0, 1.0], np.zeros((2, 3)), np.zeros(2)), timed_dets([np.nan]),
+                  model())  # fmt: skip
+    # the index form does not look at the times (one fix per image, as before)
+    assert len(geolocate(fixes, dets(boxes_at((CX, CY)), image=[1]), model())) == 1
+
+
+def test_pose_timing_is_checked() -> None:
+    with pytest.raises(ValueError, match=r"PoseTiming\.max_gap_s"):
+        PoseTiming(max_gap_s=-1.0)

@@ -8,6 +8,7 @@ per-pass GNSS bias (1 m per axis) and 0.01 rad angular noise, 10 rays each.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fleetsim.synthetic import ray_observations
 from hdmap.mapping.linking import create, link, refresh
 from hdmap.mapping.matching import AssocOutput as _Out
 from hdmap.mapping.merge import merge_touched
@@ -140,3 +142,57 @@ def test_solver_hands_the_sums_over_and_the_map_drops_the_retired(tmp_path: Path
     assert sorted(again.state.landmarks) == [ida]
     again._apply_in_transaction([assoc_entry(3, tile, retired=[idb], merged_into=[ida])])
     assert again.rejected["assoc.unknown_retired"] == 1
+
+
+def test_landmarks_seen_from_streets_at_right_angles_merge_only_at_one_place(
+    tmp_path: Path,
+) -> None:
+    """Two landmarks of the class 1.5 m apart (well inside the merge gate), one seen from
+    the road to the South of the sign, one from a street to its East: their facings
+    (:mod:`hdmap.mapping.facing`) are 90 degrees apart, beyond 60 + sigmas, so they are
+    two signs when farther apart than ``same_place_m`` (here set to 1 m), and one sign
+    seen from two streets closer than it (the default 3 m); with any side allowed they
+    merge either way (the facing is what decides)."""
+    from hdmap.mapping.facing import angle_between
+    from hdmap.mapping.merge import facings_of, merge_partner
+
+    svc = matcher(tmp_path)
+    rng = np.random.default_rng(3)
+    tile = tile_of(svc.opts.zoom)
+    frame = svc.frames(tile)
+    svc.matching.out = defaultdict(_Out)
+    at = frame.to_ecef(
+        np.array([SIGN + np.array([1.0, 0.6, 0.0]), SIGN + np.array([-0.4, -0.3, 0.0])])
+    )
+    a = create(svc.matching, tile, CLS, at[0], np.eye(3) * 4.0)
+    b = create(svc.matching, tile, CLS, at[1], np.eye(3) * 4.0)
+    for p in range(12):
+        if p < 6:
+            obs = sign_rays(frame, p, rng)
+        else:  # westbound on y = 32.5, 40 m to 18 m east of the sign
+            xs = np.linspace(50.0, 28.0, 10)
+            cam = np.stack([xs, np.full(10, 32.5), np.full(10, 1.5)], 1)
+            meas = cam + np.r_[rng.normal(0, 1.0, 2), 0.0]
+            d = SIGN - cam
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            lat, lon, h = frame.to_geodetic(meas)
+            obs = ray_observations(lat, lon, h, d, np.arange(10), np.arange(10) + 1000 * p, CLS)
+        link(svc.matching, obs, [a if p < 6 else b] * len(obs), "veh-1", p, time.time())
+    refresh(svc.matching, [a.id, b.id])
+    f = facings_of(svc.matching, [a, b])
+    assert f.known.all()
+    apart = np.degrees(angle_between(f.azimuth[0], f.azimuth[1]))
+    assert 60.0 + 3 * np.degrees(np.hypot(*f.sigma)) < apart < 140.0
+    e = (b.x - a.x) @ frame.rotation.T
+    assert 1.0 < np.hypot(e[0], e[1]) < 3.0
+    config = svc.matching.config
+    facing = dataclasses.replace(config.gate.facing, same_place_m=1.0)
+    svc.matching.config = dataclasses.replace(
+        config, gate=dataclasses.replace(config.gate, facing=facing)
+    )
+    assert merge_partner(svc.matching, a) is None and merge_partner(svc.matching, b) is None
+    svc.matching.config = dataclasses.replace(config, merge_min_view_cos=-1.0)
+    assert merge_partner(svc.matching, a) is b
+    svc.matching.config = config  # the default: one place, one sign
+    merge_touched(svc.matching, [a.id, b.id])
+    assert len(svc.state.landmarks) == 1

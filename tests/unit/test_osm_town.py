@@ -11,6 +11,7 @@ from fleetsim.fleet import Fleet, FleetConfig, distinct_signs_seen
 from fleetsim.noise import FLEET
 from fleetsim.osm_town import (
     ATTRIBUTION,
+    CORNER_PAIRS,
     KERB_M,
     MAX_ROAD_DISTANCE_M,
     build_helsinki,
@@ -21,7 +22,7 @@ from fleetsim.osm_town import (
     same_class_pairs,
 )
 from fleetsim.route import random_route
-from fleetsim.world import tile_border_distance
+from fleetsim.world import corner_pair_rows, tile_border_distance
 from hdmap.geo.signs import CATALOG
 from vehicle.config import load_vehicle_model
 
@@ -54,7 +55,9 @@ def test_town_has_enough_signs_and_classes() -> None:
     assert np.unique(s.sign_class).size >= 10
     assert CATALOG.known(s.sign_class).all()
     np.testing.assert_array_equal(s.id, np.arange(len(s)))
-    assert np.all(np.diff(TOWN.osm_id) > 0)  # ids follow the OSM node ids
+    osm = TOWN.placement != 3
+    assert np.all(np.diff(TOWN.osm_id[osm]) > 0)  # ids follow the OSM node ids
+    assert (TOWN.osm_id[~osm] == -1).all() and np.flatnonzero(~osm).min() == osm.sum()
     assert ((s.position[:, 2] >= 2.0) & (s.position[:, 2] <= 2.8)).all()
     np.testing.assert_allclose(s.panel_height_m, CATALOG.heights(s.sign_class))
     np.testing.assert_allclose(np.linalg.norm(s.facing, axis=1), 1.0)
@@ -171,7 +174,8 @@ def test_max_signs_and_bbox_select_consistently() -> None:
     assert i_sub.size == 250  # a subset of the full town, with the same signs
     np.testing.assert_array_equal(W.signs.position[i_all], sub.world.signs.position[i_sub])
     np.testing.assert_array_equal(W.signs.sign_class[i_all], sub.world.signs.sign_class[i_sub])
-    assert len(helsinki_town(0, max_signs=10**6).signs) == len(W.signs)
+    # with max_signs the corner pairs are not added
+    assert len(helsinki_town(0, max_signs=10**6).signs) == int((TOWN.placement != 3).sum())
 
     bbox = (60.164, 24.935, 60.170, 24.9455)  # south-west part
     w = helsinki_town(0, bbox=bbox)
@@ -182,3 +186,26 @@ def test_max_signs_and_bbox_select_consistently() -> None:
     assert bbox[0] < w.lat0 < bbox[2] and bbox[1] < w.lon0 < bbox[3]
     with pytest.raises(ValueError):
         helsinki_town(0, bbox=(0.0, 0.0, 0.1, 0.1))
+
+
+def test_corner_pairs_face_two_streets_of_a_junction() -> None:
+    """The added corner pairs (placement 3, rows 2k and 2k + 1): one class, 5-10 m apart,
+    normals 60-120 degrees apart, each beside the road (the kerb distance) facing the
+    traffic of an edge into the pair's junction, on its right; also in the fleet
+    evaluation's area."""
+    corner = np.flatnonzero(TOWN.placement == 3)
+    assert corner.size == 2 * CORNER_PAIRS
+    s = W.signs
+    a, b = corner[0::2], corner[1::2]
+    assert (s.sign_class[a] == s.sign_class[b]).all()
+    gap = np.linalg.norm(s.position[a, :2] - s.position[b, :2], axis=1)
+    assert ((gap >= 5.0) & (gap <= 10.0)).all()
+    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", s.facing[a], s.facing[b]), -1, 1)))
+    assert ((turn >= 60.0 - 1e-6) & (turn <= 120.0 + 1e-6)).all()
+    dist, t = _segment_distances(W, s.position[corner, :2])
+    assert (dist.min(axis=1) >= KERB_M - 1e-6).all()
+    against = -(s.facing[corner, :2] @ t.T)
+    assert ((against >= 1.0 - 1e-9) & (dist <= 12.0)).any(axis=1).all()  # faces its approach
+    lat0, lon0, d = 60.1716, 24.9443, 0.0025  # fleet_eval.CENTRE, its default half height
+    ew = helsinki_town(0, bbox=(lat0 - d, lon0 - 2 * d, lat0 + d, lon0 + 2 * d))
+    assert len(corner_pair_rows(ew)) >= 3

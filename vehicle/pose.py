@@ -1,0 +1,208 @@
+"""The vehicle's pose at a camera frame's capture time, interpolated from the GNSS fixes.
+
+GNSS fixes and camera frames come at their own rates and times (a receiver at 1-10 Hz, a
+camera at 10-30 Hz, fixes missing now and then). The pose at a frame is interpolated
+from the two fixes around it (:func:`bracket`): the position linearly, in a local
+Cartesian frame; the heading linearly on the circle (the short way round).
+
+**How wrong is a linear interpolant** (the growth of the sigmas with the gap). Between
+two fixes at ``t_a < t_b`` the vehicle's position ``p(t)`` has an acceleration the fixes
+do not tell; model it per axis as unknown but constant over the interval,
+``p'' = a ~ N(0, sigma_a^2)``. The linear interpolant ``L`` through ``p(t_a)``, ``p(t_b)``
+then errs by the interpolation remainder of a quadratic, exactly:
+
+    p(t) - L(t) = a / 2 * (t - t_a) * (t - t_b)
+
+so its standard deviation is ``sigma_a / 2 * |tau_a * tau_b|`` with ``tau_a = t - t_a``,
+``tau_b = t - t_b`` (:func:`motion_sigma`): zero at a fix, ``sigma_a g^2 / 8`` in the middle
+of a gap ``g`` (1 Hz, 2 m/s^2: 0.25 m; 5 Hz: 0.01 m). The same formula holds outside
+``[t_a, t_b]`` (extrapolation, where it grows faster). The heading gets the same with an
+unmodelled yaw acceleration. Turning at a corner (11 m/s on a 20 m radius, 6 m/s^2
+across the path) is the worst case; ``sigma_a`` is a 1-sigma figure, not a bound.
+
+**The fixes' own errors** at the interpolated time: ``(1 - w) e_a + w e_b`` with the
+weight ``w`` of fix ``b``. Consecutive fixes share most of their error (a receiver's bias
+drifts slowly), and for any correlation the standard deviation is at most
+``|1 - w| sigma_a + |w| sigma_b`` (:func:`interpolate_sigma`, exact for fully correlated
+errors inside the interval, and an upper bound outside it, where ``w`` leaves [0, 1]).
+The two terms are independent and add in quadrature.
+
+**What the fixes show of the acceleration** (``PoseTiming.observed_turns``, off by
+default). ``sigma_a`` is then a floor: where the fixes
+themselves show the vehicle turning, the interval's acceleration scale is taken from them
+(:func:`observed_accels`): the yaw acceleration from the second differences of the fix
+headings at the interval's two ends (the larger), the acceleration across the path from
+its yaw rate times its chord speed, ``|omega| |p_b - p_a| / (t_b - t_a)`` (on a circle:
+``v^2 / R``, the quadratic term that the remainder above is exact for). They add to the
+floors in quadrature. The estimates carry the fixes' noise (FLEET's 0.01 rad of heading
+white noise at 5 Hz: about 0.6 rad/s^2, which grows a mid-gap heading sigma by 3 mrad);
+they are there for the corners, where a constant floor is wrong by an order of magnitude.
+
+**Not extrapolated**: a frame farther than ``max_gap_s`` from its nearest fix (inside the
+fixes' span, or before the first or after the last) has no pose (:func:`reachable`); the
+caller drops and counts it. Within ``max_gap_s`` beyond the span, the two end fixes'
+line is used, with the sigmas above.
+
+>>> br = bracket(np.array([0.0, 1.0, 2.0]), np.array([0.5, 2.0]))
+>>> br.ia.tolist(), br.ib.tolist(), br.w.tolist()
+([0, 1], [1, 2], [0.5, 1.0])
+>>> motion_sigma(br, 2.0).tolist()  # sigma_a g^2 / 8 in the middle of a 1 s gap
+[0.25, 0.0]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class PoseTiming:
+    """How a frame's pose is interpolated from the fixes around it (module docstring)."""
+
+    max_gap_s: float = 1.0
+    """A frame farther than this from its nearest fix has no pose (dropped, not
+    extrapolated), s."""
+    accel_sigma_mps2: float = 2.0
+    """Unmodelled horizontal acceleration per axis, m/s^2 (1 sigma; urban driving)."""
+    accel_v_sigma_mps2: float = 0.5
+    """Unmodelled vertical acceleration, m/s^2 (road grade changes)."""
+    yaw_accel_sigma_radps2: float = 0.5
+    """Unmodelled yaw acceleration, rad/s^2 (entering a corner: 0.7 rad/s in 1-2 s)."""
+    observed_turns: bool = False
+    """Raise the acceleration scales by what the fixes show of each interval's turn
+    (:func:`observed_accels`). Off by default: on the simulator it made the map worse
+    (mean error 0.79 -> 0.82 m, docs/experiments/2026-12-sensor-timing.md)."""
+
+    def __post_init__(self) -> None:
+        for name in ("max_gap_s", "accel_sigma_mps2", "accel_v_sigma_mps2",
+                     "yaw_accel_sigma_radps2"):  # fmt: skip
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0.0):
+                raise ValueError(f"PoseTiming.{name}: must be finite and >= 0, got {v!r}")
+
+
+def check_increasing(t: ArrayLike, name: str) -> Array:
+    """``t`` as a float array; ValueError naming ``name`` unless finite and strictly
+    increasing."""
+    v = np.asarray(t, float).reshape(-1)
+    if not np.isfinite(v).all():
+        raise ValueError(f"{name}: must be finite (row {int(np.flatnonzero(~np.isfinite(v))[0])})")
+    bad = np.flatnonzero(np.diff(v) <= 0.0)
+    if bad.size:
+        k = int(bad[0])
+        a, b = float(v[k]), float(v[k + 1])
+        raise ValueError(f"{name}: must be strictly increasing, row {k + 1} ({b!r}) follows {a!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class Bracket:
+    """Per query time: the two fixes it is interpolated from and the weight of ``ib``."""
+
+    ia: IntArray
+    ib: IntArray
+    w: Array
+    """Weight of fix ``ib`` (1 - w of ``ia``); outside [0, 1] beyond the fixes' span."""
+    tau_a: Array
+    tau_b: Array
+    """``t - t[ia]``, ``t - t[ib]``, s."""
+
+    @property
+    def nearest_s(self) -> Array:
+        """Time to the nearest fix, s."""
+        return np.minimum(np.abs(self.tau_a), np.abs(self.tau_b))
+
+
+def bracket(fix_t: ArrayLike, t: ArrayLike) -> Bracket:
+    """The fixes around each time ``t`` (``fix_t`` strictly increasing, not checked here:
+    :func:`check_increasing`). Before the first fix: the first two; after the last: the last
+    two; one fix only: that fix, weight 0."""
+    ft = np.asarray(fix_t, float)
+    q = np.asarray(t, float).reshape(-1)
+    n = ft.size
+    if n == 0:
+        raise ValueError("GnssFixes.t: no fixes to interpolate from")
+    if n == 1:
+        z = np.zeros(q.size, np.int64)
+        tau = q - ft[0]
+        return Bracket(z, z, np.zeros(q.size), tau, tau)
+    ib = np.clip(np.searchsorted(ft, q, side="right"), 1, n - 1).astype(np.int64)
+    ia = ib - 1
+    ta, tb = ft[ia], ft[ib]
+    return Bracket(ia, ib, (q - ta) / (tb - ta), q - ta, q - tb)
+
+
+def reachable(br: Bracket, timing: PoseTiming) -> NDArray[np.bool_]:
+    """Query times with a fix within ``max_gap_s`` (and, with one fix only, at it)."""
+    if bool((br.ia == br.ib).all()):
+        return br.nearest_s <= 1e-9
+    return br.nearest_s <= timing.max_gap_s
+
+
+def interpolate(br: Bracket, values: ArrayLike) -> Array:
+    """Linear interpolation (and, beyond the span, extrapolation) of per-fix ``values``
+    (n, ...) at the bracketed times."""
+    v = np.asarray(values, float)
+    w = br.w.reshape((-1,) + (1,) * (v.ndim - 1))
+    return (1.0 - w) * v[br.ia] + w * v[br.ib]
+
+
+def interpolate_angle(br: Bracket, angle_rad: ArrayLike) -> Array:
+    """Per-fix angles interpolated the short way round the circle, wrapped to [0, 2 pi).
+
+    >>> br = bracket(np.array([0.0, 1.0]), np.array([0.5]))
+    >>> np.degrees(interpolate_angle(br, np.radians([350.0, 10.0]))).round(9).tolist()
+    [0.0]
+    """
+    a = np.asarray(angle_rad, float)
+    d = (a[br.ib] - a[br.ia] + np.pi) % (2.0 * np.pi) - np.pi
+    return (a[br.ia] + br.w * d) % (2.0 * np.pi)
+
+
+def interpolate_sigma(br: Bracket, sigma: ArrayLike) -> Array:
+    """Upper bound of the standard deviation of ``(1 - w) e_a + w e_b`` for any correlation
+    of the two fixes' errors: ``|1 - w| sigma_a + |w| sigma_b`` (module docstring)."""
+    s = np.asarray(sigma, float)
+    return np.abs(1.0 - br.w) * s[br.ia] + np.abs(br.w) * s[br.ib]
+
+
+def observed_accels(t: ArrayLike, heading_rad: ArrayLike, xy: ArrayLike) -> tuple[Array, Array]:
+    """Per interval between consecutive fixes (n - 1): the yaw acceleration (rad/s^2) and
+    the acceleration across the path (m/s^2) the fixes show (module docstring); zeros with
+    fewer than 3 (yaw) or 2 fixes.
+
+    >>> t = np.arange(5.0)
+    >>> psi = np.radians([0.0, 0.0, 10.0, 20.0, 20.0])  # a turn of 20 deg over 2 s
+    >>> xy = np.column_stack([np.zeros(5), 10.0 * t])
+    >>> yaw, across = observed_accels(t, psi, xy)
+    >>> np.degrees(yaw).round(6).tolist(), across.round(3).tolist()
+    ([10.0, 10.0, 10.0, 10.0], [0.0, 1.745, 1.745, 0.0])
+    """
+    tt = np.asarray(t, float)
+    n = tt.size
+    if n < 2:
+        return np.zeros(0), np.zeros(0)
+    dt = np.diff(tt)
+    omega = ((np.diff(np.asarray(heading_rad, float)) + np.pi) % (2.0 * np.pi) - np.pi) / dt
+    speed = np.linalg.norm(np.diff(np.asarray(xy, float), axis=0), axis=-1) / dt
+    across = np.abs(omega) * speed
+    if n < 3:
+        return np.zeros(n - 1), across
+    at_fix = np.zeros(n)
+    at_fix[1:-1] = np.abs(np.diff(omega)) / ((tt[2:] - tt[:-2]) / 2.0)
+    at_fix[0], at_fix[-1] = at_fix[1], at_fix[-2]
+    return np.maximum(at_fix[:-1], at_fix[1:]), across
+
+
+def motion_sigma(br: Bracket, accel_sigma: float | Array) -> Array:
+    """Standard deviation of the linear interpolant's error under an unmodelled constant
+    acceleration of std ``accel_sigma`` (a number, or one per query time):
+    ``accel_sigma / 2 * |tau_a tau_b|`` (module docstring). With one fix (no interpolant)
+    it is 0 at the fix and unbounded elsewhere: such times are not :func:`reachable`."""
+    return 0.5 * accel_sigma * np.abs(br.tau_a * br.tau_b)
