@@ -64,6 +64,10 @@ class Landmark:
     view: np.ndarray = field(default_factory=lambda: np.zeros(2))
     """Sum of the horizontal unit directions (East, North) of its rays: the side it is
     seen from (two same-class signs back to back are never one)."""
+    in_view: int = 0
+    """Units that had it in view (:mod:`hdmap.mapping.sightings`)."""
+    seen: int = 0
+    """Of those, the units that linked rays to it."""
 
 
 @dataclass
@@ -237,6 +241,7 @@ class LandmarkTable:
         """``drop`` becomes part of ``keep``: its view and co-visibility counts move over,
         its record is deleted (the caller merges the sums rows)."""
         keep.view = keep.view + drop.view
+        keep.in_view, keep.seen = keep.in_view + drop.in_view, keep.seen + drop.seen
         for other, n in self._unlist(drop).items():
             if other != keep.id:
                 self.add_covis(keep.id, other, n)

@@ -34,6 +34,7 @@ from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
 from hdmap.mapping.initiation import InitConfig
 from hdmap.mapping.landmarks import LandmarkTable
 from hdmap.mapping.quiet import QuietPasses, note_open
+from hdmap.mapping.sightings import SightingConfig
 from hdmap.mapping.trust import FleetOffsets, TrustConfig, VehicleTrust
 
 
@@ -130,6 +131,9 @@ class MatchingConfig:
     landmark."""
     group_min_rays: int = 2
     """Smallest group that is checked (one ray does not triangulate)."""
+    sightings: SightingConfig = field(default_factory=SightingConfig)
+    """Landmarks that the passes having them in view do not detect are retired
+    (:mod:`hdmap.mapping.sightings`: second copies of a sign, counted ``retired_unseen``)."""
     track_drop_unlinked: bool = True
     """Rays of a track that went to a landmark without them (outside the gate) are dropped
     rather than left to start another landmark of the same sign."""

@@ -28,6 +28,7 @@ from hdmap.mapping.matching import Matching
 from hdmap.mapping.merge import facings_of, merge_touched
 from hdmap.mapping.pending import enforce_budget, initiate
 from hdmap.mapping.probation import settle
+from hdmap.mapping.sightings import in_view, unseen
 from hdmap.mapping.trust import VehicleTrust
 
 
@@ -126,8 +127,39 @@ def match_unit(
     # after initiation took what it could: an honest upload's rays (all of them waiting,
     # in a tile with no landmark yet) are not evicted before they had their chance
     enforce_budget(m, tile, vehicle, pass_id)
+    if cands and m.config.sightings.enabled:
+        touched -= count_sightings(m, frame, rays, cands, matched)
     refresh(m, sorted(touched))
     merge_touched(m, sorted(touched))
+
+
+def count_sightings(
+    m: Matching, frame: Any, rays: LocalRays, cands: list[Landmark], matched: np.ndarray
+) -> set[int]:
+    """Count, for the unit's candidate landmarks, whether it had them in view and whether
+    it linked rays to them; retire those whose share says they are not there
+    (:mod:`hdmap.mapping.sightings`, counted ``retired_unseen``). ``rays`` are in
+    ``frame`` (the unit's tile's). Returns the retired."""
+    cfg = m.config.sightings
+    seen = np.zeros(len(cands), bool)
+    seen[matched[matched >= 0]] = True
+    x = frame.from_ecef(np.array([c.x for c in cands]))
+    fac = facings_of(m, cands)
+    view = seen | in_view(rays.origin, rays.direction, x, fac.azimuth, fac.known, cfg)
+    gone: set[int] = set()
+    for k in np.flatnonzero(view):
+        lm = cands[k]
+        if m.state.landmarks.get(lm.id) is not lm:  # merged or retired in this unit
+            continue
+        lm.in_view += 1
+        lm.seen += int(seen[k])
+        m.state.put(lm)
+        if unseen(lm.seen, lm.in_view, cfg):
+            m.state.remove(lm)
+            m.out[lm.home].ended.append(lm.id)
+            m.tally("retired_unseen", 1)
+            gone.add(lm.id)
+    return gone
 
 
 def group_check(

@@ -46,6 +46,8 @@ CREATE TABLE IF NOT EXISTS trust_status (
     vehicle TEXT PRIMARY KEY, status INTEGER NOT NULL, held_homes TEXT NOT NULL,
     last_seen REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS sightings (
+    id INTEGER PRIMARY KEY, in_view INTEGER NOT NULL, seen INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
@@ -108,9 +110,14 @@ class MatcherState(LandmarkTable):
                 for r, lm in zip(rows, dirty, strict=True)
             ],
         )
+        c.executemany(
+            "INSERT OR REPLACE INTO sightings(id, in_view, seen) VALUES (?,?,?)",
+            [(r[0], lm.in_view, lm.seen) for r, lm in zip(rows, dirty, strict=True) if lm.in_view],
+        )
         gone = [(id_to_sql(i),) for i in sorted(self._deleted)]
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
+        c.executemany("DELETE FROM sightings WHERE id=?", gone)
         pairs = sorted(self._covis_dirty)
         c.executemany(
             "DELETE FROM covis WHERE a=? AND b=?",
@@ -264,6 +271,10 @@ class MatcherState(LandmarkTable):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.view = np.array([e, n], float)
+        for i, n_in, n_seen in c.execute("SELECT id, in_view, seen FROM sightings"):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.in_view, lm.seen = int(n_in), int(n_seen)
         for a, b, n in c.execute("SELECT a, b, n FROM covis"):
             self.add_covis(id_from_sql(a), id_from_sql(b), int(n))
         prow = c.execute(
