@@ -48,9 +48,7 @@ def advance(m: Matching) -> bool:
     """After an obs entry: settle what the clock's advance settles (see the module);
     returns whether it swept."""
     follow_time(m)
-    period = m.period(m.now)
-    if period == m.swept:
+    if not m.sweeps.due(m.now):
         return False
-    m.swept = period
     sweep(m)
     return True

@@ -127,6 +127,20 @@ def view_vectors(direction: ArrayLike) -> Array:
     return np.divide(d, n, out=np.zeros_like(d), where=n > 0)
 
 
+def summed_views(ids: ArrayLike, direction: ArrayLike) -> tuple[Array, Array, Array]:
+    """Rays grouped by the landmark each went to (``ids``): per distinct id, the index of
+    its first ray, the sum of its rays' :func:`view_vectors` and their count.
+
+    >>> first, view, n = summed_views([7, 3, 7], [[1.0, 0, 0], [0, 2.0, 0], [1.0, 0, 0]])
+    >>> first.tolist(), view.tolist(), n.tolist()
+    ([1, 0], [[0.0, 1.0], [2.0, 0.0]], [1, 2])
+    """
+    _uniq, first, inv = np.unique(np.asarray(ids), return_index=True, return_inverse=True)
+    view = np.zeros((first.size, 2))
+    np.add.at(view, inv, view_vectors(direction))
+    return first, view, np.bincount(inv, minlength=first.size)
+
+
 def viewing_azimuth(direction: ArrayLike) -> Array:
     """(n,) azimuth from the sign toward the camera (of ``-direction``), radians clockwise
     from North, in [0, 2 pi)."""

@@ -19,6 +19,7 @@ from hdmap.geo.tiles import quadkeys_of
 from hdmap.mapping.association import LocalRays
 from hdmap.mapping.estimator import Rays
 from hdmap.mapping.estimator.provisional import prior_covariance, usable
+from hdmap.mapping.facing import summed_views
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.matching import Matching
 from schemas.ids import hold_key, pass_key
@@ -94,15 +95,10 @@ def link(
 def note_views(m: Matching, obs: Any, lms: list[Landmark]) -> None:
     """Viewing directions, and same-class landmarks detected in one image (all rays
     here are of one vehicle pass)."""
-    ids = np.array([lm.id for lm in lms], np.uint64)
-    uniq, first, inv = np.unique(ids, return_index=True, return_inverse=True)
-    d = obs.direction[:, :2]
-    n = np.linalg.norm(d, axis=1, keepdims=True)
-    view = np.zeros((uniq.size, 2))
-    np.add.at(view, inv, np.divide(d, n, out=np.zeros_like(d), where=n > 0))
+    first, view, _n = summed_views(np.array([lm.id for lm in lms], np.uint64), obs.direction)
     for j, k in enumerate(first.tolist()):
         lms[k].view = lms[k].view + view[j]
-    if uniq.size < 2:
+    if first.size < 2:
         return
     img = obs.image.astype(np.int64)
     u, cnt = np.unique(img, return_counts=True)

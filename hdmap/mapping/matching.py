@@ -33,7 +33,7 @@ from hdmap.mapping.association import GateConfig
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
 from hdmap.mapping.initiation import InitConfig
 from hdmap.mapping.landmarks import LandmarkTable
-from hdmap.mapping.quiet import QuietPasses, note_open
+from hdmap.mapping.quiet import QuietPasses, SweepPeriods, note_open
 from hdmap.mapping.sightings import SightingConfig
 from hdmap.mapping.trust import FleetOffsets, TrustConfig, VehicleTrust
 
@@ -231,8 +231,8 @@ class Matching:
         self._areas: dict[str, list[str]] = {}
         self.sums = LandmarkSums(config.estimator)
         self.quiet = QuietPasses(config.close_passes_after_s, clock=lambda: self.now)
-        self.swept = 0
-        """The sweep period (:attr:`MatchingConfig.sweep_every_s`) of the clock's last sweep."""
+        self.sweeps = SweepPeriods(config.sweep_every_s)
+        """When the clock last entered a new sweep period (``sweep_every_s``)."""
         self.fleet = FleetOffsets(config.trust)
         self.flagged: dict[str, tuple[float, float]] = {}
         """(weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
@@ -242,7 +242,7 @@ class Matching:
         """After ``state`` was (re)loaded with ``sums``: open passes are quiet from now on,
         the fleet's offsets and the flagged vehicles follow the trust records."""
         self.sums = sums
-        self.swept = self.period(self.now)  # the last entry applied swept what was due
+        self.sweeps.restart(self.now)
         self.quiet.clear()
         note_open(self.quiet, self.sums, self.state)
         self.flagged = {}
@@ -257,11 +257,6 @@ class Matching:
     def now(self) -> float:
         """The matcher's clock: event time, monotone (:meth:`entry_time`)."""
         return self.state.event_time
-
-    def period(self, t: float) -> int:
-        """The sweep period (``sweep_every_s``) time ``t`` falls in."""
-        every = self.config.sweep_every_s
-        return int(t // every) if every > 0 else 0
 
     def is_ahead(self, received_at: float) -> bool:
         """An ingest stamp too far ahead of the wall clock to be trusted."""
@@ -290,7 +285,7 @@ class Matching:
         each other in their own unit, not rays of other passes (which is what the TTL
         means in event time)."""
         now = self.state.event_time
-        t = capture_t[np.isfinite(capture_t)] if capture_t.size else capture_t
+        t = capture_t[np.isfinite(capture_t)]
         newest = float(t.max()) if t.size else received_at
         if self.is_ahead(received_at):
             self.tally("time_clamped", 1)

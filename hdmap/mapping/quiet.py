@@ -83,6 +83,37 @@ class QuietPasses:
         self._open.clear()
 
 
+class SweepPeriods:
+    """Whether an event-time clock has entered a new period of ``every_s`` since the last
+    sweep: the matcher's and the solver's timers run at the entry that moved the clock
+    there, so at the same entry live and on a replay (:mod:`hdmap.mapping.event_time`).
+    ``every_s`` <= 0: one period for ever (nothing is ever due).
+
+    >>> s = SweepPeriods(60.0); s.restart(100.0)
+    >>> s.due(110.0), s.due(125.0), s.due(125.0), s.due(300.0)
+    (False, True, False, True)
+    """
+
+    def __init__(self, every_s: float):
+        self.every_s = float(every_s)
+        self._last = 0
+
+    def _period(self, t: float) -> int:
+        return int(t // self.every_s) if self.every_s > 0 else 0
+
+    def restart(self, t: float) -> None:
+        """After a (re)load at clock ``t``: the entry that moved it there has swept."""
+        self._last = self._period(t)
+
+    def due(self, t: float) -> bool:
+        """The clock is at ``t``: whether that is a new period (then it counts as swept)."""
+        p = self._period(t)
+        if p == self._last:
+            return False
+        self._last = p
+        return True
+
+
 class _State(Protocol):
     """A service's landmark table: ``landmarks`` by id (with ``.row``) and ``put`` to save."""
 

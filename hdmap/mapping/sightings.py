@@ -139,6 +139,6 @@ def _binom_cdf(s: int, n: int, p: float) -> float:
 
 def unseen(seen: int, n_in_view: int, cfg: SightingConfig) -> bool:
     """Whether a landmark's share is binomially below ``p_min`` (see the module)."""
-    if n_in_view < cfg.min_in_view:
-        return False
+    if n_in_view < cfg.min_in_view or seen >= cfg.p_min * n_in_view:
+        return False  # the bound is never below the share itself: no need to solve it
     return share_upper_bound(seen, n_in_view, cfg.confidence) < cfg.p_min

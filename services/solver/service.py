@@ -26,7 +26,7 @@ from hdmap.geo.tiles import TileFrames, frame_map, quadkeys_of
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.estimator.provisional import usable
 from hdmap.mapping.facing import FacingConfig, to_wire
-from hdmap.mapping.quiet import QuietPasses, close_quiet, merge_rows, note_open
+from hdmap.mapping.quiet import QuietPasses, SweepPeriods, close_quiet, merge_rows, note_open
 from hdmap.runtime.stage import StageService
 from schemas import (
     DROP,
@@ -121,6 +121,7 @@ class SolverService(StageService):
         self.frames = TileFrames()
         self.state = SolverState(self.db)
         self._quiet = QuietPasses(self.config.close_passes_after_s, clock=self._now)
+        self._sweeps = SweepPeriods(self.config.sweep_every_s)
         self._reload()
         self._counts: dict[str, float] = {}
         self._snapshot_counts()
@@ -128,17 +129,13 @@ class SolverService(StageService):
     def _reload(self) -> None:
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
-        self._swept = self._period(self.state.event_time)
+        self._sweeps.restart(self.state.event_time)
         self._quiet.clear()
         note_open(self._quiet, self.sums, self.state)
 
     def _now(self) -> float:
         """The solver's clock (event time, :meth:`group_time`)."""
         return self.state.event_time
-
-    def _period(self, t: float) -> int:
-        every = self.config.sweep_every_s
-        return int(t // every) if every > 0 else 0
 
     @staticmethod
     def group_time(g: AssocGroup) -> float | None:
@@ -156,9 +153,7 @@ class SolverService(StageService):
     def _sweep(self) -> None:
         """After a group: close the passes due if the clock entered a new sweep period
         (counted ``passes_closed``)."""
-        period = self._period(self.state.event_time)
-        if period != self._swept:
-            self._swept = period
+        if self._sweeps.due(self.state.event_time):
             self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
 
     def on_commit(self) -> None:

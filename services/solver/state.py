@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hdmap.mapping.facing import Facing, facing_from_sums, view_vectors
+from hdmap.mapping.facing import Facing, facing_from_sums, summed_views
 from hdmap.runtime.store import id_from_sql, id_to_sql
 
 SCHEMA = """
@@ -52,10 +52,12 @@ class SolverState:
         self._dirty.add(lm.id)
 
     def note_views(self, lms: list[SolverLandmark], direction: np.ndarray) -> None:
-        """Ray ``k`` (unit ``direction[k]``, camera toward sign) was linked to ``lms[k]``."""
-        for lm, v in zip(lms, view_vectors(direction), strict=True):
-            lm.view = lm.view + v
-            lm.view_n += 1
+        """Ray ``k`` (unit ``direction[k]``, camera toward sign) was linked to ``lms[k]``
+        (summed per landmark first: one update each, not one per ray)."""
+        first, view, n = summed_views(np.array([lm.id for lm in lms], np.uint64), direction)
+        for j, k in enumerate(first.tolist()):
+            lm = lms[k]
+            lm.view, lm.view_n = lm.view + view[j], lm.view_n + int(n[j])
 
     def facings(self, lms: list[SolverLandmark], n_passes: np.ndarray, min_rays: int) -> Facing:
         """The landmarks' facings, over their passes as independent looks."""
