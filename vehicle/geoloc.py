@@ -48,6 +48,7 @@ from vehicle.pose import (
     motion_sigma,
     observed_accels,
     reachable,
+    white_share,
 )
 
 Array = NDArray[np.float64]
@@ -338,15 +339,20 @@ def antenna_poses(
     m_h, m_psi = turn_sigmas(br, ft, psi, xyz, timing)
     m_v = motion_sigma(br, timing.accel_v_sigma_mps2)
     s_psi = np.radians(np.asarray(fixes.sigma_heading_deg, float))
+    s_h, s_v = np.asarray(fixes.sigma_h_m, float), np.asarray(fixes.sigma_v_m, float)
+    # The heading's white share: the bias compensation takes the rays' angular variance
+    # as told (docs/experiments/2026-12-interpolated-sigma-overcompensation.md). The
+    # positions keep the upper bound: they only widen gates and weights.
+    r_psi = white_share(ft, psi, s_psi, angle=True)
     return AntennaPoses(
         t=t,
         lat=np.atleast_1d(lat_i),
         lon=np.atleast_1d(lon_i),
         h=np.atleast_1d(h_i),
         heading_rad=interpolate_angle(br, psi),
-        sigma_h_m=np.hypot(interpolate_sigma(br, fixes.sigma_h_m), m_h),
-        sigma_v_m=np.hypot(interpolate_sigma(br, fixes.sigma_v_m), m_v),
-        sigma_heading_rad=np.hypot(interpolate_sigma(br, s_psi), m_psi),
+        sigma_h_m=np.hypot(interpolate_sigma(br, s_h), m_h),
+        sigma_v_m=np.hypot(interpolate_sigma(br, s_v), m_v),
+        sigma_heading_rad=np.hypot(interpolate_sigma(br, s_psi, r_psi), m_psi),
     )
 
 

@@ -25,7 +25,12 @@ weight ``w`` of fix ``b``. Consecutive fixes share most of their error (a receiv
 drifts slowly), and for any correlation the standard deviation is at most
 ``|1 - w| sigma_a + |w| sigma_b`` (:func:`interpolate_sigma`, exact for fully correlated
 errors inside the interval, and an upper bound outside it, where ``w`` leaves [0, 1]).
-The two terms are independent and add in quadrature.
+The two terms are independent and add in quadrature. For the heading the bound is too
+wide to use: the map's bias compensation takes a ray's angular variance as told, and at the
+paper's 0.35 rad of white heading error the bound over-corrects by tens of metres. There a
+fix's error is taken as a shared part plus a white part whose share :func:`white_share`
+estimates from the pass's own fixes, and :func:`interpolate_sigma` combines the two
+(docs/experiments/2026-12-interpolated-sigma-overcompensation.md).
 
 **What the fixes show of the acceleration** (``PoseTiming.observed_turns``, off by
 default). ``sigma_a`` is then a floor: where the fixes
@@ -165,11 +170,62 @@ def interpolate_angle(br: Bracket, angle_rad: ArrayLike) -> Array:
     return (a[br.ia] + br.w * d) % (2.0 * np.pi)
 
 
-def interpolate_sigma(br: Bracket, sigma: ArrayLike) -> Array:
-    """Upper bound of the standard deviation of ``(1 - w) e_a + w e_b`` for any correlation
-    of the two fixes' errors: ``|1 - w| sigma_a + |w| sigma_b`` (module docstring)."""
+def interpolate_sigma(br: Bracket, sigma: ArrayLike, white: float = 0.0) -> Array:
+    """Standard deviation of ``(1 - w) e_a + w e_b`` when a share ``white`` of each fix's
+    sigma is white noise and the rest an error consecutive fixes share (a bias):
+    ``sqrt((1 - r^2) c^2 + r^2 u^2)`` with ``c = |1 - w| sigma_a + |w| sigma_b`` (shared) and
+    ``u = hypot((1 - w) sigma_a, w sigma_b)`` (white). ``white=0`` is the upper bound for
+    any correlation (module docstring); :func:`white_share` estimates it from the fixes.
+
+    >>> br = bracket(np.array([0.0, 1.0]), np.array([0.5]))
+    >>> interpolate_sigma(br, [1.0, 1.0]).tolist()  # shared: the bound
+    [1.0]
+    >>> interpolate_sigma(br, [1.0, 1.0], 1.0).round(4).tolist()  # white
+    [0.7071]
+    """
     s = np.asarray(sigma, float)
-    return np.abs(1.0 - br.w) * s[br.ia] + np.abs(br.w) * s[br.ib]
+    shared = np.abs(1.0 - br.w) * s[br.ia] + np.abs(br.w) * s[br.ib]
+    r2 = float(np.clip(white, 0.0, 1.0)) ** 2
+    if r2 == 0.0:
+        return shared
+    alone = np.hypot((1.0 - br.w) * s[br.ia], br.w * s[br.ib])
+    return np.sqrt((1.0 - r2) * shared**2 + r2 * alone**2)
+
+
+def white_share(
+    t: ArrayLike, values: ArrayLike, sigma: ArrayLike, angle: bool = False, min_fixes: int = 10
+) -> float:
+    """The share of the reported ``sigma`` (per fix) that is white noise, from the fixes
+    themselves: per interior fix the second divided difference of ``values`` (n, or n x k,
+    pooled over columns; ``angle``: wrapped, rad) normalised to the variance of one fix's
+    white error, ``z = (dv_2 / h_2 - dv_1 / h_1) / sqrt(1/h_1^2 + (1/h_1 + 1/h_2)^2 +
+    1/h_2^2)``; its robust scale (1.4826 median |z|; turns and accelerations are the
+    outliers) over the median reported sigma, in [0, 1]. A bias consecutive fixes share
+    cancels in the differences. Fewer than ``min_fixes``: 0 (the upper bound).
+
+    >>> rng = np.random.default_rng(0)
+    >>> t = np.arange(200) * 0.2
+    >>> white = 10.0 * t + rng.normal(0.0, 1.0, 200)  # 1 m white, reported 1 m
+    >>> 0.8 < white_share(t, white, np.ones(200)) <= 1.0
+    True
+    >>> round(white_share(t, 10.0 * t + 3.0, np.ones(200)), 6)  # a bias only
+    0.0
+    """
+    tt = np.asarray(t, float).reshape(-1)
+    v = np.asarray(values, float).reshape(tt.size, -1)
+    if tt.size < max(min_fixes, 3):
+        return 0.0
+    h1 = (tt[1:-1] - tt[:-2])[:, None]
+    h2 = (tt[2:] - tt[1:-1])[:, None]
+    dv = np.diff(v, axis=0)
+    if angle:
+        dv = (dv + np.pi) % (2.0 * np.pi) - np.pi
+    d2 = dv[1:] / h2 - dv[:-1] / h1
+    z = d2 / np.sqrt(1.0 / h1**2 + (1.0 / h1 + 1.0 / h2) ** 2 + 1.0 / h2**2)
+    ref = float(np.median(np.asarray(sigma, float)))
+    if not (np.isfinite(ref) and ref > 0.0):
+        return 0.0
+    return float(np.clip(1.4826 * np.median(np.abs(z)) / ref, 0.0, 1.0))
 
 
 def observed_accels(t: ArrayLike, heading_rad: ArrayLike, xy: ArrayLike) -> tuple[Array, Array]:
