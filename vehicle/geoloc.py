@@ -49,6 +49,7 @@ from vehicle.pose import (
     observed_accels,
     reachable,
     white_share,
+    wrap_angle,
 )
 
 Array = NDArray[np.float64]
@@ -210,10 +211,6 @@ def _angles_in_vehicle(intr: Intrinsics, cam: Mount, uv: Array) -> tuple[Array, 
     return d_v, az, el
 
 
-def _wrap(a: Array) -> Array:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 @dataclass(frozen=True)
 class FixCheck:
     """Onboard integrity check of GNSS fixes against their neighbours' track."""
@@ -339,7 +336,6 @@ def antenna_poses(
     m_h, m_psi = turn_sigmas(br, ft, psi, xyz, timing)
     m_v = motion_sigma(br, timing.accel_v_sigma_mps2)
     s_psi = np.radians(np.asarray(fixes.sigma_heading_deg, float))
-    s_h, s_v = np.asarray(fixes.sigma_h_m, float), np.asarray(fixes.sigma_v_m, float)
     # The heading's white share: the bias compensation takes the rays' angular variance
     # as told (docs/experiments/2026-12-interpolated-sigma-overcompensation.md). The
     # positions keep the upper bound: they only widen gates and weights.
@@ -350,8 +346,8 @@ def antenna_poses(
         lon=np.atleast_1d(lon_i),
         h=np.atleast_1d(h_i),
         heading_rad=interpolate_angle(br, psi),
-        sigma_h_m=np.hypot(interpolate_sigma(br, s_h), m_h),
-        sigma_v_m=np.hypot(interpolate_sigma(br, s_v), m_v),
+        sigma_h_m=np.hypot(interpolate_sigma(br, fixes.sigma_h_m), m_h),
+        sigma_v_m=np.hypot(interpolate_sigma(br, fixes.sigma_v_m), m_v),
         sigma_heading_rad=np.hypot(interpolate_sigma(br, s_psi, r_psi), m_psi),
     )
 
@@ -408,7 +404,7 @@ def geolocate(
         delta = np.array([du, dv])
         _, a_p, e_p = _angles_in_vehicle(intr, cam, uv + delta)
         _, a_m, e_m = _angles_in_vehicle(intr, cam, uv - delta)
-        grads.append((_wrap(a_p - a_m) / (2 * step), (e_p - e_m) / (2 * step)))
+        grads.append((wrap_angle(a_p - a_m) / (2 * step), (e_p - e_m) / (2 * step)))
     (da_du, de_du), (da_dv, de_dv) = grads
     s_px2 = model.pixel_sigma**2
     s_psi = pose.sigma_heading_rad

@@ -158,6 +158,11 @@ def interpolate(br: Bracket, values: ArrayLike) -> Array:
     return (1.0 - w) * v[br.ia] + w * v[br.ib]
 
 
+def wrap_angle(a: ArrayLike) -> Array:
+    """Angles (rad) wrapped to [-pi, pi): the short way round."""
+    return (np.asarray(a, float) + np.pi) % (2.0 * np.pi) - np.pi
+
+
 def interpolate_angle(br: Bracket, angle_rad: ArrayLike) -> Array:
     """Per-fix angles interpolated the short way round the circle, wrapped to [0, 2 pi).
 
@@ -166,7 +171,7 @@ def interpolate_angle(br: Bracket, angle_rad: ArrayLike) -> Array:
     [0.0]
     """
     a = np.asarray(angle_rad, float)
-    d = (a[br.ib] - a[br.ia] + np.pi) % (2.0 * np.pi) - np.pi
+    d = wrap_angle(a[br.ib] - a[br.ia])
     return (a[br.ia] + br.w * d) % (2.0 * np.pi)
 
 
@@ -212,19 +217,17 @@ def white_share(
     0.0
     """
     tt = np.asarray(t, float).reshape(-1)
-    v = np.asarray(values, float).reshape(tt.size, -1)
-    if tt.size < max(min_fixes, 3):
+    ref = float(np.median(np.asarray(sigma, float))) if tt.size else 0.0
+    if tt.size < max(min_fixes, 3) or not (np.isfinite(ref) and ref > 0.0):
         return 0.0
+    v = np.asarray(values, float).reshape(tt.size, -1)
     h1 = (tt[1:-1] - tt[:-2])[:, None]
     h2 = (tt[2:] - tt[1:-1])[:, None]
     dv = np.diff(v, axis=0)
     if angle:
-        dv = (dv + np.pi) % (2.0 * np.pi) - np.pi
+        dv = wrap_angle(dv)
     d2 = dv[1:] / h2 - dv[:-1] / h1
     z = d2 / np.sqrt(1.0 / h1**2 + (1.0 / h1 + 1.0 / h2) ** 2 + 1.0 / h2**2)
-    ref = float(np.median(np.asarray(sigma, float)))
-    if not (np.isfinite(ref) and ref > 0.0):
-        return 0.0
     return float(np.clip(1.4826 * np.median(np.abs(z)) / ref, 0.0, 1.0))
 
 
@@ -245,7 +248,7 @@ def observed_accels(t: ArrayLike, heading_rad: ArrayLike, xy: ArrayLike) -> tupl
     if n < 2:
         return np.zeros(0), np.zeros(0)
     dt = np.diff(tt)
-    omega = ((np.diff(np.asarray(heading_rad, float)) + np.pi) % (2.0 * np.pi) - np.pi) / dt
+    omega = wrap_angle(np.diff(np.asarray(heading_rad, float))) / dt
     speed = np.linalg.norm(np.diff(np.asarray(xy, float), axis=0), axis=-1) / dt
     across = np.abs(omega) * speed
     if n < 3:
