@@ -33,10 +33,17 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import machine, machine_line, write_json
-from fleetsim.attack_run import CONTROL, AttackProcess, CpuBurner, run_under_attack
-from fleetsim.attacks import ATTACK_NAMES
+from fleetsim.attack_run import (
+    CONTROL,
+    AttackProcess,
+    CpuBurner,
+    SubscriberCrowd,
+    run_under_attack,
+)
+from fleetsim.attacks import ATTACK_NAMES, attack_identity
 from fleetsim.loadgen import LoadConfig
-from hdmap.ops.stack import Stack
+from hdmap.ops.security import generate
+from hdmap.ops.stack import Stack, free_port
 from hdmap.runtime.bus import open_session
 
 RATIO_MAX = 2.0
@@ -53,24 +60,50 @@ def one_run(
     cfg: LoadConfig,
     drain_timeout: float,
     attacker_cpus: frozenset[int] | None = None,
+    secure: bool = False,
+    crowd: int = 0,
 ) -> dict:
     """One honest load on a fresh stack, with or without ``attack``; its summary.
     ``attacker_cpus``: the attacker's CPUs (``--pin``: this process, the stack and the
-    honest fleet keep the others)."""
+    honest fleet keep the others). ``secure``: the stack in secured mode (TLS, mTLS, the
+    router's ACL); the honest fleet on the operator's session, the attacker
+    authenticated as the one vehicle of :func:`fleetsim.attacks.attack_identity`.
+    ``crowd``: that many more subscribed vehicles, each a session of its own, in a process
+    of their own (:class:`fleetsim.attack_run.SubscriberCrowd`), through the whole run."""
     la0 = load_average()
     t0 = time.monotonic()
-    with tempfile.TemporaryDirectory() as tmp, Stack(Path(tmp) / "stack") as st:
-        st.start_all()
-        attacks: list = []
-        if with_attacker:
-            attacks = [
-                CpuBurner(cfg.duration_s, attacker_cpus)
-                if attack == CONTROL
-                else AttackProcess(attack, st.bus, cfg.duration_s, cpus=attacker_cpus)
-            ]
-        with open_session(st.bus) as session:
-            r = run_under_attack(session, cfg, attacks, drain_timeout=drain_timeout)
-        st.stop_all()
+    with tempfile.TemporaryDirectory() as tmp:
+        dep, attacker_bus = None, None
+        if secure:
+            identity = "cpu-control" if attack == CONTROL else attack_identity(attack)
+            dep = generate(
+                Path(tmp) / "secure", [identity, "crowd"], f"tls/127.0.0.1:{free_port()}"
+            )
+            attacker_bus = dep.bus(identity)
+        where = {"listen": dep.endpoint, "security": dep} if dep is not None else {}
+        with Stack(Path(tmp) / "stack", **where) as st:
+            st.start_all()
+            attacks: list = []
+            if with_attacker:
+                attacks = [
+                    CpuBurner(cfg.duration_s, attacker_cpus)
+                    if attack == CONTROL
+                    else AttackProcess(
+                        attack, attacker_bus or st.bus, cfg.duration_s, cpus=attacker_cpus
+                    )
+                ]
+            crowd_run = None
+            if crowd:
+                crowd_run = SubscriberCrowd(crowd, st.bus if dep is None else dep.bus("crowd"), cfg)
+                crowd_run.start()
+            try:
+                with open_session(st.bus) as session:
+                    r = run_under_attack(session, cfg, attacks, drain_timeout=drain_timeout)
+            finally:
+                if crowd_run is not None:
+                    crowd_run.stop()
+                    crowd_run.join(30.0)
+            st.stop_all()
     h = r["honest"]
     return {
         "attack": attack,
@@ -91,6 +124,7 @@ def one_run(
         "drain_s": r["drain_s"],
         "started_quiet": r["started_quiet"],
         "attacker": r["attacks"][0] if r["attacks"] else None,
+        "crowd": crowd_run.report().as_dict() if crowd_run is not None else None,
         "attack_failures": r["attack_failures"],
         "refusals": r["refusals"],
         "services_cpu_s": {s: round(v["cpu_s"], 2) for s, v in r["services"].items()},
@@ -114,6 +148,8 @@ def print_run(x: dict) -> None:
         f"  ({x['wall_s']:.0f} s; load average {x['load_average_after']})"
     )
     print(line, flush=True)
+    if x.get("crowd"):
+        print(f"{'':>18}crowd: {x['crowd']['client']}, {x['crowd']['replies']} deltas taken")
     a = x["attacker"]
     if a is not None:
         print(
@@ -161,6 +197,21 @@ def main(argv: list[str] | None = None) -> int:
         "others, in both runs of a pair: the attacker's own CPU then costs the honest side "
         "nothing, as from another host",
     )
+    ap.add_argument(
+        "--secure",
+        action="store_true",
+        help="each stack in secured mode (TLS, mTLS, the router's ACL): the attacker "
+        "authenticated as one vehicle, the honest fleet on the operator's session",
+    )
+    ap.add_argument(
+        "--subscribers", type=int, help="subscribed readers that measure (default 2; quick 1)"
+    )
+    ap.add_argument(
+        "--crowd",
+        type=int,
+        default=0,
+        help="that many more subscribed vehicles, a session each, in a process of their own",
+    )
     a = ap.parse_args(argv)
     attacker_cpus: frozenset[int] | None = None
     if a.pin:
@@ -173,13 +224,15 @@ def main(argv: list[str] | None = None) -> int:
         vehicles=a.vehicles or (4 if a.quick else 10),
         rate=a.rate or (500.0 if a.quick else 1000.0),
         duration_s=a.seconds or (6.0 if a.quick else 20.0),
-        subscribers=1 if a.quick else 2,
+        subscribers=a.subscribers or (1 if a.quick else 2),
     )
     m = machine()
     print(machine_line(m), flush=True)
     print(
         f"honest load: {cfg.vehicles} vehicles, {cfg.rate:.0f} obs/s, {cfg.duration_s:.0f} s a "
-        f"run, {cfg.subscribers} subscribed readers; each run on a fresh stack",
+        f"run, {cfg.subscribers} subscribed readers; each run on a fresh "
+        f"{'secured ' if a.secure else ''}stack"
+        + (f", {a.crowd} more subscribed vehicles (sessions)" if a.crowd else ""),
         flush=True,
     )
     out: dict = {
@@ -191,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
             "subscribers": cfg.subscribers,
             "drain_timeout_s": a.drain_timeout,
             "attacker_cpus": sorted(attacker_cpus) if attacker_cpus else None,
+            "secure": a.secure,
+            "crowd": a.crowd,
         },
         "ratio_max": RATIO_MAX,
         "attacks": [],
@@ -200,7 +255,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{i}/{len(a.attacks)}] {name}", flush=True)
         runs = []
         for with_attacker in (False, True):
-            runs.append(one_run(name, with_attacker, cfg, a.drain_timeout, attacker_cpus))
+            runs.append(
+                one_run(name, with_attacker, cfg, a.drain_timeout, attacker_cpus, a.secure, a.crowd)
+            )
             print_run(runs[-1])
         v = verdict(*runs)
         if name == CONTROL:  # no attack: what one busy local core does to the ratio

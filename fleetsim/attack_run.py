@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from contextlib import ExitStack
 from dataclasses import replace
 
 import zenoh
@@ -22,9 +23,11 @@ from fleetsim import loadgen
 from fleetsim.attacks import Attack, AttackReport, make_attack, stop_all
 from fleetsim.loadgen import LoadConfig
 from fleetsim.loadtest import report
+from fleetsim.world import demo_town
 from hdmap.ops.quiesce import wait_quiet
 from hdmap.ops.status import collect
-from schemas import Stats
+from hdmap.runtime.bus import open_session
+from schemas import Stats, keys
 
 
 def run_under_attack(
@@ -243,6 +246,61 @@ class AttackProcess:
         return self._report or AttackReport(self.name_, "?")
 
 
+def _crowd_main(
+    n: int, bus, cfg: LoadConfig, cpus: frozenset[int] | None, ready, stop, out
+) -> None:
+    """Child process: ``n`` subscribed vehicles until ``stop``, each a session of its own
+    subscribed to every delta key of the load's town (:func:`fleetsim.loadgen.
+    town_tiles_with_halo`). Each subscriber keeps one sample in a ring (Zenoh drops older
+    ones in Rust, so the crowd's own CPU stays small), drained every 0.1 s; ``ready`` is
+    set once all are declared. Reports the samples taken as ``replies``."""
+    _pin(cpus)
+    tiles = loadgen.town_tiles_with_halo(
+        demo_town(cfg.seed, n_signs=cfg.n_signs, n_blocks=cfg.n_blocks)
+    )
+    taken = 0
+    with ExitStack() as es:
+        subs = []
+        for _ in range(n):
+            s = es.enter_context(open_session(bus))
+            for t in tiles:
+                subs.append(s.declare_subscriber(keys.map_delta(t), zenoh.handlers.RingChannel(1)))
+        ready.set()
+        while not stop.wait(0.1):
+            for sub in subs:
+                while sub.try_recv() is not None:
+                    taken += 1
+        for sub in subs:
+            sub.undeclare()
+    out.put((AttackReport(CROWD, f"{n} subscribers", replies=taken).as_dict(), ""))
+
+
+class SubscriberCrowd(AttackProcess):
+    """Background, not an attack: ``n`` subscribed vehicles in a process of their own
+    (:func:`_crowd_main`), each with its own session, so that the router fans every delta
+    out ``n`` times more; :meth:`start` returns once they are all subscribed (bounded by
+    ``timeout_s``)."""
+
+    def __init__(
+        self,
+        n: int,
+        bus,
+        cfg: LoadConfig,
+        cpus: frozenset[int] | None = None,
+        timeout_s: float = 120.0,
+    ):
+        ctx = multiprocessing.get_context("spawn")
+        self._ready, self.timeout_s = ctx.Event(), timeout_s
+        self._spawn(CROWD, _crowd_main, (n, bus, cfg, cpus, self._ready))
+
+    def start(self) -> None:
+        super().start()
+        if not self._ready.wait(self.timeout_s):
+            self.stop()
+            self.join(10.0)
+            raise RuntimeError(f"the subscriber crowd was not ready in {self.timeout_s:g} s")
+
+
 class CpuBurner(AttackProcess):
     """The control of an attack: a process that keeps one core busy for ``duration_s``
     and sends nothing. What it does to the honest p99 is what any attacker running on
@@ -251,6 +309,9 @@ class CpuBurner(AttackProcess):
     def __init__(self, duration_s: float, cpus: frozenset[int] | None = None):
         self._spawn(CONTROL, _spin, (duration_s, cpus))
 
+
+CROWD = "crowd"
+"""The name of :class:`SubscriberCrowd` in its report."""
 
 CONTROL = "cpu"
 """The name of :class:`CpuBurner` in the benchmark's list of attacks."""

@@ -77,6 +77,29 @@ ATTACK_NAMES = (
 )
 """Every attack :func:`make_attack` builds, in the order of the issue."""
 
+ATTACK_IDENTITIES = (
+    ("restart", "attack-restart"),
+    ("parked", "attack-parked"),
+    ("spread", "attack-spread"),
+    ("tokens", "forged-tokens"),
+    ("snapshots", "snapshot-client"),
+    ("sybil", "sybil"),
+    ("wildcard", "wildcard-client"),
+    ("future", "attack-future"),
+    ("newcomers", "newcomer-0"),
+)
+"""The vehicle identity each attack authenticates as in secured mode (the id it sends
+under; ``sybil`` and ``newcomers`` then claim other ids, which the router's ACL denies)."""
+
+
+def attack_identity(name: str) -> str:
+    """The vehicle identity of attack ``name`` in secured mode (:data:`ATTACK_IDENTITIES`)."""
+    for attack, identity in ATTACK_IDENTITIES:
+        if attack == name:
+            return identity
+    raise ValueError(f"unknown attack {name!r}; one of {', '.join(ATTACK_NAMES)}")
+
+
 Pattern = Literal["restart", "parked"]
 """The two stuck passes (:func:`stuck_pass_rays`)."""
 

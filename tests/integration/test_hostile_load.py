@@ -16,9 +16,10 @@ import threading
 import pytest
 
 from fleetsim.attack_run import run_under_attack
-from fleetsim.attacks import ATTACK_NAMES, make_attack
+from fleetsim.attacks import ATTACK_NAMES, attack_identity, make_attack
 from fleetsim.loadgen import LoadConfig
-from hdmap.ops.stack import SERVICE_NAMES
+from hdmap.ops.security import generate
+from hdmap.ops.stack import SERVICE_NAMES, Stack, free_port
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session
 
@@ -130,3 +131,63 @@ def test_honest_chain_holds_under_every_attack(stack):
         assert stack.procs[stack.service_key(name)].alive, name
     for log in (stack.data_dir / "logs").glob("*.log"):
         assert "Traceback" not in log.read_text(errors="replace"), log
+
+
+SECURED_ATTACKS = ("snapshots", "sybil", "newcomers", "wildcard", "tokens")
+"""The attacks that claim ids or keys other than their own: in secured mode each runs
+authenticated as one vehicle of the deployment (:func:`fleetsim.attacks.attack_identity`)."""
+
+
+def test_secured_mode_stops_forged_ids_at_the_router_under_load(tmp_path):
+    """Secured mode (mTLS, the router's ACL) under the same honest load: what an attacker
+    sends under ids or keys it was not given (a new snapshot client id each query, a new
+    vehicle id each upload, ``hdmap/v1/**``, wildcard tokens) never reaches a service,
+    and its own snapshot key is limited per client; the honest chain drains with zero
+    loss. The honest fleet runs on the operator's session."""
+    identities = [attack_identity(n) for n in SECURED_ATTACKS]
+    dep = generate(tmp_path / "secure", identities, f"tls/127.0.0.1:{free_port()}")
+    st = Stack(tmp_path / "stack", listen=dep.endpoint, security=dep)
+    try:
+        st.start_all()
+        attacks = [
+            make_attack(n, dep.bus(attack_identity(n)), CFG.duration_s, fast=True)
+            for n in SECURED_ATTACKS
+        ]
+        watch = StatusWatch(st.bus)
+        watch.start()
+        try:
+            with open_session(st.bus) as session:
+                r = run_under_attack(session, CFG, attacks, drain_timeout=90.0)
+        finally:
+            watch.stop.set()
+            watch.join(10.0)
+        by_name = {a["name"]: a for a in r["attacks"]}
+        assert not r["attack_failures"]
+        h = r["honest"]
+        assert h["drained"] and h["failed"] == 0 and h["acked"] == h["sent"] > 0, h
+        assert h["applied"] == h["acked"] and h["lost"] == 0 and h["zero_loss"], h["losses"]
+        ingest = r["refusals"].get("ingest", {})
+        publisher = r["refusals"].get("publisher", {})
+
+        # Forged ids and keys: denied at the router, no reply at all, nothing counted by
+        # a service (it never saw them).
+        for name in ("sybil", "newcomers", "wildcard"):
+            a = by_name[name]
+            assert a["requests"] > 0 and a["unanswered"] == a["requests"], a
+            assert a["replies"] == 0 and a["accepted"] == 0, a
+        assert "rejected.snapshot.total" not in publisher, publisher
+        assert "rejected.snapshot.tile" not in publisher, publisher
+        assert "rejected.vehicle.new" not in ingest and "rejected.batch.key" not in ingest
+        # Its own snapshot key: served within its burst, then refused per client.
+        snaps = by_name["snapshots"]
+        assert snaps["replies"] > snaps["refused"] > 0, snaps
+        assert publisher.get("rejected.snapshot.client", 0) >= snaps["errors"]["snapshot.client"]
+        # Wildcard tokens: declared, seen by no one (the ACL denies liveliness to vehicles).
+        assert by_name["tokens"]["requests"] > 0
+        assert watch.seen
+        for seen in watch.seen:
+            assert sorted(s for s, _i in seen) == sorted(SERVICE_NAMES), seen
+        for name in SERVICE_NAMES:
+            assert st.procs[st.service_key(name)].alive, name
+    finally:
+        st.stop_all()
