@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetsim.gnss_replay import course_over_ground
+from fleetsim.gnss_replay import course_with_errors
 from fleetsim.noise import GnssErrors, NoiseModel
 from fleetsim.route import Path
 from fleetsim.world import World
@@ -300,7 +300,11 @@ def simulate_pass(
     fix_enu = antenna + err.total_enu
     lat, lon, h = world.frame.to_geodetic(fix_enu)
     lat, lon, h = np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(h)
-    course = course_over_ground(t_fix, fix_enu) if noise.gnss.heading_from_track else psi_fix
+    course = (
+        course_with_errors(t_fix, psi_fix, antenna, err.total_enu)
+        if noise.gnss.heading_from_track
+        else psi_fix
+    )
     fwd = np.column_stack([np.sin(course), np.cos(course), np.zeros(n_fix)])
     fwd_local = ecef_to_enu_vectors(world.frame.vectors_to_ecef(fwd), lat, lon)
     heading = np.arctan2(fwd_local[:, 0], fwd_local[:, 1])

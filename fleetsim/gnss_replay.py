@@ -15,8 +15,9 @@ linearly interpolated between the 1 Hz samples. What the data does not have:
 - vertical: the vertical terms of :data:`fleetsim.noise.FLEET` (per-pass bias, drift,
   white), sampled as there;
 - heading: none is sampled; with ``heading_from_track`` the drive computes the fix's
-  heading as a receiver's course over ground, from the noisy fix track itself
-  (:func:`course_over_ground`), so its error is what the position errors make of it.
+  heading as a receiver's course over ground: the true velocity plus the rate of the
+  position error (:func:`course_with_errors`), so its error is what the position errors
+  make of it.
 
 What the fixes claim (``reported_sigmas``), measured on the data when the traces are
 loaded, never typed in: per horizontal axis the RMS of all errors; the heading sigma is
@@ -113,6 +114,24 @@ def course_over_ground(t: Array, enu: Array) -> Array:
     if len(t) < 2:
         return np.zeros(len(t))
     v = np.gradient(np.asarray(enu, float)[:, :2], np.asarray(t, float), axis=0)
+    return np.arctan2(v[:, 0], v[:, 1])
+
+
+def course_with_errors(t: Array, heading: Array, antenna_enu: Array, err_enu: Array) -> Array:
+    """A receiver's course over ground when its velocity is the true one plus the rate of
+    its position error: the direction of ``|v| (sin heading, cos heading) + d err / dt``
+    (``|v|`` and ``d err / dt`` by central differences over the fixes), rad from north.
+
+    What the drive uses (rather than :func:`course_over_ground` of the noisy fixes): the
+    error of the course is then what the position errors make of it, and nothing of the
+    simulated path's own geometry (a difference over a corner's start, where the path's
+    curvature jumps, is off by half the turn of a fix interval)."""
+    t = np.asarray(t, float)
+    if len(t) < 2:
+        return np.asarray(heading, float).copy()
+    speed = np.hypot(*np.gradient(np.asarray(antenna_enu, float)[:, :2], t, axis=0).T)
+    v = speed[:, None] * np.column_stack([np.sin(heading), np.cos(heading)])
+    v = v + np.gradient(np.asarray(err_enu, float)[:, :2], t, axis=0)
     return np.arctan2(v[:, 0], v[:, 1])
 
 

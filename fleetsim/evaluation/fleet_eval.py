@@ -48,6 +48,7 @@ from fleetsim.osm_town import helsinki_town, same_class_pairs
 from fleetsim.pipeline import FleetDriver, model_for
 from fleetsim.town_run import follow_town
 from fleetsim.world import World, tile_border_distance
+from hdmap.mapping.gnss_floor import SharedFloor, floor_enu, shared_floor
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
@@ -80,6 +81,10 @@ class FleetEvalConfig:
     gnss: str = "fleet"
     """``fleet``: FLEET's simulated receiver; ``gsdc``: real phone position errors replayed
     (:func:`fleetsim.gnss_replay.gsdc`), heading from the fix track, FLEET's detector."""
+    shared_floor: bool = True
+    """With ``gnss == "gsdc"``, the solver's ``shared_floor_m2`` measured from the replayed
+    error log (:func:`gsdc_floor`), as a deployment calibrates its receivers; False: none.
+    FLEET's simulated receiver draws its biases independently per pass: no floor."""
     bulk_every: int = 4
     """Every ``bulk_every``-th vehicle (indices 3, 7, ...) uploads its round's passes at once
     at the round's end, after the others' later passes (0: every vehicle uploads each pass
@@ -108,6 +113,34 @@ class FleetEvalConfig:
     @staticmethod
     def quick(out: Path) -> FleetEvalConfig:
         return FleetEvalConfig(out, passes=24, rounds=2, vehicles=6, half_height_deg=0.0018)
+
+
+def gsdc_floor() -> SharedFloor:
+    """The shared-error floor of the GSDC receivers, from the log the replay draws from
+    (:mod:`hdmap.mapping.gnss_floor`: per trace its mean, less the batch-means variance)."""
+    traces = gsdc().traces
+    return shared_floor([t.t for t in traces], [np.column_stack([t.east, t.north]) for t in traces])
+
+
+def solver_floor_args(cfg: FleetEvalConfig, run_dir: Path) -> tuple[dict, dict[str, list[str]]]:
+    """The floor the evaluation gives the solver (as JSON values) and the services'
+    extra arguments that pass it (a services config file in ``run_dir``)."""
+    if cfg.gnss != "gsdc" or not cfg.shared_floor:
+        return {"source": None, "cov_enu_m2": None}, {}
+    f = gsdc_floor()
+    c = floor_enu(f)
+    six = [c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2]]
+    path = run_dir / "services.toml"
+    path.write_text(f"[solver]\nshared_floor_m2 = [{', '.join(repr(float(v)) for v in six)}]\n")
+    info = {
+        "source": "fleetsim/data/gsdc2020_mtv1_phone_gnss_errors.csv (hdmap.mapping.gnss_floor)",
+        "cov_enu_m2": c.tolist(),
+        "sigma_en_m": f.sigma.tolist(),
+        "drives": f.drives,
+        "batches": list(f.batches),
+        "drive_means_en_m": f.drive_means.tolist(),
+    }
+    return info, {"solver": ["--config", str(path)]}
 
 
 def evaluation_world(cfg: FleetEvalConfig) -> World:
@@ -176,7 +209,11 @@ def run_fleet_eval(
         f"fleet eval: Helsinki, {len(world.signs)} signs of "
         f"{np.unique(world.signs.sign_class).size} classes, {total} passes in {cfg.rounds} rounds"
     )
-    with Stack(run_dir / "var") as stack:
+    run_dir.mkdir(parents=True)
+    floor_info, service_args = solver_floor_args(cfg, run_dir)
+    if floor_info["cov_enu_m2"] is not None:
+        say(f"shared-error floor (E, N sigma m): {np.round(floor_info['sigma_en_m'], 3).tolist()}")
+    with Stack(run_dir / "var", extra_service_args=service_args) as stack:
         stack.start_all()
         with open_session(stack.bus) as session:
             client = MapClient(session, radius_m=0.0)
@@ -247,6 +284,7 @@ def run_fleet_eval(
             "seed": cfg.seed,
             "noise": f"{noise.name} (fleetsim/noise.py)",
             "box_size_sigma_px": cfg.box_size_sigma_px,
+            "shared_floor": floor_info,
             "match_m": cfg.match_m,
             "wall_s": time.monotonic() - t0,
         },

@@ -50,6 +50,9 @@ class FleetRunOptions:
     gnss: str = "fleet"
     """GNSS errors: ``fleet`` (the simulated receiver of :data:`fleetsim.noise.FLEET`) or
     ``gsdc`` (real phone errors replayed, :mod:`fleetsim.gnss_replay`)."""
+    shared_floor: bool = True
+    """With ``gsdc``: the solver's shared-error floor measured from the replayed log
+    (:attr:`FleetEvalConfig.shared_floor`); False: ``--no-shared-floor``."""
     bulk_every: int | None = None
     """Every this-th vehicle uploads a round at once (None: :class:`FleetEvalConfig`'s;
     0: none)."""
@@ -64,6 +67,7 @@ class FleetRunOptions:
         flags += [f"--box-size-sigma {self.box_size_sigma_px:g}"] if self.box_size_sigma_px else []
         flags += [f"--gnss {self.gnss}"] if self.gnss != "fleet" else []
         flags += [f"--bulk-every {self.bulk_every}"] if self.bulk_every is not None else []
+        flags += [] if self.shared_floor else ["--no-shared-floor"]
         return flags + (["--quick"] if self.quick else [])
 
 
@@ -145,7 +149,13 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         cfg = replace(cfg, passes=opts.passes)
     if opts.rounds:
         cfg = replace(cfg, rounds=opts.rounds)
-    cfg = replace(cfg, seed=seed, box_size_sigma_px=opts.box_size_sigma_px, gnss=opts.gnss)
+    cfg = replace(
+        cfg,
+        seed=seed,
+        box_size_sigma_px=opts.box_size_sigma_px,
+        gnss=opts.gnss,
+        shared_floor=opts.shared_floor,
+    )
     if opts.bulk_every is not None:
         cfg = replace(cfg, bulk_every=opts.bulk_every)
     result, state, final = run_fleet_eval(cfg)
@@ -155,6 +165,7 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         + ([f"--box-size-sigma {cfg.box_size_sigma_px:g}"] if cfg.box_size_sigma_px else [])
         + ([f"--gnss {cfg.gnss}"] if cfg.gnss != "fleet" else [])
         + [f"--bulk-every {cfg.bulk_every}"]
+        + ([] if cfg.shared_floor else ["--no-shared-floor"])
         + (["--quick"] if opts.quick else [])
     )
     figures = write_fleet_figures(result, state.world, final, out)

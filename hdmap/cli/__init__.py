@@ -22,6 +22,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "status": ("hdmap.cli.status", "live services, their regions and counters"),
     "eval": ("hdmap.cli.eval", "accuracy evaluations (paper simulation, fleet)"),
     "loadtest": ("hdmap.cli.loadtest", "a simulated fleet against a running stack"),
+    "calibrate-gnss": (
+        "hdmap.cli.calibrate",
+        "the solver's shared-error floor from a fix-minus-truth GNSS log",
+    ),
 }
 
 

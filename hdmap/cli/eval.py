@@ -118,6 +118,13 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         "(GSDC 2020, fleetsim/gnss_replay.py)",
     )
     p.add_argument(
+        "--no-shared-floor",
+        dest="shared_floor",
+        action="store_false",
+        help="with --gnss gsdc: no shared-error floor in the solver (default: measured from "
+        "the replayed log, hdmap/mapping/gnss_floor.py)",
+    )
+    p.add_argument(
         "--bulk-every",
         type=non_negative_int,
         default=None,
@@ -141,6 +148,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         box_size_sigma_px=args.box_size_sigma,
         gnss=args.gnss,
         bulk_every=args.bulk_every,
+        shared_floor=args.shared_floor,
         quick=args.quick,
     )
     try:

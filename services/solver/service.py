@@ -27,6 +27,7 @@ from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.estimator.provisional import usable
 from hdmap.mapping.facing import FacingConfig, to_wire
 from hdmap.mapping.quiet import QuietPasses, SweepPeriods, close_quiet, merge_rows, note_open
+from hdmap.runtime.config import ConfigError
 from hdmap.runtime.stage import StageService
 from schemas import (
     DROP,
@@ -64,6 +65,12 @@ class SolverConfig:
     calibration. 0.1 m keeps the fleet evaluation's coverage from 30 passes inside
     0.93-0.97 on four seeds; 0.2 m over-covers (0.97-1.00). docs/estimator.md, sections 12
     and 15, has the measurement."""
+    shared_floor_m2: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    """ENU covariance (ee, en, eu, nn, nu, uu; m^2) of the GNSS error a landmark's passes
+    share, added to the published covariance in the landmark's local ENU: what more passes
+    do not average away. Measured from a truth-referenced error log of the fleet's
+    receivers by ``hdmap calibrate-gnss`` (:mod:`hdmap.mapping.gnss_floor`); 0 without
+    one. Must be positive semi-definite (ConfigError naming the field)."""
     close_passes_after_s: float = 7200.0
     """Close a pass (``LandmarkSums.close_passes``) once no ray of it has come for this long
     (event time: the solver's clock, :meth:`SolverService.group_time`;
@@ -83,6 +90,18 @@ class SolverConfig:
     (event time)."""
     facing_min_rays: int = FacingConfig.min_rays
     """Rays a landmark needs before its facing is published (:mod:`hdmap.mapping.facing`)."""
+
+    def __post_init__(self) -> None:
+        f = self.shared_floor_m2
+        if len(f) != 6 or not np.isfinite(f).all():
+            raise ConfigError("solver.shared_floor_m2: six finite numbers (ee en eu nn nu uu)")
+        if np.linalg.eigvalsh(self.shared_floor())[0] < -1e-12:
+            raise ConfigError("solver.shared_floor_m2: not positive semi-definite")
+
+    def shared_floor(self) -> np.ndarray:
+        """:attr:`shared_floor_m2` as a (3, 3) ENU matrix."""
+        ee, en, eu, nn, nu, uu = (float(v) for v in self.shared_floor_m2)
+        return np.array([[ee, en, eu], [en, nn, nu], [eu, nu, uu]])
 
 
 @dataclass(frozen=True)
@@ -332,12 +351,13 @@ class SolverService(StageService):
         lon = np.empty(ok.size)
         h = np.empty(ok.size)
         cov = np.empty((ok.size, 3, 3))
+        floor = self.config.shared_floor()
         for j, k in enumerate(ok):
             frame = self.frames(lms[k].home)
             la, lo, hh = frame.to_geodetic(sol.x[k][None])
             lat[j], lon[j], h[j] = la[0], lo[0], hh[0]
             r = enu_rotation(la[0], lo[0]) @ frame.rotation.T
-            cov[j] = r @ sol_cov[k] @ r.T
+            cov[j] = r @ sol_cov[k] @ r.T + floor
         tiles = quadkeys_of(lat, lon, self.opts.zoom)
         upserts: dict[str, list[int]] = defaultdict(list)
         status = np.where(sol.ok[ok], STATUS_CONFIRMED, STATUS_CANDIDATE)

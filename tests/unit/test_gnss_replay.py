@@ -10,7 +10,13 @@ import pytest
 
 from fleetsim.drive import simulate_pass
 from fleetsim.evaluation.fleet_eval import FleetEvalConfig
-from fleetsim.gnss_replay import ReplayedGnss, course_over_ground, gsdc, load_traces
+from fleetsim.gnss_replay import (
+    ReplayedGnss,
+    course_over_ground,
+    course_with_errors,
+    gsdc,
+    load_traces,
+)
 from fleetsim.noise import FLEET
 from fleetsim.route import Path as RoutePath
 from fleetsim.world import straight_road
@@ -67,14 +73,27 @@ def test_course_over_ground_of_a_straight_track_is_its_azimuth():
     assert course_over_ground(t[:1], enu[:1]).tolist() == [0.0]
 
 
+def test_course_with_errors_is_the_true_course_plus_what_the_error_rate_makes_of_it():
+    t = np.arange(0.0, 10.0, 0.2)
+    az = np.full(t.size, np.radians(30.0))
+    enu = np.column_stack([np.sin(az) * 10 * t, np.cos(az) * 10 * t])
+    np.testing.assert_allclose(course_with_errors(t, az, enu, np.zeros((t.size, 3))), az)
+    # an error growing 1 m/s to the east of a car going north at 10 m/s: atan(1/10)
+    north = np.zeros(t.size)
+    track = np.column_stack([np.zeros(t.size), 10.0 * t])
+    err = np.column_stack([1.0 * t, np.zeros(t.size), np.zeros(t.size)])
+    np.testing.assert_allclose(course_with_errors(t, north, track, err), np.arctan(0.1))
+
+
 def test_a_drive_with_replayed_errors_takes_its_heading_from_the_fix_track():
     world = straight_road(5.0, 2.4)
     noise = FleetEvalConfig(out=None, gnss="gsdc").noise()  # type: ignore[arg-type]
     assert isinstance(noise.gnss, ReplayedGnss) and noise.name == "fleet+gsdc"
     path = RoutePath.along(world, [0, 1])
     fixes, _det, truth = simulate_pass(world, path, MODEL, noise, np.random.default_rng(1))
-    fix_enu = truth.antenna_enu + truth.gnss.total_enu
-    cog = course_over_ground(fixes.t, fix_enu)
+    cog = course_with_errors(
+        fixes.t, truth.fix_heading_rad, truth.antenna_enu, truth.gnss.total_enu
+    )
     fwd = np.column_stack([np.sin(cog), np.cos(cog), np.zeros(len(cog))])
     local = ecef_to_enu_vectors(world.frame.vectors_to_ecef(fwd), fixes.lat, fixes.lon)
     want = np.degrees(np.arctan2(local[:, 0], local[:, 1])) % 360.0

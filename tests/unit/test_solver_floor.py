@@ -1,0 +1,76 @@
+"""The solver's shared-error floor (``SolverConfig.shared_floor_m2``): added to the published
+covariance in the landmark's local ENU, the estimate unchanged; a floor that is not a
+covariance is refused naming the field. In-process services on real SQLite (scene of
+tests/support/services.py: one sign, passes driving north)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdmap.runtime.config import ConfigError, from_mapping
+from hdmap.runtime.service import ServiceOptions
+from schemas import Links, NewLandmarks
+from services.solver.service import SolverConfig, SolverService
+from tests.support.services import (
+    CLS,
+    SIGN,
+    Sink,
+    assoc_entry,
+    matcher,
+    sign_rays,
+    tile_of,
+    updates,
+)
+
+FLOOR = (0.09, -0.25, 0.0, 0.70, 0.0, 0.0)
+"""The GSDC phones' floor (hdmap/mapping/gnss_floor.py on fleetsim/data), rounded."""
+
+
+def published(tmp: Path, cfg: SolverConfig):
+    tile = tile_of(ServiceOptions().zoom)
+    m = matcher(tmp / "m")
+    frame = m.frames(tile)
+    lid = m.state.next_id(tile)
+    lat, lon, h = frame.to_geodetic((SIGN + np.array([0.4, -0.3, 0.0]))[None])
+    created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
+    svc = SolverService(ServiceOptions(data_dir=tmp / "s"), cfg)
+    svc.pubs = Sink()  # type: ignore[assignment]
+    rng = np.random.default_rng(5)
+    for p in range(8):
+        obs = sign_rays(frame, p, rng)
+        obs = replace(obs, t=np.full(len(obs), 1.7e9 + 60.0 * p))
+        n = len(obs)
+        links = Links(
+            np.full(n, lid, np.uint64),
+            np.zeros(n, np.uint32),
+            np.full(n, p, np.uint64),
+            obs.t + 5.0,
+            np.ones(n, np.float32),
+        )
+        kw = {"created": created} if p == 0 else {}
+        svc._apply_in_transaction(
+            [assoc_entry(p + 1, tile, vehicles=["veh-a"], obs=obs, links=links, **kw)]
+        )
+    return updates(svc)[-1].landmarks
+
+
+def test_the_floor_is_added_to_the_published_covariance_and_nothing_else(tmp_path: Path):
+    base = published(tmp_path / "a", SolverConfig())
+    floored = published(tmp_path / "b", SolverConfig(shared_floor_m2=FLOOR))
+    assert len(base) == len(floored) == 1
+    np.testing.assert_array_equal(floored.lat, base.lat)
+    np.testing.assert_array_equal(floored.lon, base.lon)
+    np.testing.assert_allclose(floored.cov - base.cov, np.array([FLOOR]), atol=1e-12)
+
+
+def test_a_floor_that_is_not_a_covariance_is_refused_naming_the_field():
+    with pytest.raises(ConfigError, match=r"solver\.shared_floor_m2: not positive semi-definite"):
+        SolverConfig(shared_floor_m2=(1.0, 2.0, 0.0, 1.0, 0.0, 0.0))
+    with pytest.raises(ConfigError, match=r"solver\.shared_floor_m2: six finite numbers"):
+        from_mapping(SolverConfig, {"shared_floor_m2": [1.0, 0.0]}, "solver")
+    with pytest.raises(ConfigError, match="shared_floor_m2"):
+        SolverConfig(shared_floor_m2=(float("nan"), 0.0, 0.0, 1.0, 0.0, 0.0))
