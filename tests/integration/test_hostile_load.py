@@ -53,19 +53,25 @@ class StatusWatch(threading.Thread):
                     return
 
 
-def test_honest_chain_holds_under_every_attack(stack):
-    stack.start_all()
-    attacks = [make_attack(n, stack.bus, CFG.duration_s, fast=True) for n in ATTACK_NAMES]
-    watch = StatusWatch(stack.bus)
+def run_watched(bus, attacks: list) -> tuple[dict, dict, StatusWatch]:
+    """The honest load under ``attacks`` with the status client watching; the report,
+    the attacks' reports by name and the watch."""
+    watch = StatusWatch(bus)
     watch.start()
     try:
-        with open_session(stack.bus) as session:
+        with open_session(bus) as session:
             r = run_under_attack(session, CFG, attacks, drain_timeout=90.0)
     finally:
         watch.stop.set()
         watch.join(10.0)
-    by_name = {a["name"]: a for a in r["attacks"]}
     assert not r["attack_failures"]
+    return r, {a["name"]: a for a in r["attacks"]}, watch
+
+
+def test_honest_chain_holds_under_every_attack(stack):
+    stack.start_all()
+    attacks = [make_attack(n, stack.bus, CFG.duration_s, fast=True) for n in ATTACK_NAMES]
+    r, by_name, watch = run_watched(stack.bus, attacks)
 
     # The honest vehicles: everything sent acknowledged, and applied exactly once.
     h = r["honest"]
@@ -153,16 +159,7 @@ def test_secured_mode_stops_forged_ids_at_the_router_under_load(tmp_path):
             make_attack(n, dep.bus(attack_identity(n)), CFG.duration_s, fast=True)
             for n in SECURED_ATTACKS
         ]
-        watch = StatusWatch(st.bus)
-        watch.start()
-        try:
-            with open_session(st.bus) as session:
-                r = run_under_attack(session, CFG, attacks, drain_timeout=90.0)
-        finally:
-            watch.stop.set()
-            watch.join(10.0)
-        by_name = {a["name"]: a for a in r["attacks"]}
-        assert not r["attack_failures"]
+        r, by_name, watch = run_watched(st.bus, attacks)
         h = r["honest"]
         assert h["drained"] and h["failed"] == 0 and h["acked"] == h["sent"] > 0, h
         assert h["applied"] == h["acked"] and h["lost"] == 0 and h["zero_loss"], h["losses"]
