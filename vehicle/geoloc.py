@@ -333,9 +333,9 @@ def antenna_poses(
     xyz = frame.from_geodetic(lat, lon, h)
     lat_i, lon_i, h_i = frame.to_geodetic(interpolate(br, xyz))
     psi = np.radians(np.asarray(fixes.heading_deg, float))
-    m_h, m_psi = turn_sigmas(br, ft, psi, xyz, timing)
-    m_v = motion_sigma(br, timing.accel_v_sigma_mps2)
     s_psi = np.radians(np.asarray(fixes.sigma_heading_deg, float))
+    m_h, m_psi = turn_sigmas(br, ft, psi, xyz, timing, s_psi)
+    m_v = motion_sigma(br, timing.accel_v_sigma_mps2)
     # The heading's white share: the bias compensation takes the rays' angular variance
     # as told (docs/experiments/2026-12-interpolated-sigma-overcompensation.md). The
     # positions keep the upper bound: they only widen gates and weights.
@@ -353,17 +353,23 @@ def antenna_poses(
 
 
 def turn_sigmas(
-    br: Bracket, fix_t: Array, psi: Array, xyz: Array, timing: PoseTiming
+    br: Bracket,
+    fix_t: Array,
+    psi: Array,
+    xyz: Array,
+    timing: PoseTiming,
+    heading_sigma: Array | None = None,
 ) -> tuple[Array, Array]:
     """The interpolation's horizontal (m, per axis) and heading (rad) sigmas at the
     bracketed times: the configured accelerations, with ``timing.observed_turns`` raised
     in quadrature by what the fixes show of the interval's turn
-    (:func:`vehicle.pose.observed_accels`)."""
+    (:func:`vehicle.pose.observed_accels`; only what stands out of the fixes' claimed
+    heading noise ``heading_sigma``, rad)."""
     if fix_t.size < 2 or not timing.observed_turns:
         return motion_sigma(br, timing.accel_sigma_mps2), motion_sigma(
             br, timing.yaw_accel_sigma_radps2
         )
-    yaw, across = observed_accels(fix_t, psi, xyz[:, :2])
+    yaw, across = observed_accels(fix_t, psi, xyz[:, :2], heading_sigma)
     a_h = np.hypot(timing.accel_sigma_mps2, across[br.ia])
     a_psi = np.hypot(timing.yaw_accel_sigma_radps2, yaw[br.ia])
     return motion_sigma(br, a_h), motion_sigma(br, a_psi)

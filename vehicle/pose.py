@@ -32,16 +32,19 @@ fix's error is taken as a shared part plus a white part whose share :func:`white
 estimates from the pass's own fixes, and :func:`interpolate_sigma` combines the two
 (docs/experiments/2026-12-interpolated-sigma-overcompensation.md).
 
-**What the fixes show of the acceleration** (``PoseTiming.observed_turns``, off by
+**What the fixes show of the acceleration** (``PoseTiming.observed_turns``, on by
 default). ``sigma_a`` is then a floor: where the fixes
 themselves show the vehicle turning, the interval's acceleration scale is taken from them
 (:func:`observed_accels`): the yaw acceleration from the second differences of the fix
 headings at the interval's two ends (the larger), the acceleration across the path from
 its yaw rate times its chord speed, ``|omega| |p_b - p_a| / (t_b - t_a)`` (on a circle:
 ``v^2 / R``, the quadratic term that the remainder above is exact for). They add to the
-floors in quadrature. The estimates carry the fixes' noise (FLEET's 0.01 rad of heading
-white noise at 5 Hz: about 0.6 rad/s^2, which grows a mid-gap heading sigma by 3 mrad);
-they are there for the corners, where a constant floor is wrong by an order of magnitude.
+floors in quadrature. The estimates carry the fixes' noise, so a yaw rate or acceleration
+counts only beyond :data:`TURN_SIGNIFICANCE` (3) standard deviations of what the fixes'
+claimed heading noise makes of it, less that noise in quadrature (FLEET's 0.01 rad at
+5 Hz: 0.6 rad/s^2 of noise, against about 7 rad/s^2 at the start of a corner; the paper's
+0.35 rad: 21 rad/s^2, so no turn counts there); they are there for the corners, where a
+constant floor is wrong by an order of magnitude.
 
 **Not extrapolated**: a frame farther than ``max_gap_s`` from its nearest fix (inside the
 fixes' span, or before the first or after the last) has no pose (:func:`reachable`); the
@@ -66,6 +69,11 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
+TURN_SIGNIFICANCE = 3.0
+"""A turn the fixes show counts (:func:`observed_accels`) only beyond this many standard
+deviations of what their claimed heading noise makes of it."""
+
+
 @dataclass(frozen=True)
 class PoseTiming:
     """How a frame's pose is interpolated from the fixes around it (module docstring)."""
@@ -79,10 +87,13 @@ class PoseTiming:
     """Unmodelled vertical acceleration, m/s^2 (road grade changes)."""
     yaw_accel_sigma_radps2: float = 0.5
     """Unmodelled yaw acceleration, rad/s^2 (entering a corner: 0.7 rad/s in 1-2 s)."""
-    observed_turns: bool = False
+    observed_turns: bool = True
     """Raise the acceleration scales by what the fixes show of each interval's turn
-    (:func:`observed_accels`). Off by default: on the simulator it made the map worse
-    (mean error 0.79 -> 0.82 m, docs/experiments/2026-12-sensor-timing.md)."""
+    (:func:`observed_accels`). At a corner's start the heading interpolated between two
+    5 Hz fixes is off by up to a quarter of the interval's turn; without this term the
+    rays taken at yaw rates over 0.1 rad/s claimed 0.1-0.2 deg and were off 0.75-1.9 deg
+    (z RMS 5-12; with it 1.4-1.6): docs/experiments/2026-12-gsdc-course-over-ground.md.
+    (It was off while the simulator's heading turned slowly over the straights.)"""
 
     def __post_init__(self) -> None:
         for name in ("max_gap_s", "accel_sigma_mps2", "accel_v_sigma_mps2",
@@ -231,10 +242,20 @@ def white_share(
     return float(np.clip(1.4826 * np.median(np.abs(z)) / ref, 0.0, 1.0))
 
 
-def observed_accels(t: ArrayLike, heading_rad: ArrayLike, xy: ArrayLike) -> tuple[Array, Array]:
+def observed_accels(
+    t: ArrayLike,
+    heading_rad: ArrayLike,
+    xy: ArrayLike,
+    heading_sigma: ArrayLike | None = None,
+    k_sigma: float = TURN_SIGNIFICANCE,
+) -> tuple[Array, Array]:
     """Per interval between consecutive fixes (n - 1): the yaw acceleration (rad/s^2) and
     the acceleration across the path (m/s^2) the fixes show (module docstring); zeros with
-    fewer than 3 (yaw) or 2 fixes.
+    fewer than 3 (yaw) or 2 fixes. With ``heading_sigma`` (rad, per fix: the claimed
+    heading noise) a yaw rate or yaw acceleration is kept only where it exceeds
+    ``k_sigma`` times what that noise alone makes of it, less that noise in quadrature
+    (the paper's 0.35 rad of white heading noise at 5 Hz makes 2.5 rad/s of yaw rate and
+    21 rad/s^2 of yaw acceleration out of nothing).
 
     >>> t = np.arange(5.0)
     >>> psi = np.radians([0.0, 0.0, 10.0, 20.0, 20.0])  # a turn of 20 deg over 2 s
@@ -250,13 +271,30 @@ def observed_accels(t: ArrayLike, heading_rad: ArrayLike, xy: ArrayLike) -> tupl
     dt = np.diff(tt)
     omega = wrap_angle(np.diff(np.asarray(heading_rad, float))) / dt
     speed = np.linalg.norm(np.diff(np.asarray(xy, float), axis=0), axis=-1) / dt
+    s = None if heading_sigma is None else np.broadcast_to(np.asarray(heading_sigma, float), (n,))
+    if s is not None:  # the yaw rate white heading noise makes: sqrt(s_a^2 + s_b^2) / dt
+        omega = _significant(omega, np.hypot(s[:-1], s[1:]) / dt, k_sigma)
     across = np.abs(omega) * speed
     if n < 3:
         return np.zeros(n - 1), across
     at_fix = np.zeros(n)
-    at_fix[1:-1] = np.abs(np.diff(omega)) / ((tt[2:] - tt[:-2]) / 2.0)
+    mid = (tt[2:] - tt[:-2]) / 2.0
+    at_fix[1:-1] = np.abs(np.diff(omega)) / mid
+    if s is not None:
+        h1, h2 = dt[:-1], dt[1:]
+        noise = (
+            np.sqrt((s[:-2] / h1) ** 2 + (s[1:-1] * (1.0 / h1 + 1.0 / h2)) ** 2 + (s[2:] / h2) ** 2)
+            / mid
+        )
+        at_fix[1:-1] = _significant(at_fix[1:-1], noise, k_sigma)
     at_fix[0], at_fix[-1] = at_fix[1], at_fix[-2]
     return np.maximum(at_fix[:-1], at_fix[1:]), across
+
+
+def _significant(x: Array, noise: Array, k_sigma: float) -> Array:
+    """``x`` less ``noise`` in quadrature where ``|x| > k_sigma noise``, else 0 (sign kept)."""
+    keep = np.abs(x) > k_sigma * noise
+    return np.where(keep, np.sign(x) * np.sqrt(np.maximum(x * x - noise * noise, 0.0)), 0.0)
 
 
 def motion_sigma(br: Bracket, accel_sigma: float | Array) -> Array:

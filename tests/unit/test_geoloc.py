@@ -411,11 +411,13 @@ def test_pose_on_a_curve_errs_by_the_chord_and_no_more() -> None:
     assert mid.sum() >= 6 and (err[mid] >= 0.99 * bound[mid]).all()
     dpsi = np.angle(np.exp(1j * (pose.heading_rad - psi_t)))
     assert np.abs(dpsi).max() < 1e-6
-    # the motion term (the fix sigma is 1 m): the 2 m/s^2 floor by default; with
-    # observed_turns the fixes' v^2 / R = 3.3 m/s^2 joins it and covers the chord error
-    motion = np.sqrt(pose.sigma_h_m**2 - 1.0)
+    # the motion term (the fix sigma is 1 m): the 2 m/s^2 floor alone without
+    # observed_turns; with it (the default) the fixes' v^2 / R = 3.3 m/s^2 joins it and
+    # covers the chord error
+    floor_only = antenna_poses(fixes, timed_dets(t), PoseTiming(observed_turns=False))
+    motion = np.sqrt(floor_only.sigma_h_m**2 - 1.0)
     np.testing.assert_allclose(motion, 0.5 * 2.0 * tau * (1.0 - tau), atol=1e-6)
-    turn = antenna_poses(fixes, timed_dets(t), PoseTiming(observed_turns=True))
+    turn = pose
     motion = np.sqrt(turn.sigma_h_m**2 - 1.0)
     np.testing.assert_allclose(
         motion, 0.5 * np.hypot(2.0, v * v / r) * tau * (1.0 - tau), rtol=0.01, atol=1e-6
@@ -520,3 +522,26 @@ def test_white_share_separates_white_noise_from_a_shared_bias_and_sets_the_inter
     got = float(interpolate_sigma(br, [total, total], r)[0])
     # a sample std of n draws has a relative standard error of 1 / sqrt(2 n): within 4
     assert abs(got - mc) < 4.0 * got / np.sqrt(2 * len(e))
+
+
+def test_observed_turns_count_only_what_stands_out_of_the_heading_noise() -> None:
+    """White heading noise alone (0.35 rad, the paper's, at 5 Hz) makes no observed yaw rate
+    or acceleration once the claimed sigma is given: a gated yaw rate is nonzero with
+    probability P(|N| > 3) = 0.0027 per interval, an interval's yaw acceleration (the
+    larger of its two ends) with at most twice that; over 2,000 intervals the binomial's
+    99.99 % bounds are 0.8 % and 1.25 %. A real turn well above the noise (0.5 rad/s
+    against 0.07 rad/s of noise at 0.01 rad) is kept, less the noise in quadrature."""
+    from vehicle.pose import observed_accels
+
+    rng = np.random.default_rng(3)
+    t = np.arange(2001) * 0.2
+    xy = np.column_stack([np.zeros(t.size), 10.0 * t])
+    noisy = rng.normal(0.0, 0.35, t.size)
+    yaw_raw, across_raw = observed_accels(t, noisy, xy)
+    yaw, across = observed_accels(t, noisy, xy, np.full(t.size, 0.35))
+    assert np.mean(yaw_raw > 0) > 0.9 and np.median(across_raw) > 10.0  # m/s^2 of nothing
+    assert np.mean(yaw > 0) <= 0.0125 and np.mean(across > 0) <= 0.008
+    turning = 0.5 * t + rng.normal(0.0, 0.01, t.size)
+    _, across = observed_accels(t, turning, xy, np.full(t.size, 0.01))
+    noise = np.hypot(0.01, 0.01) / 0.2
+    assert np.median(across) == pytest.approx(np.sqrt(0.5**2 - noise**2) * 10.0, rel=0.05)
