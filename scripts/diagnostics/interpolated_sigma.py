@@ -8,12 +8,13 @@ import sys
 import tempfile
 
 import numpy as np
+from true_rays import true_rays  # a sibling module: scripts run from their directory
 
 from fleetsim.fleet import Fleet, FleetConfig
 from fleetsim.pipeline import model_for
 from fleetsim.town_run import NOISES
 from fleetsim.world import demo_town
-from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
 from vehicle.agent import VehicleAgent
 from vehicle.config import load_vehicle_model
 
@@ -28,20 +29,10 @@ def main(noise_name: str, fix_per_frame: bool, n_passes: int) -> None:
         sums = LandmarkSums(EstimatorConfig())
         rows = sums.new_rows(len(world.signs), world.signs.position + np.array([1.0, 1.0, 0.0]))
         for k, p in enumerate(fleet.passes(n_passes)):
-            obs = agent.record(p.pass_id, p.fixes, p.detections)
-            sid = p.truth.sign_id[agent.last_kept]
-            r = world.signs.index_of(sid)
-            ok = (sid >= 0) & (r >= 0)
-            rays = Rays(
-                world.frame.from_geodetic(obs.lat, obs.lon, obs.h)[ok],
-                np.asarray(obs.direction)[ok],
-                np.asarray(obs.sigma_az)[ok],
-                np.asarray(obs.sigma_el)[ok],
-                np.asarray(obs.sigma_pos_h)[ok],
-                np.asarray(obs.sigma_pos_v)[ok],
-                None,
-            )
-            sums.accumulate(rows[r[ok]], np.full(int(ok.sum()), k), rays)
+            seen = true_rays(world, agent, p, agent.record(p.pass_id, p.fixes, p.detections))
+            if seen is not None:
+                rays, r = seen
+                sums.accumulate(rows[r], np.full(r.size, k), rays)
         agent.close()
     sol = sums.solve(rows)
     err = np.linalg.norm(sol.x[:, :2] - world.signs.position[:, :2], axis=1)

@@ -17,12 +17,13 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from true_rays import true_rays  # a sibling module: scripts run from their directory
 
 from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
 from fleetsim.fleet import Fleet, FleetConfig
 from fleetsim.noise import FLEET, NoiseModel
 from fleetsim.pipeline import model_for
-from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
 from vehicle.agent import VehicleAgent
 from vehicle.config import load_vehicle_model
 
@@ -64,24 +65,13 @@ def main(which: str, n_passes: int) -> None:
         sums = LandmarkSums(EstimatorConfig())
         rows = sums.new_rows(k_signs, world.signs.position + np.array([1.0, 1.0, 0.0]))
         for k, p in enumerate(fleet.passes(n_passes)):
-            obs = agent.record(p.pass_id, p.fixes, p.detections)
-            sid = p.truth.sign_id[agent.last_kept]
-            r = world.signs.index_of(sid)
-            ok = (sid >= 0) & (r >= 0)
-            if not ok.any():
+            seen = true_rays(world, agent, p, agent.record(p.pass_id, p.fixes, p.detections))
+            if seen is None:
                 continue
-            passes[np.unique(r[ok])] += 1
-            np.add.at(dirs, r[ok], np.asarray(obs.direction)[ok])
-            rays = Rays(
-                world.frame.from_geodetic(obs.lat, obs.lon, obs.h)[ok],
-                np.asarray(obs.direction)[ok],
-                np.asarray(obs.sigma_az)[ok],
-                np.asarray(obs.sigma_el)[ok],
-                np.asarray(obs.sigma_pos_h)[ok],
-                np.asarray(obs.sigma_pos_v)[ok],
-                None,
-            )
-            sums.accumulate(rows[r[ok]], np.full(int(ok.sum()), k), rays)
+            rays, r = seen
+            passes[np.unique(r)] += 1
+            np.add.at(dirs, r, rays.direction)
+            sums.accumulate(rows[r], np.full(r.size, k), rays)
         agent.close()
     sol = sums.solve(rows)
     e = sol.x - world.signs.position
