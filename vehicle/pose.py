@@ -238,8 +238,22 @@ def white_share(
     if angle:
         dv = wrap_angle(dv)
     d2 = dv[1:] / h2 - dv[:-1] / h1
-    z = d2 / np.sqrt(1.0 / h1**2 + (1.0 / h1 + 1.0 / h2) ** 2 + 1.0 / h2**2)
+    z = d2 / second_difference_scale(h1, h2)
     return float(np.clip(1.4826 * np.median(np.abs(z)) / ref, 0.0, 1.0))
+
+
+def second_difference_scale(
+    h1: ArrayLike, h2: ArrayLike, s0: ArrayLike = 1.0, s1: ArrayLike = 1.0, s2: ArrayLike = 1.0
+) -> Array:
+    """Standard deviation of the second divided difference ``(v_2 - v_1) / h_2 - (v_1 -
+    v_0) / h_1`` when the three values carry independent errors of std ``s0, s1, s2``
+    (intervals ``h1``, ``h2``): ``sqrt((s0 / h1)^2 + (s1 (1/h1 + 1/h2))^2 + (s2 / h2)^2)``.
+
+    >>> float(second_difference_scale(1.0, 1.0))  # sqrt(1 + 4 + 1)
+    2.449489742783178
+    """
+    h1, h2 = np.asarray(h1, float), np.asarray(h2, float)
+    return np.sqrt((s0 / h1) ** 2 + (np.multiply(s1, 1.0 / h1 + 1.0 / h2)) ** 2 + (s2 / h2) ** 2)
 
 
 def observed_accels(
@@ -281,11 +295,7 @@ def observed_accels(
     mid = (tt[2:] - tt[:-2]) / 2.0
     at_fix[1:-1] = np.abs(np.diff(omega)) / mid
     if s is not None:
-        h1, h2 = dt[:-1], dt[1:]
-        noise = (
-            np.sqrt((s[:-2] / h1) ** 2 + (s[1:-1] * (1.0 / h1 + 1.0 / h2)) ** 2 + (s[2:] / h2) ** 2)
-            / mid
-        )
+        noise = second_difference_scale(dt[:-1], dt[1:], s[:-2], s[1:-1], s[2:]) / mid
         at_fix[1:-1] = _significant(at_fix[1:-1], noise, k_sigma)
     at_fix[0], at_fix[-1] = at_fix[1], at_fix[-2]
     return np.maximum(at_fix[:-1], at_fix[1:]), across

@@ -48,7 +48,7 @@ from fleetsim.osm_town import helsinki_town, same_class_pairs
 from fleetsim.pipeline import FleetDriver, model_for
 from fleetsim.town_run import follow_town
 from fleetsim.world import World, tile_border_distance
-from hdmap.mapping.gnss_floor import SharedFloor, floor_enu, shared_floor
+from hdmap.mapping.gnss_floor import SharedFloor, floor_enu, shared_floor, shared_floor_m2
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
@@ -128,13 +128,12 @@ def solver_floor_args(cfg: FleetEvalConfig, run_dir: Path) -> tuple[dict, dict[s
     if cfg.gnss != "gsdc" or not cfg.shared_floor:
         return {"source": None, "cov_enu_m2": None}, {}
     f = gsdc_floor()
-    c = floor_enu(f)
-    six = [c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2]]
+    six = shared_floor_m2(f)
     path = run_dir / "services.toml"
-    path.write_text(f"[solver]\nshared_floor_m2 = [{', '.join(repr(float(v)) for v in six)}]\n")
+    path.write_text(f"[solver]\nshared_floor_m2 = [{', '.join(repr(v) for v in six)}]\n")
     info = {
         "source": "fleetsim/data/gsdc2020_mtv1_phone_gnss_errors.csv (hdmap.mapping.gnss_floor)",
-        "cov_enu_m2": c.tolist(),
+        "cov_enu_m2": floor_enu(f).tolist(),
         "sigma_en_m": f.sigma.tolist(),
         "drives": f.drives,
         "batches": list(f.batches),

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdmap.mapping.gnss_floor import SharedFloor, floor_enu, shared_floor
+from hdmap.mapping.gnss_floor import SharedFloor, floor_enu, shared_floor, shared_floor_m2
 
 COLUMNS = ("trace", "t_s", "err_east_m", "err_north_m")
 
@@ -69,7 +69,7 @@ def artefact(f: SharedFloor, source: Path, names: list[str], batch_s: float) -> 
         "drive_means_m": f.drive_means.tolist(),
         "cov_enu_m2": c.tolist(),
         "sigma_m": np.sqrt(np.diag(c)).tolist(),
-        "shared_floor_m2": [c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2]],
+        "shared_floor_m2": shared_floor_m2(f),
     }
 
 

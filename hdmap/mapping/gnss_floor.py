@@ -126,3 +126,10 @@ def floor_enu(f: SharedFloor) -> Array:
     out = np.zeros((3, 3))
     out[:k, :k] = f.cov
     return out
+
+
+def shared_floor_m2(f: SharedFloor) -> list[float]:
+    """The ENU floor (:func:`floor_enu`) as ``SolverConfig.shared_floor_m2``: the wire's
+    covariance order (ee, en, eu, nn, nu, uu), m^2."""
+    c = floor_enu(f)
+    return [float(c[i, j]) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
