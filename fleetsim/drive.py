@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetsim.gnss_replay import course_with_errors
+from fleetsim.gnss_replay import course_with_errors, fix_speed
 from fleetsim.noise import GnssErrors, NoiseModel
 from fleetsim.route import Path
 from fleetsim.world import World
@@ -301,7 +301,7 @@ def simulate_pass(
     lat, lon, h = world.frame.to_geodetic(fix_enu)
     lat, lon, h = np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(h)
     course = (
-        course_with_errors(t_fix, psi_fix, antenna, err.total_enu)
+        course_with_errors(t_fix, psi_fix, antenna, err.total_enu, err.velocity_enu)
         if noise.gnss.heading_from_track
         else psi_fix
     )
@@ -310,7 +310,7 @@ def simulate_pass(
     heading = np.arctan2(fwd_local[:, 0], fwd_local[:, 1])
     if not noise.gnss.heading_from_track:
         heading = heading + err.heading_rad
-    s_h, s_v, s_hd = noise.gnss.reported_sigmas()
+    s_h, s_v, _ = noise.gnss.reported_sigmas()
     fixes = GnssFixes(
         t=t_fix,
         lat=lat,
@@ -319,7 +319,7 @@ def simulate_pass(
         heading_deg=np.degrees(heading) % 360.0,
         sigma_h_m=np.full(n_fix, s_h),
         sigma_v_m=np.full(n_fix, s_v),
-        sigma_heading_deg=np.full(n_fix, s_hd),
+        sigma_heading_deg=noise.gnss.heading_sigma_deg(fix_speed(t_fix, antenna)),
     )
     truth = DriveTruth(
         sign_id=all_id[order].astype(np.int64),

@@ -16,13 +16,18 @@ linearly interpolated between the 1 Hz samples. What the data does not have:
   white), sampled as there;
 - heading: none is sampled; with ``heading_from_track`` the drive computes the fix's
   heading as a receiver's course over ground: the true velocity plus the rate of the
-  position error (:func:`course_with_errors`), so its error is what the position errors
-  make of it.
+  position error over the logged second that holds the fix (:meth:`Trace.rate_at`,
+  :func:`course_with_errors`), so its error is what the position errors make of it.
 
 What the fixes claim (``reported_sigmas``), measured on the data when the traces are
-loaded, never typed in: per horizontal axis the RMS of all errors; the heading sigma is
-the RMS of the course-over-ground error of the recorded 1 Hz fixes against the truth
-track, at speeds of 3 m/s and more; the vertical sigma is FLEET's white level.
+loaded, never typed in: per horizontal axis the RMS of all errors; the vertical sigma is
+FLEET's white level. The heading sigma is what a receiver reports for a course over
+ground (Android's ``bearingAccuracyDegrees``): its velocity error over its speed, per fix
+(:meth:`ReplayedGnss.heading_sigma_deg`), with the velocity error per horizontal axis the
+RMS of the logged error's rate (:func:`velocity_error_sigma`). One figure for all speeds
+(``reported_sigma_heading_deg``, the RMS course error of the recorded fixes) would be the
+drive's speeds' figure: the recorded car drove at about 25 m/s, the simulated ones at
+8-14 m/s, where the same error rate turns the course about twice as far.
 
 >>> g = gsdc()
 >>> len(g.traces), round(g.reported_sigma_h_m, 2)
@@ -71,6 +76,19 @@ class Trace:
         tt = np.mod(t, self.span_s) if self.span_s > 0 else np.zeros_like(t)
         return np.interp(tt, self.t, self.east), np.interp(tt, self.t, self.north)
 
+    def rate_at(self, t: Array) -> Array:
+        """(len(t), 2) East and North rate of the error over the logged interval that
+        holds each trace time (wrapped into the span), m/s: what a course over ground of
+        these fixes is off by, as a velocity."""
+        tt = np.mod(t, self.span_s) if self.span_s > 0 else np.zeros_like(t)
+        i = np.clip(np.searchsorted(self.t, tt, side="right") - 1, 0, max(len(self.t) - 2, 0))
+        if len(self.t) < 2:
+            return np.zeros((np.size(t), 2))
+        dt = self.t[i + 1] - self.t[i]
+        return np.column_stack(
+            [(self.east[i + 1] - self.east[i]) / dt, (self.north[i + 1] - self.north[i]) / dt]
+        )
+
     def course_errors(self, min_speed_mps: float = MIN_SPEED_MPS) -> Array:
         """Course over ground of the recorded fixes minus that of the truth track, rad
         (consecutive 1 Hz samples, where the truth moved at ``min_speed_mps`` or more)."""
@@ -82,6 +100,21 @@ class Trace:
         ok = (dt > 0) & (dt <= 1.5) & (speed >= min_speed_mps)
         err = np.arctan2(d_fix[:, 0], d_fix[:, 1]) - np.arctan2(d_true[:, 0], d_true[:, 1])
         return np.angle(np.exp(1j * err[ok]))
+
+
+def velocity_error_sigma(traces: tuple[Trace, ...]) -> float:
+    """Per horizontal axis, the RMS of the position error's rate over the traces' logged
+    intervals, each weighted by its length (as a pass drawing a uniform start second meets
+    them), m/s: the velocity error a course over ground of the replayed fixes carries
+    (:meth:`Trace.rate_at`; :func:`course_with_errors` adds it in whatever direction the
+    simulated car drives, so both axes count alike)."""
+    num, den = 0.0, 0.0
+    for tr in traces:
+        dt = np.diff(tr.t)
+        rate = np.diff(np.column_stack([tr.east, tr.north]), axis=0) / dt[:, None]
+        num += float(np.sum(dt[:, None] * rate**2))
+        den += 2.0 * float(np.sum(dt))
+    return float(np.sqrt(num / den)) if den > 0 else 0.0
 
 
 def load_traces(path: Path = DATA) -> tuple[Trace, ...]:
@@ -117,10 +150,22 @@ def course_over_ground(t: Array, enu: Array) -> Array:
     return np.arctan2(v[:, 0], v[:, 1])
 
 
-def course_with_errors(t: Array, heading: Array, antenna_enu: Array, err_enu: Array) -> Array:
+def fix_speed(t: Array, antenna_enu: Array) -> Array:
+    """The true ground speed at each fix (central differences of the antenna track), m/s:
+    what a receiver's Doppler velocity measures."""
+    t = np.asarray(t, float)
+    if len(t) < 2:
+        return np.zeros(len(t))
+    return np.hypot(*np.gradient(np.asarray(antenna_enu, float)[:, :2], t, axis=0).T)
+
+
+def course_with_errors(
+    t: Array, heading: Array, antenna_enu: Array, err_enu: Array, err_rate: Array | None = None
+) -> Array:
     """A receiver's course over ground when its velocity is the true one plus the rate of
     its position error: the direction of ``|v| (sin heading, cos heading) + d err / dt``
-    (``|v|`` and ``d err / dt`` by central differences over the fixes), rad from north.
+    (``|v|`` by central differences over the fixes; ``d err / dt`` the given ``err_rate``,
+    (M, 2) m/s, or else central differences of ``err_enu``), rad from north.
 
     What the drive uses (rather than :func:`course_over_ground` of the noisy fixes): the
     error of the course is then what the position errors make of it, and nothing of the
@@ -129,9 +174,14 @@ def course_with_errors(t: Array, heading: Array, antenna_enu: Array, err_enu: Ar
     t = np.asarray(t, float)
     if len(t) < 2:
         return np.asarray(heading, float).copy()
-    speed = np.hypot(*np.gradient(np.asarray(antenna_enu, float)[:, :2], t, axis=0).T)
+    speed = fix_speed(t, antenna_enu)
     v = speed[:, None] * np.column_stack([np.sin(heading), np.cos(heading)])
-    v = v + np.gradient(np.asarray(err_enu, float)[:, :2], t, axis=0)
+    rate = (
+        np.gradient(np.asarray(err_enu, float)[:, :2], t, axis=0)
+        if err_rate is None
+        else np.asarray(err_rate, float)[:, :2]
+    )
+    v = v + rate
     return np.arctan2(v[:, 0], v[:, 1])
 
 
@@ -147,9 +197,27 @@ class ReplayedGnss:
     reported_sigma_h_m: float = 0.0
     reported_sigma_v_m: float = 0.0
     reported_sigma_heading_deg: float = 0.0
+    """The recorded drive's RMS course error (at its own speeds; reported in the tuple)."""
+    velocity_sigma_mps: float = 0.0
+    """Velocity error per horizontal axis (:func:`velocity_error_sigma`); 0: every fix
+    claims ``reported_sigma_heading_deg``."""
 
     def reported_sigmas(self) -> tuple[float, float, float]:
         return self.reported_sigma_h_m, self.reported_sigma_v_m, self.reported_sigma_heading_deg
+
+    def heading_sigma_deg(self, speed_mps: Array) -> Array:
+        """The course sigma each fix claims at its speed: ``atan(velocity_sigma_mps /
+        speed)``, degrees (at most 90; 3 decimals, as on the wire).
+
+        >>> g = gsdc()
+        >>> bool(g.heading_sigma_deg(np.array([8.0]))[0] > g.heading_sigma_deg(np.array([25.0]))[0])
+        True
+        """
+        v = np.asarray(speed_mps, float)
+        if self.velocity_sigma_mps <= 0.0:
+            return np.full(v.shape, self.reported_sigma_heading_deg)
+        d = np.degrees(np.arctan2(self.velocity_sigma_mps, np.maximum(v, 0.0)))
+        return np.round(np.maximum(d, 1e-3), 3)
 
     def sample(self, rng: np.random.Generator, t: Array) -> GnssErrors:
         """Errors for one pass with fix times ``t`` (s, increasing)."""
@@ -159,7 +227,8 @@ class ReplayedGnss:
         duration = float(t[-1] - t[0]) if n else 0.0
         room = max(trace.span_s - duration, 0.0)
         start = float(rng.uniform(0.0, room)) if room > 0 else float(rng.uniform(0.0, trace.span_s))
-        east, north = trace.at(start + (t - (t[0] if n else 0.0)))
+        tt = start + (t - (t[0] if n else 0.0))
+        east, north = trace.at(tt)
         v = self.vertical
         up = (
             rng.normal(0.0, v.bias_v_m)
@@ -177,6 +246,7 @@ class ReplayedGnss:
             multipath_enu=zeros,
             heading_rad=np.zeros(n),
             heading_bias_rad=0.0,
+            velocity_enu=trace.rate_at(tt),
         )
 
 
@@ -193,4 +263,5 @@ def gsdc() -> ReplayedGnss:
         reported_sigma_h_m=float(np.sqrt(np.mean(errs**2))),
         reported_sigma_v_m=s_v,
         reported_sigma_heading_deg=round(float(np.degrees(np.sqrt(np.mean(course**2)))), 3),
+        velocity_sigma_mps=velocity_error_sigma(traces),
     )

@@ -102,6 +102,10 @@ class GnssNoise:
         # A receiver never claims zero; floors keep observations valid on the wire.
         return max(h, 0.01), max(v, 0.01), round(max(hd, 1e-3), 3)
 
+    def heading_sigma_deg(self, speed_mps: Array) -> Array:
+        """Per fix, the heading sigma claimed: the same at every speed."""
+        return np.full(np.shape(speed_mps), self.reported_sigmas()[2])
+
     def sample(self, rng: np.random.Generator, t: Array) -> GnssErrors:
         """Errors for one pass with fix times ``t`` (s, increasing)."""
         t = np.asarray(t, float)
@@ -143,6 +147,10 @@ class GnssErrors:
     heading_rad: Array
     """(M,) total heading error, rad."""
     heading_bias_rad: float
+    velocity_enu: Array | None = None
+    """(M, 2) East and North velocity error at each fix, m/s, where the model has one (the
+    replay: the logged error's rate over the second that holds the fix); None: a course
+    over ground differentiates ``total_enu``."""
 
     @property
     def total_enu(self) -> Array:
@@ -184,6 +192,10 @@ class GnssModel(Protocol):
     def sample(self, rng: np.random.Generator, t: Array) -> GnssErrors: ...
 
     def reported_sigmas(self) -> tuple[float, float, float]: ...
+
+    def heading_sigma_deg(self, speed_mps: Array) -> Array:
+        """Per fix, the heading sigma claimed at its speed (m/s), degrees."""
+        ...
 
 
 @dataclass(frozen=True)

@@ -112,10 +112,11 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--gnss",
-        choices=["fleet", "gsdc"],
+        choices=["fleet", "fleet-totals", "gsdc"],
         default="fleet",
-        help="GNSS errors: the simulated receiver (default) or real phone errors replayed "
-        "(GSDC 2020, fleetsim/gnss_replay.py)",
+        help="GNSS errors: the simulated receiver claiming its white levels (default), the "
+        "same claiming its totals, or real phone errors replayed (GSDC 2020, "
+        "fleetsim/gnss_replay.py)",
     )
     p.add_argument(
         "--no-shared-floor",

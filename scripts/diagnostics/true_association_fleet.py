@@ -1,11 +1,18 @@
 """The fleet evaluation's town and passes, each sign's true rays straight into ``LandmarkSums``:
 the estimator's own error, without the matcher.
 
-Usage: python scripts/diagnostics/true_association_fleet.py GNSS PASSES
+Usage: python scripts/diagnostics/true_association_fleet.py GNSS PASSES [KNOB=V,...]
 ``GNSS``: ``fleet`` (FLEET's receiver), ``exact`` (no GNSS error, FLEET's white sigmas
-reported) or ``exact0`` (no GNSS error, the heading sigma reported as 0.001 deg).
+reported), ``exact0`` (no GNSS error, the heading sigma reported as 0.001 deg),
+``totals`` (FLEET's errors, the receiver claiming its totals: ``totals_reported``),
+``heading_total`` (only the heading's total), ``position_total`` (only the positions'),
+``gsdc`` (the replayed phone errors, the course sigma by speed), ``gsdc_const`` (the
+same, one course sigma for all speeds), ``white:DEG`` or ``bias:DEG`` (exact positions;
+heading errors of DEG, white per fix or one per pass, reported as DEG).
 Prints, over the signs with 50+ passes, the horizontal error and, for those more than 1 m
 off, how much of it lies along their mean viewing direction (negative: short of the sign).
+``KNOB=V,...``: ``EstimatorConfig`` fields to change (numbers; ``compensate=0``), and
+``pitch=RAD``, the vehicle model's claimed pitch noise.
 """
 
 from __future__ import annotations
@@ -19,8 +26,9 @@ from pathlib import Path
 import numpy as np
 from true_rays import true_rays  # a sibling module: scripts run from their directory
 
-from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
+from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world, totals_reported
 from fleetsim.fleet import Fleet, FleetConfig
+from fleetsim.gnss_replay import gsdc
 from fleetsim.noise import FLEET, NoiseModel
 from fleetsim.pipeline import model_for
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
@@ -29,9 +37,32 @@ from vehicle.config import load_vehicle_model
 
 
 def noise_for(which: str) -> NoiseModel:
+    g = FLEET.gnss
     if which == "fleet":
         return FLEET
-    g = FLEET.gnss
+    if which in ("totals", "heading_total", "position_total"):
+        t = totals_reported(g)
+        if which == "heading_total":
+            t = replace(g, reported_sigma_heading_deg=t.reported_sigma_heading_deg)
+        if which == "position_total":
+            t = replace(t, reported_sigma_heading_deg=g.reported_sigma_heading_deg)
+        return replace(FLEET, gnss=t)
+    if which.startswith(("white:", "bias:")):  # exact positions, one kind of heading error
+        kind, deg = which.split(":")
+        rad = math.radians(float(deg))
+        exact = noise_for("exact").gnss
+        return replace(
+            FLEET,
+            gnss=replace(
+                exact,
+                white_heading_rad=rad if kind == "white" else 0.0,
+                bias_heading_rad=rad if kind == "bias" else 0.0,
+                reported_sigma_heading_deg=float(deg),
+            ),
+        )
+    if which in ("gsdc", "gsdc_const"):
+        r = gsdc() if which == "gsdc" else replace(gsdc(), velocity_sigma_mps=0.0)
+        return replace(FLEET, name="fleet+gsdc", gnss=r)
     heading = 1e-3 if which == "exact0" else math.degrees(g.white_heading_rad)
     exact = replace(
         g,
@@ -51,18 +82,24 @@ def noise_for(which: str) -> NoiseModel:
     return replace(FLEET, gnss=exact)
 
 
-def main(which: str, n_passes: int) -> None:
+def main(which: str, n_passes: int, overrides: str = "") -> None:
+    knobs = {k: float(v) for k, v in (kv.split("=") for kv in overrides.split(",") if kv)}
     noise = noise_for(which)
     cfg = FleetEvalConfig(Path(tempfile.gettempdir()))
     world = evaluation_world(cfg)
     model = model_for(noise, load_vehicle_model())
+    if "pitch" in knobs:  # the vehicle model's claimed pitch noise, rad
+        model = replace(model, pitch_sigma_rad=knobs.pop("pitch"))
     fleet_cfg = FleetConfig(n_vehicles=cfg.vehicles, route_length_m=(600.0, 1200.0))
     fleet = Fleet(world, model, noise, fleet_cfg, 0)
     k_signs = len(world.signs)
     passes, dirs = np.zeros(k_signs, int), np.zeros((k_signs, 3))
     with tempfile.TemporaryDirectory() as queue:
         agent = VehicleAgent("veh-0001", model, queue)
-        sums = LandmarkSums(EstimatorConfig())
+        est = EstimatorConfig(
+            **{k: type(getattr(EstimatorConfig(), k))(float(v)) for k, v in knobs.items()}
+        )
+        sums = LandmarkSums(est)
         rows = sums.new_rows(k_signs, world.signs.position + np.array([1.0, 1.0, 0.0]))
         for k, p in enumerate(fleet.passes(n_passes)):
             seen = true_rays(world, agent, p, agent.record(p.pass_id, p.fixes, p.detections))
@@ -82,6 +119,12 @@ def main(which: str, n_passes: int) -> None:
         f"mean {np.nanmean(h[m]):.3f} m, median {np.nanmedian(h[m]):.3f}, p95 "
         f"{np.nanpercentile(h[m], 95):.3f}; mean error vector {np.nanmean(e[m], 0).round(3)}"
     )
+    view = dirs[m, :2] / np.linalg.norm(dirs[m, :2], axis=1, keepdims=True)
+    along_all = np.einsum("ij,ij->i", e[m, :2], view)
+    print(
+        f"along the viewing direction (negative: short of the sign): mean "
+        f"{np.nanmean(along_all):.3f} m, median {np.nanmedian(along_all):.3f}"
+    )
     big = m & (h > 1.0)
     if big.any():
         d = dirs[big, :2] / np.linalg.norm(dirs[big, :2], axis=1, keepdims=True)
@@ -94,4 +137,4 @@ def main(which: str, n_passes: int) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], int(sys.argv[2]))
+    main(sys.argv[1], int(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "")
