@@ -95,6 +95,7 @@ class Uploader:
         self._clock = clock
         self._retry_at = -float("inf")  # nothing is sent before this (last retry_after_s)
         self._backoff = 0.0  # the last wait after a permanent refusal (0: none in a row)
+        self._refusals = 0  # batches refused for now (retry later) since the last accepted one
         self.fault: str = ""
         """Why ingest refuses for good (a permanent refusal, until an upload is accepted)."""
         self._db = connect(queue_path)
@@ -182,13 +183,24 @@ class Uploader:
                 if ack is not None and ack.permanent:
                     self._hold_after_permanent(ack, res)
                 elif ack is not None:
-                    log.warning("%s: batch refused: %s", self.vehicle_id, ack.error)
+                    # one warning per streak: a bulk upload paced by the rate limit is
+                    # refused once per batch, and each retry would say the same thing
+                    self._refusals += 1
+                    level = logging.WARNING if self._refusals == 1 else logging.DEBUG
+                    log.log(level, "%s: batch refused: %s", self.vehicle_id, ack.error)
                     res.refused = f"{ack.error.field}: {ack.error.reason}"
                     if ack.retry_after_s > 0:
                         self._retry_at = self._clock() + ack.retry_after_s
                         res.retry_after_s = ack.retry_after_s
                 break
             self._backoff, self.fault = 0.0, ""
+            if self._refusals > 1:
+                log.info(
+                    "%s: uploads accepted again after %d refused batch(es)",
+                    self.vehicle_id,
+                    self._refusals,
+                )
+            self._refusals = 0
             self._settle(ack)
             res.accepted += len(ack.accepted)
             res.duplicates += len(ack.duplicates)

@@ -8,7 +8,8 @@ reported), ``exact0`` (no GNSS error, the heading sigma reported as 0.001 deg),
 ``heading_total`` (only the heading's total), ``position_total`` (only the positions'),
 ``gsdc`` (the replayed phone errors, the course sigma by speed), ``gsdc_const`` (the
 same, one course sigma for all speeds), ``white:DEG`` or ``bias:DEG`` (exact positions;
-heading errors of DEG, white per fix or one per pass, reported as DEG).
+heading errors of DEG, white per fix or one per pass, reported as DEG; ``bias:DEG@C``
+reports C).
 Prints, over the signs with 50+ passes, the horizontal error and, for those more than 1 m
 off, how much of it lies along their mean viewing direction (negative: short of the sign).
 ``KNOB=V,...``: ``EstimatorConfig`` fields to change (numbers; ``compensate=0``), and
@@ -48,7 +49,8 @@ def noise_for(which: str) -> NoiseModel:
             t = replace(t, reported_sigma_heading_deg=g.reported_sigma_heading_deg)
         return replace(FLEET, gnss=t)
     if which.startswith(("white:", "bias:")):  # exact positions, one kind of heading error
-        kind, deg = which.split(":")
+        kind, spec = which.split(":")
+        deg, _, claim = spec.partition("@")
         rad = math.radians(float(deg))
         exact = noise_for("exact").gnss
         return replace(
@@ -57,7 +59,7 @@ def noise_for(which: str) -> NoiseModel:
                 exact,
                 white_heading_rad=rad if kind == "white" else 0.0,
                 bias_heading_rad=rad if kind == "bias" else 0.0,
-                reported_sigma_heading_deg=float(deg),
+                reported_sigma_heading_deg=float(claim or deg),
             ),
         )
     if which in ("gsdc", "gsdc_const"):

@@ -43,3 +43,31 @@ def test_refused_rows_are_counted_by_field_and_logged(tmp_path, monkeypatch, cap
     assert res.refused.startswith("vehicle.new: ") and res.retry_after_s == 2.0
     assert res.failed_batches == 1 and up.pending == 5
     up.close()
+
+
+def test_a_refusal_streak_warns_once_and_says_when_it_ends(tmp_path, monkeypatch, caplog):
+    """A bulk upload paced by the rate limit is refused once per batch; each retry would
+    say the same, so the streak warns once and ends with one line."""
+    clock = Clock()
+    up = Uploader("veh-1", tmp_path / "q.sqlite", batch_size=5, clock=clock)
+    up.enqueue(1, make_observations(10, seed=3))
+    refuse = [True, True, True, False, False]
+
+    def send(_session, batch: ObservationBatch, _timeout: float) -> UploadAck:
+        if refuse.pop(0):
+            err = DecodeError("rate", "vehicle 'veh-1' sends too much; retry after 0.1 s")
+            return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id[:0], error=err,
+                             retry_after_s=0.1)  # fmt: skip
+        return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id)
+
+    monkeypatch.setattr(up, "_send", send)
+    with caplog.at_level(logging.DEBUG, logger="vehicle.uploader"):
+        for _ in range(5):
+            res = up.flush(None)
+            clock.t += 0.2
+    assert up.pending == 0 and res.refused == ""
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "batch refused: rate" in warned[0].getMessage()
+    assert sum("batch refused" in r.getMessage() for r in caplog.records) == 3
+    assert any("accepted again after 3 refused" in r.getMessage() for r in caplog.records)
+    up.close()
