@@ -10,6 +10,9 @@ frames with detections appear in :class:`vehicle.geoloc.Detections`, with their 
 number (``image``) and capture time (``t``). ``fix_per_frame=True`` is the older timing:
 a fix at every frame (same times), ``Detections.t`` still given.
 
+**Motion.** The vehicle cruises at ``speed_mps`` and takes curves slower, braking and
+speeding up as a driver does (``lateral_accel_mps2``, :func:`fleetsim.route.speed_profile`).
+
 Per frame the vehicle's TRUE pose places the camera
 (``VehicleModel`` mount and intrinsics). A sign is visible when its panel
 centre is in front of the camera and inside the image, within ``max_range_m``,
@@ -43,7 +46,7 @@ from numpy.typing import NDArray
 
 from fleetsim.gnss_replay import course_with_errors, fix_speed
 from fleetsim.noise import GnssErrors, NoiseModel
-from fleetsim.route import Path
+from fleetsim.route import Path, SpeedProfile, speed_profile
 from fleetsim.world import World
 from hdmap.geo.geodesy import ecef_to_enu_vectors
 from vehicle.geoloc import Detections, GnssFixes, VehicleModel, vehicle_to_enu
@@ -57,6 +60,12 @@ class DriveParams:
     """How the vehicle drives, what its camera can see, and when its sensors sample."""
 
     speed_mps: float = 11.0
+    """Cruising speed; curves are taken slower (``lateral_accel_mps2``)."""
+    lateral_accel_mps2: float | None = 3.0
+    """Largest lateral acceleration a driver takes a curve with, m/s^2 (comfortable
+    driving; :func:`fleetsim.route.speed_profile`, braking and speeding up at 2 m/s^2).
+    None: ``speed_mps`` everywhere, corners included (the older drive: 11 m/s round a
+    7 m corner is 17 m/s^2 and 1.6 rad/s, which a 1 Hz receiver cannot follow)."""
     frame_rate_hz: float = 5.0
     """Camera frames per second (not above the GNSS rate by default: the map's estimator
     takes rays as independent, docs/experiments/2026-12-sensor-timing.md)."""
@@ -80,6 +89,8 @@ class DriveParams:
                 raise ValueError(f"DriveParams.{name} must be > 0")
         if not self.gnss_jitter_s >= 0.0:
             raise ValueError("DriveParams.gnss_jitter_s must be >= 0")
+        if self.lateral_accel_mps2 is not None and not self.lateral_accel_mps2 > 0.0:
+            raise ValueError("DriveParams.lateral_accel_mps2 must be > 0 (or None)")
         if not 0.0 <= self.gnss_miss_prob < 1.0:
             raise ValueError("DriveParams.gnss_miss_prob must be in [0, 1)")
 
@@ -116,13 +127,15 @@ class DriveTruth:
 
 
 def poses_along(
-    path: Path, t: Array, speed_mps: float, t0: float | None = None
+    path: Path, t: Array, speed: float | SpeedProfile, t0: float | None = None
 ) -> tuple[Array, Array]:
     """Vehicle reference points (M, 3) and headings (M,) at times ``t`` from ``t0``
-    (default: ``t[0]``); the vehicle stands at the path's ends beyond them."""
+    (default: ``t[0]``), at a constant ``speed`` (m/s) or along a :class:`SpeedProfile`;
+    the vehicle stands at the path's ends beyond them."""
     t = np.asarray(t, float)
     start = float(t[0]) if t0 is None else t0
-    xy, psi = path.at(speed_mps * (t - start))
+    along = speed.s_at(t - start) if isinstance(speed, SpeedProfile) else speed * (t - start)
+    xy, psi = path.at(along)
     return np.column_stack([xy, np.zeros(len(xy))]), psi
 
 
@@ -248,13 +261,13 @@ def simulate_pass(
     # spawn(3): the first two streams are those of the older spawn(2), so that
     # fix_per_frame at 5 Hz draws what the drive always drew.
     rng_gnss, rng_det, rng_time = rng.spawn(3)
-    duration = path.length / params.speed_mps
-    t, t_fix = sensor_times(rng_time, t0, duration, params)
-    veh, psi = poses_along(path, t, params.speed_mps, t0)
+    profile = speed_profile(path, params.speed_mps, params.lateral_accel_mps2)
+    t, t_fix = sensor_times(rng_time, t0, profile.duration, params)
+    veh, psi = poses_along(path, t, profile, t0)
     r_wv = vehicle_to_enu(psi)  # (M, 3, 3)
     camera = veh + r_wv @ model.camera_mount.t
     r_wc = r_wv @ model.camera_mount.rotation
-    veh_fix, psi_fix = poses_along(path, t_fix, params.speed_mps, t0)
+    veh_fix, psi_fix = poses_along(path, t_fix, profile, t0)
     antenna = veh_fix + vehicle_to_enu(psi_fix) @ model.gnss_mount.t
     n_fix = t_fix.size
 

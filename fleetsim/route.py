@@ -28,6 +28,26 @@ Array = NDArray[np.float64]
 HEADING_RAMP_M = 1.0
 """Path length over which the heading turns at a vertex between two longer segments."""
 
+CURVATURE_WINDOW_M = 10.0
+"""Path length over which a driver reads the road's curvature (a few degrees at one
+vertex is no corner)."""
+
+
+@dataclass(frozen=True)
+class SpeedProfile:
+    """Arc length ``s`` (m) against time ``t`` (s from the start), both increasing."""
+
+    s: Array
+    t: Array
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1])
+
+    def s_at(self, t: Array) -> Array:
+        """Arc length at times ``t`` (s from the start; clamped to the ends)."""
+        return np.interp(np.asarray(t, float), self.t, self.s)
+
 
 def offset_right(points: Array, offset: float) -> Array:
     """A polyline shifted ``offset`` metres to the right of travel (mitred corners)."""
@@ -133,6 +153,46 @@ class Path:
         angles = np.repeat(ang, 2)
         keep = np.concatenate([[True], np.diff(knots) > 0])  # one knot per short segment
         return knots[keep], angles[keep]
+
+
+def speed_profile(
+    path: Path,
+    v_max: float,
+    lateral_accel: float | None,
+    long_accel: float = 2.0,
+    step_m: float = 0.5,
+) -> SpeedProfile:
+    """How a driver goes along ``path``: at most ``v_max``, slow enough in a curve that
+    ``v^2 kappa <= lateral_accel`` (``kappa``: the heading's change over
+    :data:`CURVATURE_WINDOW_M` around a point, over that length), speeding up and braking
+    at ``long_accel``; entering and leaving the path at the speed its ends allow.
+    ``lateral_accel`` None: ``v_max`` throughout (the constant-speed drive).
+
+    >>> from fleetsim.world import straight_road
+    >>> p = speed_profile(Path.along(straight_road(), [0, 1]), 10.0, 3.0)
+    >>> round(p.duration, 6) == round(Path.along(straight_road(), [0, 1]).length / 10.0, 6)
+    True
+    """
+    length = path.length
+    n = max(int(np.ceil(length / step_m)), 1)
+    s = np.linspace(0.0, length, n + 1)
+    if lateral_accel is None:
+        return SpeedProfile(s, s / v_max)
+    knots, ang = path.heading_knots()
+    psi = np.interp(s, knots, ang) if knots.size > 1 else np.full(s.shape, ang[0])
+    half = CURVATURE_WINDOW_M / 2.0
+    lo = np.interp(np.clip(s - half, 0.0, length), s, psi)
+    hi = np.interp(np.clip(s + half, 0.0, length), s, psi)
+    span = np.clip(s + half, 0.0, length) - np.clip(s - half, 0.0, length)
+    kappa = np.abs(hi - lo) / np.maximum(span, 1e-9)
+    v = np.minimum(v_max, np.sqrt(lateral_accel / np.maximum(kappa, 1e-12)))
+    ds = np.diff(s)
+    for i in range(n):  # speeding up
+        v[i + 1] = min(v[i + 1], np.sqrt(v[i] ** 2 + 2.0 * long_accel * ds[i]))
+    for i in range(n - 1, -1, -1):  # braking
+        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2.0 * long_accel * ds[i]))
+    t = np.concatenate([[0.0], np.cumsum(2.0 * ds / (v[:-1] + v[1:]))])
+    return SpeedProfile(s, t)
 
 
 def random_route(

@@ -42,6 +42,7 @@ from vehicle.pose import (
     PoseTiming,
     bracket,
     check_increasing,
+    hidden_yaw_accel,
     interpolate,
     interpolate_angle,
     interpolate_sigma,
@@ -371,7 +372,10 @@ def turn_sigmas(
         )
     yaw, across = observed_accels(fix_t, psi, xyz[:, :2], heading_sigma)
     a_h = np.hypot(timing.accel_sigma_mps2, across[br.ia])
-    a_psi = np.hypot(timing.yaw_accel_sigma_radps2, yaw[br.ia])
+    floor = timing.yaw_accel_sigma_radps2
+    if heading_sigma is not None:  # what the fixes would have shown is not unmodelled
+        floor = np.minimum(floor, hidden_yaw_accel(fix_t, heading_sigma)[br.ia])
+    a_psi = np.hypot(floor, yaw[br.ia])
     return motion_sigma(br, a_h), motion_sigma(br, a_psi)
 
 

@@ -44,7 +44,8 @@ counts only beyond :data:`TURN_SIGNIFICANCE` (3) standard deviations of what the
 claimed heading noise makes of it, less that noise in quadrature (FLEET's 0.01 rad at
 5 Hz: 0.6 rad/s^2 of noise, against about 7 rad/s^2 at the start of a corner; the paper's
 0.35 rad: 21 rad/s^2, so no turn counts there); they are there for the corners, where a
-constant floor is wrong by an order of magnitude.
+constant floor is wrong by an order of magnitude. The yaw floor itself is at most that
+threshold (:func:`hidden_yaw_accel`): a larger yaw acceleration would have been seen.
 
 **Not extrapolated**: a frame farther than ``max_gap_s`` from its nearest fix (inside the
 fixes' span, or before the first or after the last) has no pose (:func:`reachable`); the
@@ -86,7 +87,12 @@ class PoseTiming:
     accel_v_sigma_mps2: float = 0.5
     """Unmodelled vertical acceleration, m/s^2 (road grade changes)."""
     yaw_accel_sigma_radps2: float = 0.5
-    """Unmodelled yaw acceleration, rad/s^2 (entering a corner: 0.7 rad/s in 1-2 s)."""
+    """Unmodelled yaw acceleration, rad/s^2 (entering a corner: 0.7 rad/s in 1-2 s). With
+    ``observed_turns`` and claimed heading sigmas, at most what the fixes would not have
+    shown (:func:`hidden_yaw_accel`): at 1 Hz and 0.57 deg that is 0.07 rad/s^2, where the
+    0.5 floor claimed 3.6 deg of heading error mid-gap on every straight, which the bias
+    compensation then removed from rays that never had it (with exact GNSS at 1 Hz the
+    landmarks stood 1.6 m beyond their signs; docs/experiments/2026-12-one-hertz-gnss.md)."""
     observed_turns: bool = True
     """Raise the acceleration scales by what the fixes show of each interval's turn
     (:func:`observed_accels`). At a corner's start the heading interpolated between two
@@ -299,6 +305,31 @@ def observed_accels(
         at_fix[1:-1] = _significant(at_fix[1:-1], noise, k_sigma)
     at_fix[0], at_fix[-1] = at_fix[1], at_fix[-2]
     return np.maximum(at_fix[:-1], at_fix[1:]), across
+
+
+def hidden_yaw_accel(
+    t: ArrayLike, heading_sigma: ArrayLike, k_sigma: float = TURN_SIGNIFICANCE
+) -> Array:
+    """Per interval between consecutive fixes (n - 1): the largest yaw acceleration the
+    fixes could show without :func:`observed_accels` counting it, rad/s^2: ``k_sigma``
+    times the noise their claimed heading sigma puts into a yaw acceleration (the larger
+    of the interval's two ends). What the fixes hide is at most this; with fewer than 3
+    fixes, infinite (nothing is seen).
+
+    >>> hidden_yaw_accel(np.arange(4.0), np.full(4, 0.01)).round(4).tolist()  # 1 Hz
+    [0.0735, 0.0735, 0.0735]
+    """
+    tt = np.asarray(t, float)
+    n = tt.size
+    if n < 3:
+        return np.full(max(n - 1, 0), np.inf)
+    s = np.broadcast_to(np.asarray(heading_sigma, float), (n,))
+    dt = np.diff(tt)
+    mid = (tt[2:] - tt[:-2]) / 2.0
+    at_fix = np.zeros(n)
+    at_fix[1:-1] = k_sigma * second_difference_scale(dt[:-1], dt[1:], s[:-2], s[1:-1], s[2:]) / mid
+    at_fix[0], at_fix[-1] = at_fix[1], at_fix[-2]
+    return np.maximum(at_fix[:-1], at_fix[1:])
 
 
 def _significant(x: Array, noise: Array, k_sigma: float) -> Array:

@@ -13,7 +13,8 @@ reports C).
 Prints, over the signs with 50+ passes, the horizontal error and, for those more than 1 m
 off, how much of it lies along their mean viewing direction (negative: short of the sign).
 ``KNOB=V,...``: ``EstimatorConfig`` fields to change (numbers; ``compensate=0``), and
-``pitch=RAD``, the vehicle model's claimed pitch noise.
+``pitch=RAD`` (the vehicle model's claimed pitch noise), ``rate=HZ`` (the GNSS rate),
+``yaw=RAD_S2`` (the pose model's yaw acceleration floor).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from fleetsim.pipeline import model_for
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
 from vehicle.agent import VehicleAgent
 from vehicle.config import load_vehicle_model
+from vehicle.pose import PoseTiming
 
 
 def noise_for(which: str) -> NoiseModel:
@@ -92,12 +94,16 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
     model = model_for(noise, load_vehicle_model())
     if "pitch" in knobs:  # the vehicle model's claimed pitch noise, rad
         model = replace(model, pitch_sigma_rad=knobs.pop("pitch"))
-    fleet_cfg = FleetConfig(n_vehicles=cfg.vehicles, route_length_m=(600.0, 1200.0))
+    rate = {"gnss_rate_hz": knobs.pop("rate")} if "rate" in knobs else {}
+    fleet_cfg = FleetConfig(n_vehicles=cfg.vehicles, route_length_m=(600.0, 1200.0), **rate)
     fleet = Fleet(world, model, noise, fleet_cfg, 0)
     k_signs = len(world.signs)
     passes, dirs = np.zeros(k_signs, int), np.zeros((k_signs, 3))
     with tempfile.TemporaryDirectory() as queue:
-        agent = VehicleAgent("veh-0001", model, queue)
+        timing = PoseTiming()
+        if "yaw" in knobs:  # the pose model's yaw acceleration floor, rad/s^2
+            timing = replace(timing, yaw_accel_sigma_radps2=knobs.pop("yaw"))
+        agent = VehicleAgent("veh-0001", model, queue, timing=timing)
         est = EstimatorConfig(
             **{k: type(getattr(EstimatorConfig(), k))(float(v)) for k, v in knobs.items()}
         )

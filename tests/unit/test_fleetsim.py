@@ -13,7 +13,7 @@ import pytest
 from fleetsim.drive import DriveParams, simulate_pass
 from fleetsim.fleet import Fleet, FleetConfig, distinct_signs_seen, vehicle_id
 from fleetsim.noise import EXACT, FLEET, PAPER, GnssNoise
-from fleetsim.route import HEADING_RAMP_M, offset_right, random_route
+from fleetsim.route import HEADING_RAMP_M, offset_right, random_route, speed_profile
 from fleetsim.route import Path as RoutePath
 from fleetsim.truth import lines_in_world, match_landmarks, ray_errors
 from fleetsim.world import Signs, demo_town, straight_road, tile_border_distance
@@ -114,6 +114,28 @@ def test_the_heading_is_the_direction_of_travel_away_from_the_corners() -> None:
     moving = (10.0 * t > 1.0) & (10.0 * t < path.length - 1.0)
     off = np.degrees(np.angle(np.exp(1j * (np.arctan2(v[:, 0], v[:, 1]) - psi))))[moving]
     assert np.sqrt(np.mean(off**2)) < 1.0 and np.max(np.abs(off)) < 6.0, off
+
+
+def test_the_driver_slows_for_corners_within_the_lateral_limit() -> None:
+    """On the demo town's corner (7 m radius) the speed profile keeps ``v^2 kappa`` within
+    the lateral limit over the curvature window, brakes and speeds up at the longitudinal
+    limit, and cruises at ``v_max`` on the straights; without a limit the speed is
+    constant."""
+    path = RoutePath.along(TOWN, [0, 1, 6])
+    prof = speed_profile(path, 11.0, 3.0)
+    v = np.diff(prof.s) / np.diff(prof.t)
+    assert np.all(np.diff(prof.t) > 0) and v.max() == pytest.approx(11.0, abs=1e-9)
+    assert 3.0 < v.min() < 6.0  # sqrt(3 m/s^2 * 7 m) = 4.6 m/s round the corner
+    a = np.diff(v) / np.diff(prof.t)[1:]
+    assert np.max(np.abs(a)) <= 2.0 * 1.05
+    psi = np.interp(prof.s, *path.heading_knots())
+    yaw = np.abs(np.diff(psi)) / np.diff(prof.t)
+    assert yaw.max() < 1.2  # rad/s; at 11 m/s round 7 m it was 1.6
+    const = speed_profile(path, 11.0, None)
+    assert const.duration == pytest.approx(path.length / 11.0)
+    assert prof.duration > const.duration
+    with pytest.raises(ValueError, match="lateral_accel_mps2"):
+        DriveParams(lateral_accel_mps2=0.0)
 
 
 def test_random_routes_have_no_u_turns() -> None:

@@ -545,3 +545,26 @@ def test_observed_turns_count_only_what_stands_out_of_the_heading_noise() -> Non
     _, across = observed_accels(t, turning, xy, np.full(t.size, 0.01))
     noise = np.hypot(0.01, 0.01) / 0.2
     assert np.median(across) == pytest.approx(np.sqrt(0.5**2 - noise**2) * 10.0, rel=0.05)
+
+
+def test_the_yaw_floor_is_at_most_what_the_fixes_would_have_shown() -> None:
+    """A straight drive at 1 Hz, heading claimed 0.573 deg: the fixes would show any yaw
+    acceleration beyond 3 sigma of their heading noise (0.07 rad/s^2), so the configured
+    0.5 rad/s^2 floor ("entering a corner") does not apply, and a frame mid-gap claims the
+    interpolated heading sigma plus 0.07 / 8 rad, not 0.5 / 8 (3.6 deg, which the bias
+    compensation then removes from rays that never had it). At 5 Hz the fixes hide more
+    than the floor (1.8 rad/s^2), and the floor stands."""
+    from vehicle.geoloc import turn_sigmas
+    from vehicle.pose import PoseTiming, bracket, hidden_yaw_accel, motion_sigma
+
+    s = np.radians(0.573)
+    for rate, floor in ((1.0, None), (5.0, 0.5)):
+        t = np.arange(0.0, 20.0, 1.0 / rate)
+        hidden = hidden_yaw_accel(t, np.full(t.size, s))
+        assert hidden[1:-1] == pytest.approx(3 * s * np.sqrt(6) * rate**2, rel=1e-9)
+        br = bracket(t, np.array([10.0 + 0.5 / rate]))
+        xyz = np.column_stack([np.zeros(t.size), 10.0 * t, np.zeros(t.size)])
+        _, m_psi = turn_sigmas(br, t, np.zeros(t.size), xyz, PoseTiming(), np.full(t.size, s))
+        want = motion_sigma(br, floor if floor is not None else 3 * s * np.sqrt(6))
+        np.testing.assert_allclose(m_psi, want, rtol=1e-9)
+    assert hidden_yaw_accel(np.arange(2.0), np.full(2, s)).tolist() == [np.inf]
