@@ -22,7 +22,7 @@ from vehicle.geoloc import (
     geolocate,
     vehicle_to_enu,
 )
-from vehicle.pose import PoseTiming
+from vehicle.pose import PoseTiming, hidden_yaw_accel
 
 FX = FY = 1400.0
 CX, CY = 960.0, 540.0
@@ -441,8 +441,12 @@ def test_pose_sigmas_grow_with_the_gap() -> None:
     s_fix = np.where(t <= 0.2, 1.0, (1 - w) * 1.0 + w * 2.0)
     np.testing.assert_allclose(pose.sigma_h_m, np.hypot(s_fix, 1.0 * np.abs(ta * tb)))
     np.testing.assert_allclose(pose.sigma_v_m, np.hypot(1.5, 0.25 * np.abs(ta * tb)))
+    # the yaw floor: 0.5 rad/s^2, or less where the fixes would have shown more
+    # (3 sigma of what their 0.5 deg makes of a yaw acceleration: 0.34 rad/s^2 here)
+    yaw = min(0.5, float(hidden_yaw_accel(t_fix, np.full(3, np.radians(0.5)))[0]))
+    assert 0.3 < yaw < 0.4
     np.testing.assert_allclose(
-        pose.sigma_heading_rad, np.hypot(np.radians(0.5), 0.25 * np.abs(ta * tb))
+        pose.sigma_heading_rad, np.hypot(np.radians(0.5), yaw / 2 * np.abs(ta * tb))
     )
     assert pose.sigma_h_m[4] == pytest.approx(np.hypot(1.5, 2.0 * 1.0**2 / 8.0))  # mid-gap
     # the rays carry them: horizontal with the lever arm's heading term, vertical as is
@@ -555,7 +559,7 @@ def test_the_yaw_floor_is_at_most_what_the_fixes_would_have_shown() -> None:
     compensation then removes from rays that never had it). At 5 Hz the fixes hide more
     than the floor (1.8 rad/s^2), and the floor stands."""
     from vehicle.geoloc import turn_sigmas
-    from vehicle.pose import PoseTiming, bracket, hidden_yaw_accel, motion_sigma
+    from vehicle.pose import bracket, motion_sigma
 
     s = np.radians(0.573)
     for rate, floor in ((1.0, None), (5.0, 0.5)):
