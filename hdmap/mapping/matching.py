@@ -1,6 +1,6 @@
 """The matcher's domain: its knobs (:class:`MatchingConfig`), its in-memory state
 (:class:`Matching`: the landmark table, the gating sums, open passes, the fleet's offsets)
-and what one batch produces for each landmark home tile (:class:`AssocOutput`).
+and what one obs entry produces for each landmark home tile (:class:`AssocOutput`).
 
 The steps that work on it are functions of a :class:`Matching`: one unit's association
 (:mod:`hdmap.mapping.unit`), linking rays and re-solving gating estimates
@@ -171,7 +171,7 @@ class MatchingConfig:
 
 @dataclass
 class AssocOutput:
-    """What one batch produces for one landmark home tile (the assoc output being built)."""
+    """What one obs entry produces for one landmark home tile (the assoc output being built)."""
 
     vehicles: list[str] = field(default_factory=list)
     links: list[tuple[int, int, int]] = field(default_factory=list)

@@ -96,7 +96,7 @@ def wall_clock() -> float:
 
 
 def assoc_body(out: AssocOutput) -> bytes:
-    """One home tile's output of a batch as an encoded :class:`AssocGroup`."""
+    """One home tile's output of an obs entry as an encoded :class:`AssocGroup`."""
     links = np.array(out.links, dtype=np.uint64).reshape(-1, 3)
     created = out.created
     retired = np.array(out.retired, np.uint64).reshape(-1, 2)
@@ -187,10 +187,18 @@ class MatcherService(StageService):
     def apply(self, entries: list[LogEntry]) -> None:
         """Decode each entry, move the clock, match its unit and settle what the clock's
         advance settles (:func:`hdmap.mapping.event_time.advance`: probation, expiry, pass
-        closing); emit one assoc entry per home tile and save."""
-        self.matching.out = new_output()
+        closing); after each entry, emit one assoc entry per home tile it touched; save.
+
+        Invariant: the assoc log holds the same groups in the same order however the obs
+        entries were batched (one per entry and home tile), so the solver, whose clock
+        and pass closing follow its groups, builds the same map from uploads sent paced or
+        in bulk. Pitfall: one group per batch (as it was) let a bulk catch-up put several
+        uploads' rays in one group: the solver's clock jumped to the latest of them before
+        the earliest were noted, its passes closed at other entries, and a late ray of a
+        pass joined it in one run and started a new cluster in the other."""
         ahead: list[float] = []
         for e in entries:
+            self.matching.out = new_output()
             try:
                 group = ObsGroup.from_bytes(e.body)
             except DecodeError as exc:
@@ -200,6 +208,8 @@ class MatcherService(StageService):
                 ahead.append(group.received_at)
             self._unit(e.tile, group)
             advance(self.matching)
+            for home, out in sorted(self.matching.out.items()):
+                self.emit(home, assoc_body(out))
         if ahead:
             log.warning(
                 "%d obs entries stamped more than time_tolerance_s ahead of the matcher's "
@@ -207,8 +217,7 @@ class MatcherService(StageService):
                 len(ahead),
                 max(ahead) - self.matching.now,
             )
-        for home, out in sorted(self.matching.out.items()):
-            self.emit(home, assoc_body(out))
+        self.matching.out = new_output()
         self.state.save(self.sums.pack_rows)
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
