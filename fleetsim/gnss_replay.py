@@ -80,10 +80,10 @@ class Trace:
         """(len(t), 2) East and North rate of the error over the logged interval that
         holds each trace time (wrapped into the span), m/s: what a course over ground of
         these fixes is off by, as a velocity."""
-        tt = np.mod(t, self.span_s) if self.span_s > 0 else np.zeros_like(t)
-        i = np.clip(np.searchsorted(self.t, tt, side="right") - 1, 0, max(len(self.t) - 2, 0))
         if len(self.t) < 2:
             return np.zeros((np.size(t), 2))
+        tt = np.mod(t, self.span_s) if self.span_s > 0 else np.zeros_like(t)
+        i = np.clip(np.searchsorted(self.t, tt, side="right") - 1, 0, len(self.t) - 2)
         dt = self.t[i + 1] - self.t[i]
         return np.column_stack(
             [(self.east[i + 1] - self.east[i]) / dt, (self.north[i + 1] - self.north[i]) / dt]

@@ -185,12 +185,14 @@ def speed_profile(
     hi = np.interp(np.clip(s + half, 0.0, length), s, psi)
     span = np.clip(s + half, 0.0, length) - np.clip(s - half, 0.0, length)
     kappa = np.abs(hi - lo) / np.maximum(span, 1e-9)
-    v = np.minimum(v_max, np.sqrt(lateral_accel / np.maximum(kappa, 1e-12)))
+    # in v^2 the limits are linear in s: speeding up from any earlier point j bounds
+    # v_i^2 by cap_j + 2 a (s_i - s_j), braking for any later one by cap_j + 2 a (s_j - s_i)
+    cap = np.minimum(v_max, np.sqrt(lateral_accel / np.maximum(kappa, 1e-12))) ** 2
+    two_a = 2.0 * long_accel
+    cap = np.minimum(cap, two_a * s + np.minimum.accumulate(cap - two_a * s))
+    cap = np.minimum(cap, np.minimum.accumulate((cap + two_a * s)[::-1])[::-1] - two_a * s)
+    v = np.sqrt(cap)
     ds = np.diff(s)
-    for i in range(n):  # speeding up
-        v[i + 1] = min(v[i + 1], np.sqrt(v[i] ** 2 + 2.0 * long_accel * ds[i]))
-    for i in range(n - 1, -1, -1):  # braking
-        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2.0 * long_accel * ds[i]))
     t = np.concatenate([[0.0], np.cumsum(2.0 * ds / (v[:-1] + v[1:]))])
     return SpeedProfile(s, t)
 

@@ -217,7 +217,6 @@ class MatcherService(StageService):
                 len(ahead),
                 max(ahead) - self.matching.now,
             )
-        self.matching.out = new_output()
         self.state.save(self.sums.pack_rows)
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------

@@ -10,7 +10,7 @@ import pytest
 from scipy.stats import t as t_dist
 
 from fleetsim.drive import DriveParams, simulate_pass
-from fleetsim.evaluation.fleet_eval import FleetEvalConfig
+from fleetsim.evaluation.fleet_eval import PASS_S, FleetEvalConfig
 from fleetsim.gnss_replay import (
     ReplayedGnss,
     course_over_ground,
@@ -165,7 +165,8 @@ def test_fleet_totals_claims_the_receivers_total_errors():
     assert replace(noise.gnss, reported_sigma_h_m=None, reported_sigma_v_m=None,
                    reported_sigma_heading_deg=None) == g  # fmt: skip
     s_h, s_v, s_hd = noise.gnss.reported_sigmas()
-    assert s_h == pytest.approx(np.sqrt(1.0 + 2.5**2 + 90.0 * 0.2**2))  # 3.29 m
-    assert s_v == pytest.approx(np.sqrt(1.5**2 + 3.5**2 + 90.0 * 0.3**2))  # 4.75 m
+    assert PASS_S == 90.0  # the figures below
+    assert s_h == pytest.approx(np.sqrt(1.0 + 2.5**2 + PASS_S * 0.2**2))  # 3.29 m
+    assert s_v == pytest.approx(np.sqrt(1.5**2 + 3.5**2 + PASS_S * 0.3**2))  # 4.75 m
     assert s_hd == pytest.approx(np.degrees(np.hypot(0.01, 0.02)), abs=1e-3)  # 1.28 deg
     assert FLEET.gnss.reported_sigmas() == (1.0, 1.5, 0.573)
