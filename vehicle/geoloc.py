@@ -38,6 +38,7 @@ from hdmap.geo.geodesy import (
 )
 from hdmap.geo.signs import CATALOG, SignCatalog
 from vehicle.pose import (
+    WHITE_SHARE_MIN_FIXES,
     Bracket,
     PoseTiming,
     bracket,
@@ -49,6 +50,7 @@ from vehicle.pose import (
     motion_sigma,
     observed_accels,
     reachable,
+    view_share,
     white_share,
     wrap_angle,
 )
@@ -335,21 +337,33 @@ def antenna_poses(
     lat_i, lon_i, h_i = frame.to_geodetic(interpolate(br, xyz))
     psi = np.radians(np.asarray(fixes.heading_deg, float))
     s_psi = np.radians(np.asarray(fixes.sigma_heading_deg, float))
-    m_h, m_psi = turn_sigmas(br, ft, psi, xyz, timing, s_psi)
     m_v = motion_sigma(br, timing.accel_v_sigma_mps2)
     # The heading's white share: the bias compensation takes the rays' angular variance
     # as told (docs/experiments/2026-12-interpolated-sigma-overcompensation.md). The
     # positions keep the upper bound: they only widen gates and weights.
     r_psi = white_share(ft, psi, s_psi, angle=True)
+    # turns count beyond the noise of consecutive fixes' differences: their white part
+    # (white_share gives 0, the upper bound, where it has too few fixes to tell)
+    r_turn = r_psi if ft.size >= WHITE_SHARE_MIN_FIXES else 1.0
+    m_h, m_psi = turn_sigmas(br, ft, psi, xyz, timing, r_turn * s_psi)
+    # What of it changes within a view of a sign: the estimator's bias compensation
+    # removes, per ray, the curvature its claimed variance would put in the sums, which
+    # an error the whole view shares does not (docs/estimator.md section 3;
+    # docs/experiments/2026-12-shared-heading-compensation.md).
+    r_view = view_share(ft, psi, s_psi, timing.view_lag_s)
+    # of that part, the share consecutive fixes do not share (interpolation averages it)
+    r_white = min(r_psi / r_view, 1.0) if r_view > 0.0 else 1.0
+    r_view_h = view_share(ft, psi, s_psi, timing.view_lag_s, xyz, fixes.sigma_h_m)
+    r_view_v = view_share(ft, psi, s_psi, timing.view_lag_s, xyz, fixes.sigma_v_m, vertical=True)
     return AntennaPoses(
         t=t,
         lat=np.atleast_1d(lat_i),
         lon=np.atleast_1d(lon_i),
         h=np.atleast_1d(h_i),
         heading_rad=interpolate_angle(br, psi),
-        sigma_h_m=np.hypot(interpolate_sigma(br, fixes.sigma_h_m), m_h),
-        sigma_v_m=np.hypot(interpolate_sigma(br, fixes.sigma_v_m), m_v),
-        sigma_heading_rad=np.hypot(interpolate_sigma(br, s_psi, r_psi), m_psi),
+        sigma_h_m=np.hypot(r_view_h * interpolate_sigma(br, fixes.sigma_h_m), m_h),
+        sigma_v_m=np.hypot(r_view_v * interpolate_sigma(br, fixes.sigma_v_m), m_v),
+        sigma_heading_rad=np.hypot(interpolate_sigma(br, r_view * s_psi, r_white), m_psi),
     )
 
 

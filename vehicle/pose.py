@@ -93,6 +93,11 @@ class PoseTiming:
     0.5 floor claimed 3.6 deg of heading error mid-gap on every straight, which the bias
     compensation then removed from rays that never had it (with exact GNSS at 1 Hz the
     landmarks stood 1.6 m beyond their signs; docs/experiments/2026-12-one-hertz-gnss.md)."""
+    view_lag_s: float = 2.0
+    """Lag of :func:`view_share`, s: the part of the heading error that changes within
+    this long counts as varying between the rays of one view of a sign (a view lasts 2-6
+    s); what lasts longer, the pass shares. 0: no split, every ray claims the receiver's
+    heading sigma whole."""
     observed_turns: bool = True
     """Raise the acceleration scales by what the fixes show of each interval's turn
     (:func:`observed_accels`). At a corner's start the heading interpolated between two
@@ -103,7 +108,7 @@ class PoseTiming:
 
     def __post_init__(self) -> None:
         for name in ("max_gap_s", "accel_sigma_mps2", "accel_v_sigma_mps2",
-                     "yaw_accel_sigma_radps2"):  # fmt: skip
+                     "yaw_accel_sigma_radps2", "view_lag_s"):  # fmt: skip
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0.0):
                 raise ValueError(f"PoseTiming.{name}: must be finite and >= 0, got {v!r}")
@@ -214,8 +219,16 @@ def interpolate_sigma(br: Bracket, sigma: ArrayLike, white: float = 0.0) -> Arra
     return np.sqrt((1.0 - r2) * shared**2 + r2 * alone**2)
 
 
+WHITE_SHARE_MIN_FIXES = 10
+""":func:`white_share` needs this many fixes; with fewer it gives 0 (the upper bound)."""
+
+
 def white_share(
-    t: ArrayLike, values: ArrayLike, sigma: ArrayLike, angle: bool = False, min_fixes: int = 10
+    t: ArrayLike,
+    values: ArrayLike,
+    sigma: ArrayLike,
+    angle: bool = False,
+    min_fixes: int = WHITE_SHARE_MIN_FIXES,
 ) -> float:
     """The share of the reported ``sigma`` (per fix) that is white noise, from the fixes
     themselves: per interior fix the second divided difference of ``values`` (n, or n x k,
@@ -244,6 +257,98 @@ def white_share(
     if angle:
         dv = wrap_angle(dv)
     d2 = dv[1:] / h2 - dv[:-1] / h1
+    z = d2 / second_difference_scale(h1, h2)
+    return float(np.clip(1.4826 * np.median(np.abs(z)) / ref, 0.0, 1.0))
+
+
+STRAIGHT_K = 2.0
+""":func:`view_share` uses a fix's lag triple only where the heading turns by less than
+this many standard deviations of the claimed noise over the triple (driving straight)."""
+
+
+def straight_lag_triples(
+    t: Array, heading_rad: Array, heading_sigma: Array, lag_s: float
+) -> tuple[IntArray, IntArray, IntArray] | None:
+    """Per fix ``i`` the fixes ``a``, ``c`` nearest to ``lag_s`` before and after it (no
+    farther than 1.5 ``lag_s``), kept only where the heading turns by less than
+    :data:`STRAIGHT_K` times the claimed noise of that turn (driving straight). None: none.
+    For independent errors of equal variance the first difference ``e_c - e_a`` and the
+    second ``e_c - 2 e_i + e_a`` are uncorrelated, so the selection does not bias the
+    second differences' scale."""
+    n = t.size
+    if n < 3 or lag_s <= 0.0:
+        return None
+    a = np.searchsorted(t, t - lag_s, side="right") - 1  # last fix at or before t - lag
+    c = np.searchsorted(t, t + lag_s)  # first fix at or after t + lag
+    b = np.arange(n)
+    ok = (a >= 0) & (c < n)
+    a, b, c = a[ok], b[ok], c[ok]
+    ok = (t[b] - t[a] <= 1.5 * lag_s) & (t[c] - t[b] <= 1.5 * lag_s)
+    turn = wrap_angle(heading_rad[c] - heading_rad[a])
+    ok &= np.abs(turn) < STRAIGHT_K * np.hypot(heading_sigma[a], heading_sigma[c])
+    if not ok.any():
+        return None
+    return a[ok], b[ok], c[ok]
+
+
+def view_share(
+    t: ArrayLike,
+    heading_rad: ArrayLike,
+    heading_sigma: ArrayLike,
+    lag_s: float,
+    xy: ArrayLike | None = None,
+    sigma_h: ArrayLike | None = None,
+    min_triples: int = 10,
+    vertical: bool = False,
+) -> float:
+    """The share of the claimed sigma (per fix) that changes within ``lag_s`` seconds, from
+    the fixes themselves: of the heading (rad), or with ``xy`` (n x 2, m) and ``sigma_h``
+    (m per axis) of the horizontal position; with ``vertical`` too, ``xy`` is (n x 3) and
+    ``sigma_h`` the vertical sigma: of the height.
+
+    Over the fixes' :func:`straight_lag_triples` the normalised second divided difference
+    ``z`` of :func:`white_share` (of the heading; of the position across the direction of
+    travel, where driving straight has none of its own): an error that lasts much longer
+    than ``lag_s`` cancels in it, one that changes within it counts whole (white noise per
+    fix, or a course error that holds for a second and then jumps, as a 1 Hz receiver's
+    does). Bends would count as noise at these lags, hence the straight triples only. The
+    share is the robust scale of ``z`` (1.4826 median ``|z|``) over the median claim, in
+    [0, 1]. With fewer than ``min_triples`` triples: 1 (the claim whole).
+
+    A per-pass bias cancels; white noise does not:
+
+    >>> rng = np.random.default_rng(1)
+    >>> t = np.arange(300) * 0.2
+    >>> s = np.full(300, 0.02)
+    >>> round(view_share(t, np.full(300, 0.03), s, 2.0), 6)
+    0.0
+    >>> 0.8 < view_share(t, rng.normal(0.0, 0.02, 300), s, 2.0) <= 1.0
+    True
+    >>> track = np.column_stack([np.full(300, 5.0), 10.0 * t])  # northbound, biased 5 m
+    >>> round(view_share(t, np.zeros(300), s, 2.0, track, np.ones(300)), 6)
+    0.0
+    """
+    tt = np.asarray(t, float).reshape(-1)
+    psi = np.asarray(heading_rad, float).reshape(-1)
+    s_psi = np.asarray(heading_sigma, float).reshape(-1)
+    sig = s_psi if sigma_h is None else np.asarray(sigma_h, float).reshape(-1)
+    ref = float(np.median(sig)) if tt.size else 0.0
+    if not (np.isfinite(ref) and ref > 0.0):
+        return 1.0
+    tri = straight_lag_triples(tt, psi, s_psi, lag_s)
+    if tri is None or tri[0].size < min_triples:
+        return 1.0
+    a, b, c = tri
+    h1, h2 = tt[b] - tt[a], tt[c] - tt[b]
+    if xy is None:
+        d2 = wrap_angle(psi[c] - psi[b]) / h2 - wrap_angle(psi[b] - psi[a]) / h1
+    elif vertical:
+        u = np.asarray(xy, float)[:, 2]
+        d2 = (u[c] - u[b]) / h2 - (u[b] - u[a]) / h1
+    else:
+        p = np.asarray(xy, float)[:, :2]
+        dd = (p[c] - p[b]) / h2[:, None] - (p[b] - p[a]) / h1[:, None]
+        d2 = dd[:, 0] * np.cos(psi[b]) - dd[:, 1] * np.sin(psi[b])  # across the travel
     z = d2 / second_difference_scale(h1, h2)
     return float(np.clip(1.4826 * np.median(np.abs(z)) / ref, 0.0, 1.0))
 

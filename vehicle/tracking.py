@@ -67,6 +67,7 @@ from vehicle.pose import (
     interpolate,
     interpolate_sigma,
     motion_sigma,
+    view_share,
 )
 
 Array = NDArray[np.float64]
@@ -210,10 +211,17 @@ def smoothed_rays(
     n = len(lines)
     if cfg.sigma_from_fixes:
         root = np.sqrt(lev)
-        move_h, _ = turn_sigmas(br, ft, np.radians(np.asarray(fg.heading_deg, float)), xyz, timing)
+        psi = np.radians(np.asarray(fg.heading_deg, float))
+        s_psi = np.radians(np.asarray(fg.sigma_heading_deg, float))
+        move_h, _ = turn_sigmas(br, ft, psi, xyz, timing)
         move_v = motion_sigma(br, timing.accel_v_sigma_mps2)
-        white_h = interpolate_sigma(br, root * np.asarray(fg.sigma_h_m, float))
-        white_v = interpolate_sigma(br, root * np.asarray(fg.sigma_v_m, float))
+        # of the reported sigma, the part that changes within a track's life (a receiver
+        # reporting its total error includes a bias the track's rays share)
+        lag = timing.view_lag_s
+        r_h = view_share(ft, psi, s_psi, lag, xyz, fg.sigma_h_m)
+        r_v = view_share(ft, psi, s_psi, lag, xyz, fg.sigma_v_m, vertical=True)
+        white_h = interpolate_sigma(br, r_h * root * np.asarray(fg.sigma_h_m, float))
+        white_v = interpolate_sigma(br, r_v * root * np.asarray(fg.sigma_v_m, float))
         floor2 = cfg.rel_pos_sigma_m**2
         s_h = np.sqrt(floor2 + white_h**2 + move_h**2)
         s_v = np.sqrt(floor2 + white_v**2 + move_v**2)
