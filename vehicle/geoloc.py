@@ -50,7 +50,7 @@ from vehicle.pose import (
     motion_sigma,
     observed_accels,
     reachable,
-    view_share,
+    view_shares,
     white_share,
     wrap_angle,
 )
@@ -340,7 +340,7 @@ def antenna_poses(
     m_v = motion_sigma(br, timing.accel_v_sigma_mps2)
     # The heading's white share: the bias compensation takes the rays' angular variance
     # as told (docs/experiments/2026-12-interpolated-sigma-overcompensation.md). The
-    # positions keep the upper bound: they only widen gates and weights.
+    # positions keep the upper bound between fixes: they only widen gates and weights.
     r_psi = white_share(ft, psi, s_psi, angle=True)
     # turns count beyond the noise of consecutive fixes' differences: their white part
     # (white_share gives 0, the upper bound, where it has too few fixes to tell)
@@ -350,11 +350,11 @@ def antenna_poses(
     # removes, per ray, the curvature its claimed variance would put in the sums, which
     # an error the whole view shares does not (docs/estimator.md section 3;
     # docs/experiments/2026-12-shared-heading-compensation.md).
-    r_view = view_share(ft, psi, s_psi, timing.view_lag_s)
+    r_view, r_view_h, r_view_v = view_shares(
+        ft, psi, s_psi, timing.view_lag_s, xyz, fixes.sigma_h_m, fixes.sigma_v_m
+    )
     # of that part, the share consecutive fixes do not share (interpolation averages it)
     r_white = min(r_psi / r_view, 1.0) if r_view > 0.0 else 1.0
-    r_view_h = view_share(ft, psi, s_psi, timing.view_lag_s, xyz, fixes.sigma_h_m)
-    r_view_v = view_share(ft, psi, s_psi, timing.view_lag_s, xyz, fixes.sigma_v_m, vertical=True)
     return AntennaPoses(
         t=t,
         lat=np.atleast_1d(lat_i),

@@ -94,7 +94,7 @@ class PoseTiming:
     compensation then removed from rays that never had it (with exact GNSS at 1 Hz the
     landmarks stood 1.6 m beyond their signs; docs/experiments/2026-12-one-hertz-gnss.md)."""
     view_lag_s: float = 2.0
-    """Lag of :func:`view_share`, s: the part of the heading error that changes within
+    """Lag of :func:`view_shares`, s: the part of the heading error that changes within
     this long counts as varying between the rays of one view of a sign (a view lasts 2-6
     s); what lasts longer, the pass shares. 0: no split, every ray claims the receiver's
     heading sigma whole."""
@@ -262,7 +262,7 @@ def white_share(
 
 
 STRAIGHT_K = 2.0
-""":func:`view_share` uses a fix's lag triple only where the heading turns by less than
+""":func:`view_shares` uses a fix's lag triple only where the heading turns by less than
 this many standard deviations of the claimed noise over the triple (driving straight)."""
 
 
@@ -291,66 +291,66 @@ def straight_lag_triples(
     return a[ok], b[ok], c[ok]
 
 
-def view_share(
+def view_shares(
     t: ArrayLike,
     heading_rad: ArrayLike,
     heading_sigma: ArrayLike,
     lag_s: float,
-    xy: ArrayLike | None = None,
+    xyz: ArrayLike | None = None,
     sigma_h: ArrayLike | None = None,
+    sigma_v: ArrayLike | None = None,
     min_triples: int = 10,
-    vertical: bool = False,
-) -> float:
-    """The share of the claimed sigma (per fix) that changes within ``lag_s`` seconds, from
-    the fixes themselves: of the heading (rad), or with ``xy`` (n x 2, m) and ``sigma_h``
-    (m per axis) of the horizontal position; with ``vertical`` too, ``xy`` is (n x 3) and
-    ``sigma_h`` the vertical sigma: of the height.
+) -> tuple[float, float, float]:
+    """The shares of the claimed sigmas (per fix) that change within ``lag_s`` seconds,
+    from the fixes themselves: of the heading (rad), and with ``xyz`` (n x 3, m) of the
+    horizontal position (``sigma_h``, m per axis) and of the height (``sigma_v``).
 
     Over the fixes' :func:`straight_lag_triples` the normalised second divided difference
     ``z`` of :func:`white_share` (of the heading; of the position across the direction of
-    travel, where driving straight has none of its own): an error that lasts much longer
-    than ``lag_s`` cancels in it, one that changes within it counts whole (white noise per
-    fix, or a course error that holds for a second and then jumps, as a 1 Hz receiver's
-    does). Bends would count as noise at these lags, hence the straight triples only. The
-    share is the robust scale of ``z`` (1.4826 median ``|z|``) over the median claim, in
-    [0, 1]. With fewer than ``min_triples`` triples: 1 (the claim whole).
+    travel, where driving straight has none of its own; of the height): an error that
+    lasts much longer than ``lag_s`` cancels in it, one that changes within it counts whole
+    (white noise per fix, or a course error that holds for a second and then jumps, as a
+    1 Hz receiver's does). Bends would count as noise at these lags, hence the straight
+    triples only. A share is the robust scale of ``z`` (1.4826 median ``|z|``) over the
+    median claim, in [0, 1]; 1 (the claim whole) with fewer than ``min_triples`` triples,
+    or for a position not given.
 
     A per-pass bias cancels; white noise does not:
 
     >>> rng = np.random.default_rng(1)
     >>> t = np.arange(300) * 0.2
     >>> s = np.full(300, 0.02)
-    >>> round(view_share(t, np.full(300, 0.03), s, 2.0), 6)
+    >>> round(view_shares(t, np.full(300, 0.03), s, 2.0)[0], 6)
     0.0
-    >>> 0.8 < view_share(t, rng.normal(0.0, 0.02, 300), s, 2.0) <= 1.0
+    >>> 0.8 < view_shares(t, rng.normal(0.0, 0.02, 300), s, 2.0)[0] <= 1.0
     True
-    >>> track = np.column_stack([np.full(300, 5.0), 10.0 * t])  # northbound, biased 5 m
-    >>> round(view_share(t, np.zeros(300), s, 2.0, track, np.ones(300)), 6)
-    0.0
+    >>> track = np.column_stack([np.full(300, 5.0), 10.0 * t, np.full(300, 2.0)])  # biased
+    >>> [round(r, 6) for r in view_shares(t, np.zeros(300), s, 2.0, track, s, s)[1:]]
+    [0.0, 0.0]
     """
     tt = np.asarray(t, float).reshape(-1)
     psi = np.asarray(heading_rad, float).reshape(-1)
     s_psi = np.asarray(heading_sigma, float).reshape(-1)
-    sig = s_psi if sigma_h is None else np.asarray(sigma_h, float).reshape(-1)
-    ref = float(np.median(sig)) if tt.size else 0.0
-    if not (np.isfinite(ref) and ref > 0.0):
-        return 1.0
-    tri = straight_lag_triples(tt, psi, s_psi, lag_s)
+    tri = straight_lag_triples(tt, psi, s_psi, lag_s) if tt.size else None
     if tri is None or tri[0].size < min_triples:
-        return 1.0
+        return 1.0, 1.0, 1.0
     a, b, c = tri
     h1, h2 = tt[b] - tt[a], tt[c] - tt[b]
-    if xy is None:
-        d2 = wrap_angle(psi[c] - psi[b]) / h2 - wrap_angle(psi[b] - psi[a]) / h1
-    elif vertical:
-        u = np.asarray(xy, float)[:, 2]
-        d2 = (u[c] - u[b]) / h2 - (u[b] - u[a]) / h1
-    else:
-        p = np.asarray(xy, float)[:, :2]
-        dd = (p[c] - p[b]) / h2[:, None] - (p[b] - p[a]) / h1[:, None]
-        d2 = dd[:, 0] * np.cos(psi[b]) - dd[:, 1] * np.sin(psi[b])  # across the travel
-    z = d2 / second_difference_scale(h1, h2)
-    return float(np.clip(1.4826 * np.median(np.abs(z)) / ref, 0.0, 1.0))
+    scale = second_difference_scale(h1, h2)
+
+    def share(d2: Array, sigma: ArrayLike | None) -> float:
+        ref = float(np.median(np.asarray(sigma, float))) if sigma is not None else 0.0
+        if not (np.isfinite(ref) and ref > 0.0):
+            return 1.0
+        return float(np.clip(1.4826 * np.median(np.abs(d2 / scale)) / ref, 0.0, 1.0))
+
+    r_psi = share(wrap_angle(psi[c] - psi[b]) / h2 - wrap_angle(psi[b] - psi[a]) / h1, s_psi)
+    if xyz is None:
+        return r_psi, 1.0, 1.0
+    p = np.asarray(xyz, float)
+    dd = (p[c] - p[b]) / h2[:, None] - (p[b] - p[a]) / h1[:, None]
+    across = dd[:, 0] * np.cos(psi[b]) - dd[:, 1] * np.sin(psi[b])
+    return r_psi, share(across, sigma_h), share(dd[:, 2], sigma_v)
 
 
 def second_difference_scale(

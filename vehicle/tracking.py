@@ -67,7 +67,7 @@ from vehicle.pose import (
     interpolate,
     interpolate_sigma,
     motion_sigma,
-    view_share,
+    view_shares,
 )
 
 Array = NDArray[np.float64]
@@ -217,9 +217,9 @@ def smoothed_rays(
         move_v = motion_sigma(br, timing.accel_v_sigma_mps2)
         # of the reported sigma, the part that changes within a track's life (a receiver
         # reporting its total error includes a bias the track's rays share)
-        lag = timing.view_lag_s
-        r_h = view_share(ft, psi, s_psi, lag, xyz, fg.sigma_h_m)
-        r_v = view_share(ft, psi, s_psi, lag, xyz, fg.sigma_v_m, vertical=True)
+        _, r_h, r_v = view_shares(
+            ft, psi, s_psi, timing.view_lag_s, xyz, fg.sigma_h_m, fg.sigma_v_m
+        )
         white_h = interpolate_sigma(br, r_h * root * np.asarray(fg.sigma_h_m, float))
         white_v = interpolate_sigma(br, r_v * root * np.asarray(fg.sigma_v_m, float))
         floor2 = cfg.rel_pos_sigma_m**2
