@@ -32,6 +32,15 @@ fix's error is taken as a shared part plus a white part whose share :func:`white
 estimates from the pass's own fixes, and :func:`interpolate_sigma` combines the two
 (docs/experiments/2026-12-interpolated-sigma-overcompensation.md).
 
+**What a view of a sign shares** (:func:`view_shares`). Receivers report their total
+errors (Android's ``accuracy``, ``bearingAccuracyDegrees``), most of which a pass holds
+for minutes. The bias compensation must see only the part that changes between the rays
+of one view (2-6 s): what lasts a whole view moves the rays together and, compensated as
+if white, puts every landmark beyond its sign. The share of each claimed sigma that
+changes within ``PoseTiming.view_lag_s`` is measured from the fixes' second differences
+at that lag over straight driving, so the caller reports totals and the split comes from
+the data (docs/experiments/2026-12-shared-heading-compensation.md, Finding 4).
+
 **What the fixes show of the acceleration** (``PoseTiming.observed_turns``, on by
 default). ``sigma_a`` is then a floor: where the fixes
 themselves show the vehicle turning, the interval's acceleration scale is taken from them
