@@ -41,6 +41,7 @@ from fleetsim.evaluation.fleet_scoring import (
     score_round,
     sign_table,
     targets,
+    unpaired_table,
 )
 from fleetsim.fleet import Fleet, FleetConfig, vehicle_id
 from fleetsim.gnss_replay import gsdc
@@ -327,6 +328,7 @@ def run_fleet_eval(
         "services": services,
         "targets_at_50_passes": targets(table),
         "signs": sign_table(state, linked),
+        "unpaired": unpaired_table(world, lms[-1], cfg.match_m),
     }
     if result["targets_at_50_passes"]["evaluated"]:
         result["targets_at_50_passes"].update(assoc_shares(state, linked))

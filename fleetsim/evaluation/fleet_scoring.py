@@ -160,6 +160,47 @@ def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) 
     return {"key": key, "paired": paired, "dup": duplicate_mask(world, lm, m, match_m)}
 
 
+def unpaired_table(world: World, lm: Landmarks, match_m: float) -> list[dict]:
+    """The map's unpaired landmarks, each with the nearest true sign of its class: how far
+    (horizontal m, and along / across that sign's facing normal, positive: in front of the
+    sign), whether that sign is paired, and the landmark's passes, status and facing."""
+    m = match_landmarks(world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=match_m)
+    if not m.spurious.size:
+        return []
+    signs = world.signs
+    paired = np.zeros(len(signs), bool)
+    paired[m.sign_row] = True
+    dup = duplicate_mask(world, lm, m, match_m)
+    est = world.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)
+    az, _, known = as_map_landmarks(lm).facing()
+    rows = []
+    for j in m.spurious:
+        same = np.flatnonzero(signs.sign_class == lm.sign_class[j])
+        row: dict = {
+            "landmark": int(lm.id[j]),
+            "sign_class": int(lm.sign_class[j]),
+            "passes": int(lm.n_passes[j]),
+            "status": int(lm.status[j]),
+            "duplicate": bool(dup[j]),
+            "facing_deg": float(az[j]) if known[j] else None,
+        }
+        if same.size:
+            d = est[j, :2] - signs.position[same, :2]
+            k = int(np.argmin(np.hypot(d[:, 0], d[:, 1])))
+            a = np.radians(signs.facing_azimuth_deg[same[k]])
+            normal = np.array([np.sin(a), np.cos(a)])
+            row |= {
+                "nearest_sign": int(signs.id[same[k]]),
+                "nearest_sign_paired": bool(paired[same[k]]),
+                "dist_m": float(np.hypot(*d[k])),
+                "along_m": float(d[k] @ normal),
+                "across_m": float(d[k] @ np.array([normal[1], -normal[0]])),
+                "sign_facing_deg": float(signs.facing_azimuth_deg[same[k]]),
+            }
+        rows.append(row)
+    return rows
+
+
 @dataclass(frozen=True)
 class Linked:
     """Per observation (truth order): its true sign row (-1: false positive), the landmark

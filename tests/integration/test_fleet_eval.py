@@ -22,9 +22,11 @@ from fleetsim.evaluation.fleet_scoring import (
     assoc_shares,
     bin_table,
     targets,
+    unpaired_table,
 )
 from fleetsim.evaluation.fleet_seeds import format_seed_table, seed_row, summarise_seeds
 from fleetsim.world import straight_road
+from schemas import Landmarks
 
 pytestmark = pytest.mark.integration
 
@@ -71,7 +73,10 @@ def test_quick_run_writes_json_figures_and_a_table(quick):
         "services",
         "targets_at_50_passes",
         "signs",
+        "unpaired",
     } <= set(d)
+    assert len(d["unpaired"]) == d["rounds"][-1]["false_landmarks"]
+    assert sum(u["duplicate"] for u in d["unpaired"]) == d["rounds"][-1]["duplicates"]
     for name in d["meta"]["figures"]:
         assert (out / name).stat().st_size > 10_000
     assert "passes signs recall" in stderr
@@ -162,6 +167,32 @@ def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():
         "assoc_right_obs_pooled": 0.5,
         "assoc_right_obs_from_50": None,
     }
+
+
+def test_unpaired_table_names_the_nearest_sign_and_where_the_copy_stands():
+    world = straight_road()  # one sign, facing South
+    sign = world.signs.position[0]
+    lat, lon, h = world.frame.to_geodetic(sign + np.array([[0.3, 0.0, 0.0], [0.0, 8.0, 0.0]]))
+    two = np.ones(2)
+    lm = Landmarks(
+        id=np.array([1, 2], np.uint64),
+        sign_class=np.repeat(world.signs.sign_class[:1], 2).astype(np.uint16),
+        lat=lat,
+        lon=lon,
+        h=h,
+        cov=np.tile([1.0, 0.0, 0.0, 1.0, 0.0, 1.0], (2, 1)),
+        status=np.ones(2, np.uint8),
+        n_obs=np.full(2, 5, np.uint32),
+        n_passes=np.array([9, 3], np.uint32),
+        revision=np.ones(2, np.uint64),
+        updated_at=two,
+        source_time=two,
+    )
+    (row,) = unpaired_table(world, lm, match_m=5.0)
+    assert row["landmark"] == 2 and row["passes"] == 3 and not row["duplicate"]
+    assert row["nearest_sign_paired"] and row["dist_m"] == pytest.approx(8.0, abs=1e-6)
+    assert row["along_m"] == pytest.approx(-8.0, abs=1e-6)  # behind the South-facing sign
+    assert row["across_m"] == pytest.approx(0.0, abs=1e-6)
 
 
 def _result(assoc: float, dup: int, young_dup: int) -> dict:
