@@ -8,6 +8,7 @@ seed; ranges, not exact values). Also the pure scoring helpers on hand-made case
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -27,6 +28,7 @@ from fleetsim.evaluation.fleet_scoring import (
 from fleetsim.evaluation.fleet_seeds import format_seed_table, seed_row, summarise_seeds
 from fleetsim.world import straight_road
 from schemas import Landmarks
+from services.matcher.replay import landmark_digest, open_matcher, read_obs_log, replay
 
 pytestmark = pytest.mark.integration
 
@@ -131,6 +133,30 @@ def test_quick_run_counts_add_up_and_the_map_is_sane(quick):
     assert last["recall"] > 0.6 and 0.5 < last["mean_err_m"] < 4.0
     busy = [r for r in d["by_passes"] if r["passes_lo"] >= 10]
     assert busy and all(r["assoc_right"] > 0.6 for r in busy)
+
+
+def test_replaying_the_obs_log_gives_the_live_matchers_landmarks_whatever_the_batching(
+    quick, tmp_path
+):
+    """The run's captured obs log (ingest's ``log_out``) replayed in-process into a fresh
+    matcher, one entry per transaction and 64 per transaction: both end with exactly the
+    landmarks (ids, classes, home tiles, positions to 1 mm) and pending count of the live
+    matcher that consumed it through the bus."""
+    out, d, _ = quick
+    var = out / "run" / "var"
+    shutil.copytree(var / "matcher-all", tmp_path / "live" / "matcher-all")
+    live = open_matcher(tmp_path / "live")
+    want = landmark_digest(live)
+    assert len(live.state.landmarks) >= d["rounds"][-1]["landmarks"]
+    live.db.close()
+    entries = read_obs_log(var / "ingest-all" / "state.sqlite")
+    assert len(entries) == d["services"]["ingest"]["log_entries"]
+    for batch in (1, 64):
+        svc = open_matcher(tmp_path / f"replay-{batch}")
+        replay(svc, entries, batch)
+        assert svc.counters["received"] == d["services"]["matcher"]["received"]
+        assert landmark_digest(svc) == want, batch
+        svc.db.close()
 
 
 def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():

@@ -1,0 +1,134 @@
+"""The matcher alone on a captured obs log, in-process: observations per second per core
+(issue #19 point 5).
+
+A captured log is an ingest's ``log_out`` table (its SQLite file, ``var/ingest-*/state.sqlite``
+of any run): the obs entries exactly as the matcher received them. By default the capture
+is made first, by a fleet evaluation (`hdmap eval fleet`, central Helsinki, the fleet
+noise; ``--passes``, default 160), whose data dir is kept under ``--capture DIR`` and
+reused when it is there already.
+
+The replay: a fresh ``MatcherService`` on a real SQLite file (the bus replaced by a sink),
+the entries in their original order (``gseq``) in batches of ``--batch`` entries, each
+batch applied in one transaction as the stage loop does. Measured: the process CPU time
+and the wall time of the replay (not of the reading), so observations/s per core is the
+observations replayed over the CPU seconds. Also the memory the matcher's state holds at
+the end, per landmark and per pending ray (``tracemalloc`` over a reload of the final
+state into a second service, which allocates exactly what the state needs), and a
+checksum of the final landmark table, so two code versions can be compared on the same
+capture for both speed and result.
+
+    .venv/bin/python benchmarks/bench_matcher_replay.py [--quick] [--capture DIR] \
+        [--passes N] [--batch N] [--json out/bench/matcher_replay.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import machine, machine_line, write_json
+from schemas import LogEntry, ObsGroup
+from services.matcher.replay import landmark_digest, open_matcher, read_obs_log, replay
+
+
+def capture(out: Path, passes: int, rounds: int) -> Path:
+    """The ingest database of a fleet evaluation run into ``out`` (made if missing)."""
+    db = out / "run" / "var" / "ingest-all" / "state.sqlite"
+    if db.exists():
+        return db
+    cmd = [sys.executable, "-m", "hdmap.cli", "eval", "fleet", "--out", str(out)]
+    cmd += ["--passes", str(passes), "--rounds", str(rounds)]
+    print(f"capture: {' '.join(cmd[2:])}", file=sys.stderr, flush=True)
+    subprocess.run(cmd, check=True, timeout=3600, stdout=subprocess.DEVNULL)
+    return db
+
+
+def timed_replay(entries: list[LogEntry], batch: int, data_dir: Path) -> dict:
+    """Apply ``entries`` to a fresh matcher in batches; CPU and wall seconds, counts."""
+    svc = open_matcher(data_dir)
+    n_obs = sum(len(ObsGroup.from_bytes(e.body).obs) for e in entries)
+    every = max(1, len(entries) // 20)
+
+    def progress(done: int) -> None:
+        if done % every < batch or done == len(entries):
+            print(f"replay: {done}/{len(entries)} entries", file=sys.stderr, flush=True)
+
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    replay(svc, entries, batch, progress)
+    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    out = {
+        "entries": len(entries),
+        "observations": n_obs,
+        "batch_entries": batch,
+        "cpu_s": cpu,
+        "wall_s": wall,
+        "obs_per_cpu_s": n_obs / cpu if cpu > 0 else None,
+        "cpu_us_per_obs": 1e6 * cpu / n_obs if n_obs else None,
+        "landmarks": len(svc.state.landmarks),
+        "pending_rays": svc.state.pending_count(),
+        "counters": {k: v for k, v in sorted(svc.counters.items()) if isinstance(v, int | float)},
+        "landmark_digest": landmark_digest(svc),
+    }
+    svc.db.close()
+    return out
+
+
+def state_memory(data_dir: Path) -> dict:
+    """Bytes the matcher allocates to hold the saved state (a reload, traced)."""
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    svc = open_matcher(data_dir)
+    held = tracemalloc.get_traced_memory()[0] - before
+    tracemalloc.stop()
+    n_lm, n_pend = len(svc.state.landmarks), svc.state.pending_count()
+    svc.db.close()
+    return {
+        "state_bytes": held,
+        "landmarks": n_lm,
+        "pending_rays": n_pend,
+        "bytes_per_landmark_and_pending_ray": held / max(1, n_lm + n_pend),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="24 passes, a smoke test")
+    ap.add_argument("--capture", type=Path, default=None, help="capture dir (kept, reused)")
+    ap.add_argument("--log", type=Path, default=None, help="an ingest state.sqlite to replay")
+    ap.add_argument("--passes", type=int, default=160)
+    ap.add_argument("--batch", type=int, default=64, help="entries per transaction")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    passes, rounds = (24, 1) if args.quick else (args.passes, 1)
+    with tempfile.TemporaryDirectory(prefix="bench-matcher-") as tmp:
+        db = args.log or capture(args.capture or Path(tmp) / "capture", passes, rounds)
+        entries = read_obs_log(db)
+        print(f"matcher replay: {len(entries)} obs entries from {db}", file=sys.stderr)
+        print(machine_line(machine()), file=sys.stderr)
+        data_dir = Path(tmp) / "matcher"
+        result = timed_replay(entries, args.batch, data_dir)
+        result["memory"] = state_memory(data_dir)
+    result = {"machine": machine(), "source": str(db), "replay": result}
+    r = result["replay"]
+    print(
+        f"{r['observations']} observations in {r['entries']} entries: {r['cpu_s']:.1f} s CPU, "
+        f"{r['wall_s']:.1f} s wall; {r['obs_per_cpu_s']:,.0f} obs/s per core "
+        f"({r['cpu_us_per_obs']:.0f} us CPU per observation); {r['landmarks']} landmarks, "
+        f"{r['pending_rays']} pending rays; state {r['memory']['state_bytes'] / 1e6:.1f} MB "
+        f"({r['memory']['bytes_per_landmark_and_pending_ray']:.0f} B per landmark or pending "
+        f"ray); digest {r['landmark_digest']}"
+    )
+    if args.json:
+        write_json(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
