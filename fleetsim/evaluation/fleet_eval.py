@@ -328,7 +328,7 @@ def run_fleet_eval(
         "services": services,
         "targets_at_50_passes": targets(table),
         "signs": sign_table(state, linked),
-        "unpaired": unpaired_table(world, lms[-1], cfg.match_m),
+        "unpaired": unpaired_table(world, lms[-1], cfg.match_m, linked),
     }
     if result["targets_at_50_passes"]["evaluated"]:
         result["targets_at_50_passes"].update(assoc_shares(state, linked))

@@ -160,10 +160,16 @@ def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) 
     return {"key": key, "paired": paired, "dup": duplicate_mask(world, lm, m, match_m)}
 
 
-def unpaired_table(world: World, lm: Landmarks, match_m: float) -> list[dict]:
+def unpaired_table(
+    world: World, lm: Landmarks, match_m: float, linked: Linked | None = None
+) -> list[dict]:
     """The map's unpaired landmarks, each with the nearest true sign of its class: how far
     (horizontal m, and along / across that sign's facing normal, positive: in front of the
-    sign), whether that sign is paired, and the landmark's passes, status and facing."""
+    sign), whether that sign is paired, and the landmark's passes, status and facing. With
+    ``linked``: the observations linked to it by their truth (``obs_linked``, of them
+    false positives, and the true sign most of the rest belong to with its count; links
+    are by the id at link time, so rays linked to landmarks merged into it later are not
+    counted)."""
     m = match_landmarks(world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=match_m)
     if not m.spurious.size:
         return []
@@ -197,6 +203,16 @@ def unpaired_table(world: World, lm: Landmarks, match_m: float) -> list[dict]:
                 "across_m": float(d[k] @ np.array([normal[1], -normal[0]])),
                 "sign_facing_deg": float(signs.facing_azimuth_deg[same[k]]),
             }
+        if linked is not None:
+            mine = linked.got == int(lm.id[j])
+            true_rows = linked.row[mine]
+            row["obs_linked"] = int(mine.sum())
+            row["obs_false_positive"] = int((true_rows < 0).sum())
+            if (true_rows >= 0).any():
+                ids, counts = np.unique(true_rows[true_rows >= 0], return_counts=True)
+                top = int(np.argmax(counts))
+                row["obs_top_sign"] = int(signs.id[ids[top]])
+                row["obs_top_sign_count"] = int(counts[top])
         rows.append(row)
     return rows
 
