@@ -25,7 +25,9 @@ The report has these keys (:data:`REPORT_KEYS`):
 - ``chain``: counter deltas along the chain; ``losses``: their differences, all 0 when
   every accepted observation was applied exactly once; ``zero_loss``;
 - ``services``: per service ``cpu_s``, ``cpu_share`` (of one core over load + drain),
-  ``rss_peak_mb``, ``instances``, ``restarted``; ``instances``: the same per instance;
+  ``cpu_us_per_obs`` (its CPU over the observations ingest accepted in the run: what one
+  observation costs it, the issue's budget is 20 us), ``rss_peak_mb``, ``instances``,
+  ``restarted``; ``instances``: the same per instance;
   ``loadgen``: the same for this process. A service's peak RSS is the largest of its
   current RSS (``rss_bytes`` in its stats) sampled about once a second during the run,
   not its ``rss_peak_bytes`` (``ru_maxrss``, which on Linux survives ``exec`` and so
@@ -333,6 +335,9 @@ def report(
         s["rss_peak_mb"] = max(s["rss_peak_mb"], inst["rss_peak_mb"])
         s["instances"] += 1
         s["restarted"] = s["restarted"] or inst["restarted"]
+    n_obs = chain["ingest_accepted"]
+    for s in services.values():
+        s["cpu_us_per_obs"] = 1e6 * s["cpu_s"] / n_obs if n_obs > 0 else None
     with c.lock:
         lat = percentiles(c.latencies)
         ack = percentiles(c.ack_latencies)
