@@ -114,6 +114,8 @@ class FleetEvalConfig:
     """With ``gnss == "gsdc"``, the solver's ``shared_floor_m2`` measured from the replayed
     error log (:func:`gsdc_floor`), as a deployment calibrates its receivers; False: none.
     FLEET's simulated receiver draws its biases independently per pass: no floor."""
+    gnss_rate_hz: float | None = None
+    """The receivers' fix rate, Hz (None: the simulator's, ``DriveParams.gnss_rate_hz``)."""
     bulk_every: int = 4
     """Every ``bulk_every``-th vehicle (indices 3, 7, ...) uploads its round's passes at once
     at the round's end, after the others' later passes (0: every vehicle uploads each pass
@@ -222,11 +224,13 @@ def run_fleet_eval(
     per_round = max(1, cfg.passes // cfg.rounds)
     total = per_round * cfg.rounds
     start = time.time() - (total + 2) * 30.0 - 600.0
+    rate = {"gnss_rate_hz": cfg.gnss_rate_hz} if cfg.gnss_rate_hz else {}
     fleet_cfg = FleetConfig(
         n_vehicles=cfg.vehicles,
         start_time=start,
         pass_interval_s=30.0,
         route_length_m=(600.0, 1200.0),
+        **rate,
     )
     fleet = Fleet(world, model, noise, fleet_cfg, seed=cfg.seed)
     state = EvalState(world)
@@ -314,6 +318,7 @@ def run_fleet_eval(
             "seed": cfg.seed,
             "noise": f"{noise.name} (fleetsim/noise.py)",
             "box_size_sigma_px": cfg.box_size_sigma_px,
+            "gnss_rate_hz": fleet_cfg.gnss_rate_hz,
             "shared_floor": floor_info,
             "match_m": cfg.match_m,
             "wall_s": time.monotonic() - t0,

@@ -56,6 +56,8 @@ class FleetRunOptions:
     bulk_every: int | None = None
     """Every this-th vehicle uploads a round at once (None: :class:`FleetEvalConfig`'s;
     0: none)."""
+    gnss_rate_hz: float | None = None
+    """The receivers' fix rate (None: :class:`FleetEvalConfig`'s, the simulator's 5 Hz)."""
     quick: bool = False
     """A small run for the test suite."""
 
@@ -67,6 +69,7 @@ class FleetRunOptions:
         flags += [f"--box-size-sigma {self.box_size_sigma_px:g}"] if self.box_size_sigma_px else []
         flags += [f"--gnss {self.gnss}"] if self.gnss != "fleet" else []
         flags += [f"--bulk-every {self.bulk_every}"] if self.bulk_every is not None else []
+        flags += [f"--gnss-rate {self.gnss_rate_hz:g}"] if self.gnss_rate_hz else []
         flags += [] if self.shared_floor else ["--no-shared-floor"]
         return flags + (["--quick"] if self.quick else [])
 
@@ -158,6 +161,8 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
     )
     if opts.bulk_every is not None:
         cfg = replace(cfg, bulk_every=opts.bulk_every)
+    if opts.gnss_rate_hz:
+        cfg = replace(cfg, gnss_rate_hz=opts.gnss_rate_hz)
     result, state, final = run_fleet_eval(cfg)
     result["meta"]["command"] = "hdmap eval fleet " + " ".join(
         [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]

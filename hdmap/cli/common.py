@@ -71,6 +71,17 @@ def non_negative_float(text: str) -> float:
     return v
 
 
+def positive_float(text: str) -> float:
+    """An argument type: a finite number > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v > 0.0):
+        raise argparse.ArgumentTypeError(f"need a finite number > 0, got {text!r}")
+    return v
+
+
 def seed_list(text: str) -> list[int]:
     """An argument type: distinct comma-separated ints (``0,1,2``)."""
     try:

@@ -20,7 +20,13 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from hdmap.cli.common import non_negative_float, non_negative_int, positive_int, seed_list
+from hdmap.cli.common import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    seed_list,
+)
 
 
 def add_paper_sim_arguments(p: argparse.ArgumentParser) -> None:
@@ -133,6 +139,13 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         help="every K-th vehicle uploads each round's passes at once, at the round's end "
         "(default 4; 0: every vehicle uploads each pass as it ends)",
     )
+    p.add_argument(
+        "--gnss-rate",
+        type=positive_float,
+        default=None,
+        metavar="HZ",
+        help="the receivers' fix rate (default 5; the camera keeps its own)",
+    )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
 
 
@@ -150,6 +163,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         gnss=args.gnss,
         bulk_every=args.bulk_every,
         shared_floor=args.shared_floor,
+        gnss_rate_hz=args.gnss_rate,
         quick=args.quick,
     )
     try:
