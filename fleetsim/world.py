@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.signs import CATALOG, SignCatalog
@@ -60,6 +60,18 @@ class Signs:
         sorted_ids = self.id[order]
         pos = np.clip(np.searchsorted(sorted_ids, ids), 0, len(self) - 1)
         return np.where(sorted_ids[pos] == ids, order[pos], -1)
+
+    def with_real_sizes(self, rel_sigma: ArrayLike, seed: int) -> Signs:
+        """These signs with panels as real ones are: each its class's nominal height times
+        ``exp(N(0, rel_sigma))`` (per sign; ``rel_sigma`` per sign or one for all), drawn
+        from ``seed`` and the sign's id, so a sign keeps its size whatever else is drawn.
+        The vehicle still assumes the nominal heights (its box ranges err by the same factor
+        for every look at that panel)."""
+        rel = np.broadcast_to(np.asarray(rel_sigma, float), self.id.shape)
+        z = np.array(
+            [np.random.default_rng([seed, int(i), 0x51E5]).standard_normal() for i in self.id]
+        ).reshape(self.id.shape)
+        return replace(self, panel_height_m=self.panel_height_m * np.exp(rel * z))
 
     def take(self, rows: NDArray) -> Signs:
         r = np.asarray(rows)

@@ -50,6 +50,7 @@ from fleetsim.osm_town import helsinki_town, same_class_pairs
 from fleetsim.pipeline import FleetDriver, model_for
 from fleetsim.town_run import follow_town
 from fleetsim.world import World, tile_border_distance
+from hdmap.geo.signs import CATALOG
 from hdmap.mapping.gnss_floor import SharedFloor, floor_enu, shared_floor, shared_floor_m2
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import Stack
@@ -114,6 +115,12 @@ class FleetEvalConfig:
     """With ``gnss == "gsdc"``, the solver's ``shared_floor_m2`` measured from the replayed
     error log (:func:`gsdc_floor`), as a deployment calibrates its receivers; False: none.
     FLEET's simulated receiver draws its biases independently per pass: no floor."""
+    panel_size_rel_sigma: float | None = None
+    """Each sign's panel differs from its class's nominal height by ``exp(N(0, this))``
+    (:meth:`fleetsim.world.Signs.with_real_sizes`): what the vehicle's box ranges get
+    wrong about a given panel, the same at every look. None: the catalogue's
+    ``size_rel_sigma`` per class (10 % unless a class says otherwise); 0: every panel
+    at its nominal size."""
     gnss_rate_hz: float | None = None
     """The receivers' fix rate, Hz (None: the simulator's, ``DriveParams.gnss_rate_hz``)."""
     bulk_every: int = 4
@@ -176,9 +183,17 @@ def solver_floor_args(cfg: FleetEvalConfig, run_dir: Path) -> tuple[dict, dict[s
 
 
 def evaluation_world(cfg: FleetEvalConfig) -> World:
+    """The evaluation's part of central Helsinki, its panels of real sizes
+    (:attr:`FleetEvalConfig.panel_size_rel_sigma`)."""
     lat0, lon0 = CENTRE
     d = cfg.half_height_deg
-    return helsinki_town(cfg.seed, bbox=(lat0 - d, lon0 - 2 * d, lat0 + d, lon0 + 2 * d))
+    world = helsinki_town(cfg.seed, bbox=(lat0 - d, lon0 - 2 * d, lat0 + d, lon0 + 2 * d))
+    rel = cfg.panel_size_rel_sigma
+    if rel is None:
+        rel = CATALOG.rel_sigmas(world.signs.sign_class)
+    if not np.any(np.asarray(rel) > 0):
+        return world
+    return replace(world, signs=world.signs.with_real_sizes(rel, cfg.seed))
 
 
 def replay_links(session) -> list[ObsKeys]:
@@ -318,6 +333,7 @@ def run_fleet_eval(
             "seed": cfg.seed,
             "noise": f"{noise.name} (fleetsim/noise.py)",
             "box_size_sigma_px": cfg.box_size_sigma_px,
+            "panel_size_rel_sigma": cfg.panel_size_rel_sigma,
             "gnss_rate_hz": fleet_cfg.gnss_rate_hz,
             "shared_floor": floor_info,
             "match_m": cfg.match_m,

@@ -58,6 +58,8 @@ class FleetRunOptions:
     0: none)."""
     gnss_rate_hz: float | None = None
     """The receivers' fix rate (None: :class:`FleetEvalConfig`'s, the simulator's 5 Hz)."""
+    panel_size_rel_sigma: float | None = None
+    """Panels' size spread (None: the catalogue's; :class:`FleetEvalConfig`)."""
     quick: bool = False
     """A small run for the test suite."""
 
@@ -70,6 +72,8 @@ class FleetRunOptions:
         flags += [f"--gnss {self.gnss}"] if self.gnss != "fleet" else []
         flags += [f"--bulk-every {self.bulk_every}"] if self.bulk_every is not None else []
         flags += [f"--gnss-rate {self.gnss_rate_hz:g}"] if self.gnss_rate_hz else []
+        if self.panel_size_rel_sigma is not None:
+            flags += [f"--panel-size-sigma {self.panel_size_rel_sigma:g}"]
         flags += [] if self.shared_floor else ["--no-shared-floor"]
         return flags + (["--quick"] if self.quick else [])
 
@@ -163,6 +167,8 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         cfg = replace(cfg, bulk_every=opts.bulk_every)
     if opts.gnss_rate_hz:
         cfg = replace(cfg, gnss_rate_hz=opts.gnss_rate_hz)
+    if opts.panel_size_rel_sigma is not None:
+        cfg = replace(cfg, panel_size_rel_sigma=opts.panel_size_rel_sigma)
     result, state, final = run_fleet_eval(cfg)
     result["meta"]["command"] = "hdmap eval fleet " + " ".join(
         [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]

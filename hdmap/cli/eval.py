@@ -146,6 +146,14 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         metavar="HZ",
         help="the receivers' fix rate (default 5; the camera keeps its own)",
     )
+    p.add_argument(
+        "--panel-size-sigma",
+        type=non_negative_float,
+        default=None,
+        metavar="REL",
+        help="each panel's size off its class's nominal height by exp(N(0, REL)) (default: "
+        "the sign catalogue's size_rel_sigma, 0.10; 0: every panel at its nominal size)",
+    )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
 
 
@@ -164,6 +172,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         bulk_every=args.bulk_every,
         shared_floor=args.shared_floor,
         gnss_rate_hz=args.gnss_rate,
+        panel_size_rel_sigma=args.panel_size_sigma,
         quick=args.quick,
     )
     try:

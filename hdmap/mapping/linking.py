@@ -45,7 +45,17 @@ def to_local(frame: Any, obs: Any) -> LocalRays:
 
 def to_rays(r: LocalRays, weight: np.ndarray | None = None) -> Rays:
     """Local rays as the estimator's input (``weight`` per ray; None: all 1)."""
-    return Rays(r.origin, r.direction, r.sigma_az, r.sigma_el, r.sigma_pos_h, r.sigma_pos_v, weight)
+    return Rays(
+        r.origin,
+        r.direction,
+        r.sigma_az,
+        r.sigma_el,
+        r.sigma_pos_h,
+        r.sigma_pos_v,
+        weight,
+        r.range_m,
+        r.sigma_range_m,
+    )
 
 
 def link(

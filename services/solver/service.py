@@ -238,6 +238,8 @@ class SolverService(StageService):
                 obs.sigma_pos_h,
                 obs.sigma_pos_v,
                 g.links.weight[sel].astype(float),
+                obs.range_m,
+                obs.sigma_range_m,
             )
             rows = np.array([self.state.landmarks[int(ids[k])].row for k in idx], np.int64)
             self.sums.accumulate(rows, keys_[sel], rays, holds[sel])

@@ -469,3 +469,24 @@ def test_fix_check_finds_the_multipath_jumps_and_little_else(noise) -> None:
     else:
         assert jumps == 0
     assert flagged <= 0.002 * n, (flagged, n)
+
+
+def test_real_panel_sizes_are_per_sign_reproducible_and_spread_as_claimed():
+    """``Signs.with_real_sizes``: each panel's log size ratio ~ N(0, rel); the sample
+    variance of n = 2,000 signs within its chi-square 99.9 % interval; a sign keeps its
+    size when the others change."""
+    from scipy.stats import chi2
+
+    from fleetsim.world import Signs
+
+    n, rel = 2000, 0.1
+    signs = Signs.build(np.full(n, 1), np.zeros((n, 3)), np.zeros(n))
+    real = signs.with_real_sizes(rel, seed=3)
+    z = np.log(real.panel_height_m / signs.panel_height_m) / rel
+    lo, hi = chi2.ppf([0.0005, 0.9995], n - 1) / (n - 1)
+    assert lo <= np.var(z, ddof=1) <= hi
+    assert abs(z.mean()) <= 3.3 / np.sqrt(n)
+    again = signs.take(np.arange(10, 20)).with_real_sizes(rel, seed=3)
+    np.testing.assert_array_equal(again.panel_height_m, real.panel_height_m[10:20])
+    other = signs.with_real_sizes(rel, seed=4)
+    assert not np.allclose(other.panel_height_m, real.panel_height_m)

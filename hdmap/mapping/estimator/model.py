@@ -163,6 +163,9 @@ class EstimatorConfig:
     :meth:`paper` gives the paper's textbook estimator (the baseline).
     """
 
+    box_range: bool = False
+    """Rays' box ranges enter the normal equations as constraints along the rays
+    (:func:`range_terms`); False: bearings only (the paper's)."""
     compensate: bool = True
     """Bias-compensated sums (``E[Q~_j] = Q_t``); False = the textbook orthogonal-distance
     sums of the paper's eq. (4), biased toward the ray origins when direction noise is large."""
@@ -269,6 +272,7 @@ class EstimatorConfig:
     def paper() -> EstimatorConfig:
         """The paper's estimator: textbook unweighted sums, every ray independent."""
         return EstimatorConfig(
+            box_range=False,
             compensate=False,
             cluster_robust=False,
             weighting="uniform",
@@ -302,6 +306,10 @@ class Rays:
     """Relative weight of each ray in (0, 1] (the matcher's trust in its vehicle); it
     multiplies ``w_h`` and ``w_v`` and leaves the noise model (and so the bias
     compensation) alone. None = 1 for all."""
+    range_m: Array | None = None
+    """Distance along the ray from the box size (0: none; :func:`vehicle.geoloc.box_range`),
+    with ``sigma_range_m``; None: no ray has one (:func:`range_terms`)."""
+    sigma_range_m: Array | None = None
 
     def __len__(self) -> int:
         return int(np.asarray(self.origin).shape[0])
@@ -324,13 +332,19 @@ class Rays:
 
     @staticmethod
     def concat(parts: list[Rays]) -> Rays:
+        optional = ("weight", "range_m", "sigma_range_m")
         cols = {
             f.name: np.concatenate([getattr(p, f.name) for p in parts])
             for f in fields(Rays)
-            if f.name != "weight"
+            if f.name not in optional
         }
         if any(p.weight is not None for p in parts):
             cols["weight"] = np.concatenate([p.weights_or_ones() for p in parts])
+        if any(p.range_m is not None for p in parts):
+            for k in ("range_m", "sigma_range_m"):
+                cols[k] = np.concatenate(
+                    [np.zeros(len(p)) if p.range_m is None else getattr(p, k) for p in parts]
+                )
         return Rays(**cols)
 
     @staticmethod
@@ -496,6 +510,36 @@ def pull_terms(rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorCo
     return np.where(inside, 0.0, 2.0 * s_az**2 * w0**2 * c * sx**2)
 
 
+_I6 = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+
+
+def range_terms(rays: Rays) -> Array:
+    """Per ray the weight ``w_r`` of its box range as a constraint along the ray,
+    ``d . (x - a) = r``: ``w_r D (x - a) = w_r d r`` joins the normal equations (``D`` the
+    compensated ``d d^T``, ``I - m``), ``w_r = 1 / (sigma_r^2 + sigma_h^2)`` times the
+    ray's weight, 0 where the ray has no range.
+
+    Why: bearings alone hardly fix the distance of a sign a car sees head-on down a street
+    (nearly parallel rays), and a pass's shared heading error moves it far along the line
+    of sight (one such sign from its true rays: 39 m off by least squares on bearings,
+    1.5 m with the ranges; docs/experiments/2026-12-ghosts-at-high-traffic.md). The range
+    is along the measured direction, so the term is linear in ``x``; ``E[d] = d_t (1 -
+    O(s^2))`` leaves a bias of ``r s^2 / 2`` (2 mm at 40 m and 0.01 rad).
+
+    Pitfall: a panel's real size differs from its class's nominal height, an error every
+    ray of that landmark shares (``size_rel_sigma`` in the sign catalogue, in each ray's
+    ``sigma_range_m``). These terms treat it as independent per ray; the published
+    covariance keeps its model floor from the bearings' predicted information
+    (:func:`predicted_information` has no range term), so it does not shrink along the
+    line of sight on the ranges' account."""
+    r = np.asarray(rays.range_m, float).reshape(-1)
+    sr = np.asarray(rays.sigma_range_m, float).reshape(-1)
+    s_h = np.asarray(rays.sigma_pos_h, float) * np.ones(r.size)
+    use = (r > 0) & (sr > 0) & np.isfinite(r) & np.isfinite(sr)
+    w = np.where(use, 1.0 / np.where(use, sr**2 + s_h**2, 1.0), 0.0)
+    return w * rays.weights_or_ones()
+
+
 def ray_terms(
     rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
 ) -> tuple[Array, Array]:
@@ -510,7 +554,13 @@ def ray_terms(
     m, h = projector_terms(az, el, s_az, s_el, cfg.compensate)
     w_h, w_v, g_h, g_v = weights(rays, origin_rel, x_ref_rel, cfg)
     alpha = w_v[:, None] * m + (w_h - w_v)[:, None] * h
+    w_r = range_terms(rays) if cfg.box_range and rays.range_m is not None else None
+    if w_r is not None:
+        alpha = alpha + w_r[:, None] * (_I6 - m)
     beta = np.einsum("nij,nj->ni", sym_to_mat(alpha), origin_rel)
+    if w_r is not None:
+        r = np.asarray(rays.range_m, float)
+        beta = beta + (w_r * np.where(w_r > 0, r, 0.0))[:, None] * np.asarray(rays.direction)
     if cfg.weight_correction and cfg.weighting == "inverse_variance":
         sig = np.stack(
             [
