@@ -16,6 +16,7 @@ from hdmap.mapping.estimator.packing import (
     OPEN_DTYPE_V2,
     OPEN_DTYPE_V3,
     OPEN_DTYPE_V4,
+    OPEN_DTYPE_V5,
     PACK_VERSION,
     ROW_DTYPE,
     ROW_DTYPE_V2,
@@ -36,7 +37,8 @@ UNKNOWN = "unknown landmark state version"
 def test_layout_table():
     """Each version's records and their sizes, as the module's docstring gives them."""
     table = {
-        5: (ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE, 572, 184),
+        6: (ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE, 572, 224),
+        5: (ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE_V5, 572, 184),
         4: (ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V4, 564, 176),
         3: (ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V3, 564, 112),
         2: (ROW_DTYPE_V2, ROW_FIELDS_V2, OPEN_DTYPE_V2, 548, 104),
@@ -57,7 +59,7 @@ def test_layout_is_frozen():
         layout(5).version = 4  # type: ignore[misc]
 
 
-@pytest.mark.parametrize("version", [0, 6, 7, 255, -1])
+@pytest.mark.parametrize("version", [0, 7, 8, 255, -1])
 def test_unknown_version_raises(version):
     with pytest.raises(ValueError, match=UNKNOWN):
         layout(version)
@@ -80,7 +82,7 @@ def test_short_blob_raises_value_error():
         decode(encode(layout(5), rec, np.zeros(1, OPEN_DTYPE)))
 
 
-@pytest.mark.parametrize("version", [1, 2, 3, 4, 5])
+@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6])
 def test_encode_decode_round_trip(version):
     lay = layout(version)
     rng = np.random.default_rng(version)

@@ -10,7 +10,9 @@ alpha'`` and the sandwich sums follow:
     S_AA' = T S_AA T^T,   S_Ab' = T S_Ab R^T + S_AA' L^T,
     S_bb' = R S_bb R^T + R S_Ab^T T^T L^T + L T S_Ab R^T + L S_AA' L^T.
 
-Traces (the pull ``c1``) and counts are the same in every frame.
+Traces (the pull ``c1``) and counts are the same in every frame. An open pass's range
+scale terms (:func:`~hdmap.mapping.estimator.model.scale_terms`) move as ``A_xs' = R A_xs``,
+``A_ss' = A_ss``, ``b_s' = b_s + A_xs' . d``.
 
 >>> f = FrameChange.between(np.zeros(3), np.zeros(3))
 >>> a6, b = f.terms(np.array([1.0, 2, 3, 0, 0, 0]), np.array([1.0, 0, 0]))
@@ -46,6 +48,7 @@ class FrameChange:
     r: Array
     t6: Array
     lm: Array
+    d: Array
 
     @classmethod
     def between(
@@ -60,12 +63,21 @@ class FrameChange:
         r = np.eye(3) if rotation is None else np.asarray(rotation, float).reshape(3, 3)
         t = np.zeros(3) if translation is None else np.asarray(translation, float).reshape(3)
         t6 = np.stack([mat_to_sym(r @ SYM_BASIS[k] @ r.T) for k in range(6)], axis=1)
-        return cls(r, t6, apply_matrix(r @ anchor_src + t - anchor_dst))
+        d = r @ anchor_src + t - anchor_dst
+        return cls(r, t6, apply_matrix(d), d)
 
     def terms(self, a6: Array, b: Array) -> tuple[Array, Array]:
         """A pass's (or a row's) ``alpha``, ``b`` in the destination frame."""
         a6n = a6 @ self.t6.T
         return a6n, b @ self.r.T + a6n @ self.lm.T
+
+    def scale(self, t5: Array) -> Array:
+        """An open pass's range scale terms ``(A_xs, A_ss, b_s)`` (..., 5) in the
+        destination frame."""
+        out = np.array(t5, float, copy=True)
+        out[..., :3] = t5[..., :3] @ self.r.T
+        out[..., 4] = t5[..., 4] + out[..., :3] @ self.d
+        return out
 
     def information(self, j6: Array) -> Array:
         """A predicted information ``J`` (a 6-vector) in the destination frame."""

@@ -166,6 +166,12 @@ class EstimatorConfig:
     box_range: bool = False
     """Rays' box ranges enter the normal equations as constraints along the rays
     (:func:`range_terms`); False: bearings only (the paper's)."""
+    range_scale: Literal["nominal", "per_pass"] = "per_pass"
+    """With ``box_range``: ``nominal`` takes the ranges as they are (the panel at its class's
+    nominal size); ``per_pass`` gives each pass its own unknown range scale ``s`` (``d . (x -
+    a) = s r``), eliminated when the pass enters the sums (:func:`scale_terms`), so only the
+    ratios of one pass's ranges count (how the box grows as the car drives at the sign),
+    whatever the panel's real size."""
     compensate: bool = True
     """Bias-compensated sums (``E[Q~_j] = Q_t``); False = the textbook orthogonal-distance
     sums of the paper's eq. (4), biased toward the ray origins when direction noise is large."""
@@ -540,11 +546,61 @@ def range_terms(rays: Rays) -> Array:
     return w * rays.weights_or_ones()
 
 
+def scale_terms(rays: Rays, origin_rel: Array, cfg: EstimatorConfig) -> Array | None:
+    """Per ray its terms in a pass's unknown range scale ``s`` (``range_scale="per_pass"``):
+    (n, 5) columns ``A_xs`` (3), ``A_ss``, ``b_s`` with, over the pass's rays,
+
+        [[A_xx, A_xs], [A_xs^T, A_ss]] [x; s] = [b_x; b_s],
+        A_xs = -sum w_r r d,   A_ss = sum w_r r^2,   b_s = -sum w_r r d . a
+
+    (``A_xx``, ``b_x`` hold ``w_r D`` and ``w_r D a`` from :func:`ray_terms`). A pass enters
+    the landmark with ``s`` eliminated (Schur complement, :func:`eliminate_scale`):
+    ``A_xx - A_xs A_xs^T / A_ss``. One ranged ray then adds nothing along its line of
+    sight; two or more fix the distance by how their ranges differ as the origin moves
+    (``d . (a_j - a_i) = s (r_i - r_j)``), a pass's shared position error cancelling.
+    None when no ray has a range or the mode is off.
+
+    >>> r = Rays.from_angles([[0.0, 0, 0], [0, 5, 0]], [0.0, 0.0], [0.0, 0.0], 0.0, 0.0, 0.1, 0.1)
+    >>> from dataclasses import replace
+    >>> r = replace(r, range_m=np.array([15.0, 10.0]), sigma_range_m=np.array([0.5, 0.5]))
+    >>> cfg = EstimatorConfig(box_range=True)
+    >>> a6, b = ray_terms(r, r.origin, np.array([[0.0, 15, 0]] * 2), cfg)
+    >>> t = scale_terms(r, r.origin, cfg).sum(axis=0)
+    >>> a6, b = eliminate_scale(a6.sum(axis=0), b.sum(axis=0), t)
+    >>> round(float(b[1] / a6[1]), 6)  # the sign 15 m ahead, whatever the panel size
+    15.0
+    """
+    if not (cfg.box_range and cfg.range_scale == "per_pass") or rays.range_m is None:
+        return None
+    w_r = range_terms(rays)
+    r = np.where(w_r > 0, np.asarray(rays.range_m, float), 0.0)
+    d = np.asarray(rays.direction, float)
+    out = np.empty((len(rays), 5))
+    out[:, :3] = -(w_r * r)[:, None] * d
+    out[:, 3] = w_r * r**2
+    out[:, 4] = -w_r * r * np.einsum("ni,ni->n", d, origin_rel)
+    return out
+
+
+def eliminate_scale(a6: Array, b: Array, t: Array) -> tuple[Array, Array]:
+    """Passes' sums ``(a6, b)`` (..., 6), (..., 3) with their range scale eliminated, from
+    their :func:`scale_terms` sums ``t`` (..., 5): ``A - A_xs A_xs^T / A_ss``, ``b - A_xs
+    b_s / A_ss`` (unchanged where ``A_ss`` is 0)."""
+    xs, ss, bs = t[..., :3], t[..., 3], t[..., 4]
+    inv = np.divide(1.0, ss, out=np.zeros_like(ss), where=ss > 0)
+    a_out = a6 - inv[..., None] * mat_to_sym(xs[..., :, None] * xs[..., None, :])
+    return a_out, b - (inv * bs)[..., None] * xs
+
+
 def ray_terms(
     rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
 ) -> tuple[Array, Array]:
     """Per-ray normal-equation terms ``(alpha, beta)``: ``alpha`` (n, 6) is ``Q~_j`` as a
     6-vector and ``beta`` (n, 3) is ``Q~_j a_j`` (origins relative to the anchor).
+
+    Pitfall: with ``box_range`` and ``range_scale="per_pass"`` these hold only the ``x``
+    block of the range terms; a pass's sums need its :func:`scale_terms` eliminated
+    (:func:`eliminate_scale`) before they mean anything (``LandmarkSums`` does it).
 
     ``sum alpha`` and ``sum beta`` are the landmark's ``A`` and ``b``; ``A x = b`` is the
     estimate. ``x_ref_rel`` is each ray's landmark reference position (for the weights).
@@ -558,7 +614,7 @@ def ray_terms(
     if w_r is not None:
         alpha = alpha + w_r[:, None] * (_I6 - m)
     beta = np.einsum("nij,nj->ni", sym_to_mat(alpha), origin_rel)
-    if w_r is not None:
+    if w_r is not None and cfg.range_scale == "nominal":
         r = np.asarray(rays.range_m, float)
         beta = beta + (w_r * np.where(w_r > 0, r, 0.0))[:, None] * np.asarray(rays.direction)
     if cfg.weight_correction and cfg.weighting == "inverse_variance":

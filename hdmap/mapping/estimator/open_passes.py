@@ -4,7 +4,7 @@
 Rays of one pass may arrive split over several ``accumulate`` calls, interleaved with
 other passes, so each open (landmark, pass) keeps its partial ``A_p``, ``b_p`` (9 floats
 + cluster id, ray count, activity stamp, angular variance, ray weight sums c and c^2,
-holder key, held ``J``, pull: 184 bytes, the size of its packed record
+holder key, held ``J``, pull, range scale sums: 224 bytes, the size of its packed record
 :data:`~hdmap.mapping.estimator.packing.OPEN_DTYPE`). A pass enters the row's ``A``, ``b``
 and sandwich sums when it closes, with the random-effects weighting of
 :func:`hdmap.mapping.estimator.model.pass_weighted` (``W_p = (I + A_p S)^-1 A_p``, ``S``
@@ -34,13 +34,13 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from hdmap.mapping.estimator.model import EstimatorConfig, pass_weighted
+from hdmap.mapping.estimator.model import EstimatorConfig, eliminate_scale, pass_weighted
 from hdmap.mapping.estimator.packing import PACK_VERSION, Layout
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-_ARRAYS = ("row", "cluster", "last", "n", "a6", "b", "s2", "w", "w2", "hold", "j6", "c1")
+_ARRAYS = ("row", "cluster", "last", "n", "a6", "b", "s2", "w", "w2", "hold", "j6", "c1", "t5")
 """The per-slot arrays of :class:`OpenPasses`, grown together."""
 
 
@@ -51,7 +51,8 @@ class OpenPasses:
     ``n`` (rays), ``a6`` and ``b`` (the raw ``A_p`` and ``b_p``), ``s2`` (sum of the rays'
     angular variances), ``w`` and ``w2`` (sums of the rays' weights and of their squares),
     ``hold`` (the holder's key, 0: not held), ``j6`` (a held pass's predicted information)
-    and ``c1`` (the pass's raw pull, :func:`~hdmap.mapping.estimator.model.pull_terms`).
+    , ``c1`` (the pass's raw pull, :func:`~hdmap.mapping.estimator.model.pull_terms`) and
+    ``t5`` (its range scale sums, :func:`~hdmap.mapping.estimator.model.scale_terms`).
     """
 
     def __init__(self, capacity: int = 16) -> None:
@@ -75,6 +76,7 @@ class OpenPasses:
         self.hold = np.zeros(cap, np.int64)  # held: the holder's key (0: not held)
         self.j6 = np.zeros((cap, 6))  # held passes' predicted information
         self.c1 = np.zeros(cap)  # the pass's pull (model.pull_terms), raw
+        self.t5 = np.zeros((cap, 5))  # its range scale sums (model.scale_terms)
 
     def __len__(self) -> int:
         return len(self.slot)
@@ -112,6 +114,7 @@ class OpenPasses:
         self.hold[s] = 0
         self.j6[s] = 0.0
         self.c1[s] = 0.0
+        self.t5[s] = 0.0
         return s
 
     def release(self, slots: IntArray) -> None:
@@ -150,12 +153,13 @@ class OpenPasses:
         slots = self.all_slots()
         return slots[self.hold[slots] == int(hold)] if hold else slots[:0]
 
-    def fold(self, to: int, sl: int, a6: Array, b: Array, j6: Array) -> None:
-        """Add the pass of slot ``sl`` into slot ``to``: its ``a6``, ``b`` and ``j6`` as
-        given (moved to ``to``'s frame), its other sums as they are; ``to`` takes ``sl``'s
-        holder and the later of their activity stamps."""
+    def fold(self, to: int, sl: int, a6: Array, b: Array, j6: Array, t5: Array) -> None:
+        """Add the pass of slot ``sl`` into slot ``to``: its ``a6``, ``b``, ``j6`` and
+        ``t5`` as given (moved to ``to``'s frame), its other sums as they are; ``to`` takes
+        ``sl``'s holder and the later of their activity stamps."""
         self.a6[to] += a6
         self.b[to] += b
+        self.t5[to] += t5
         self.n[to] += self.n[sl]
         self.s2[to] += self.s2[sl]
         self.w[to] += self.w[sl]
@@ -206,10 +210,11 @@ class OpenPasses:
     def weighted(self, slots: IntArray, config: EstimatorConfig) -> tuple[Array, Array, Array]:
         """Open passes' raw sums -> what they add to ``A``, ``b`` and the pull
         (:func:`pass_weighted`; passes of imprecise rays unweighted, see
-        ``pass_weighting_max_sigma_rad``). The pull
+        ``pass_weighting_max_sigma_rad``), each pass's range scale eliminated first
+        (:func:`~hdmap.mapping.estimator.model.eliminate_scale`). The pull
         scales with the pass's horizontal information, ``tr_h W_p / tr_h A_p``: ``C_p``
         goes through the weighting as ``A_p`` does (``C_p ~ kappa_p A_p``)."""
-        a6, b = self.a6[slots].copy(), self.b[slots].copy()
+        a6, b = eliminate_scale(self.a6[slots], self.b[slots], self.t5[slots])
         c1 = self.c1[slots].copy()
         n = np.maximum(self.n[slots], 1)
         rms2 = self.s2[slots] / n
@@ -228,7 +233,7 @@ class OpenPasses:
 
     # ------------------------------------------------------------------ records
     def records(self, slots: IntArray, lay: Layout) -> np.ndarray:
-        """The packed open-pass records of ``slots`` in ``lay.open`` (version 4 or 5)."""
+        """The packed open-pass records of ``slots`` in ``lay.open`` (version 4, 5 or 6)."""
         op = np.zeros(slots.size, lay.open)
         op["cluster"], op["last"], op["n"] = (
             self.cluster[slots],
@@ -238,8 +243,10 @@ class OpenPasses:
         op["a6"], op["b"], op["s2"] = self.a6[slots], self.b[slots], self.s2[slots]
         op["w"], op["w2"] = self.w[slots], self.w2[slots]
         op["hold"], op["j6"] = self.hold[slots], self.j6[slots]
-        if lay.version == PACK_VERSION:
+        if lay.version >= 5:
             op["c1"] = self.c1[slots]
+        if lay.version == PACK_VERSION:
+            op["t5"] = self.t5[slots]
         return op
 
     def load(self, s: int, o: np.void, version: int) -> None:
@@ -253,6 +260,7 @@ class OpenPasses:
         if version >= 4:
             self.w2[s], self.hold[s] = float(o["w2"]), int(o["hold"])
             self.j6[s] = o["j6"]
-            self.c1[s] = float(o["c1"]) if version == PACK_VERSION else 0.0
+            self.c1[s] = float(o["c1"]) if version >= 5 else 0.0
+            self.t5[s] = o["t5"] if version == PACK_VERSION else 0.0
         else:
             self.w2[s] = self.w[s] ** 2 / max(int(o["n"]), 1)

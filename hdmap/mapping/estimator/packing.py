@@ -8,7 +8,8 @@ structured records without padding. Per version, with their sizes in bytes:
 =======  =================  ==================  ============================================
 version  row record         open-pass record    new in this version
 =======  =================  ==================  ============================================
-5        ROW_DTYPE 572      OPEN_DTYPE 184      the pull sum ``c1`` (row and open passes)
+6        ROW_DTYPE 572      OPEN_DTYPE 224      open passes' range scale sums ``t5``
+5        ROW_DTYPE 572      OPEN_DTYPE_V5 184     the pull sum ``c1`` (row and open passes)
 4        ROW_DTYPE_V4 564   OPEN_DTYPE_V4 176   held passes (``w2``, ``hold``, ``j6``)
 3        ROW_DTYPE_V4 564   OPEN_DTYPE_V3 112   ray weight sums (``w1``, ``w2``; ``w``)
 2        ROW_DTYPE_V2 548   OPEN_DTYPE_V2 104   pass weighting (``s2``)
@@ -16,9 +17,11 @@ version  row record         open-pass record    new in this version
 =======  =================  ==================  ============================================
 
 So a row packs to 565 bytes plus 176 per open pass, or, where it keeps a pull
-(``EstimatorConfig.extra_sigma_pos_m`` set), 573 plus 184: ``pack_rows`` writes version 5
-only for such rows, version 4 otherwise (8 bytes less per row and per open pass, which
-keeps two rows with 8 open passes in one SQLite page). Versions 1-4 load as well, each
+(``EstimatorConfig.extra_sigma_pos_m`` set), 573 plus 184, or, where an open pass keeps
+range scale sums (``EstimatorConfig.box_range`` with ``range_scale="per_pass"``), 573 plus
+224: ``pack_rows`` writes version 6 only for rows with such sums, 5 for rows with a pull,
+version 4 otherwise (8 bytes less per row and per open pass, which
+keeps two rows with 8 open passes in one SQLite page). Versions 1-5 load as well, each
 with its own row and open-pass records (:data:`OLD_PACK_VERSIONS` says what
 ``unpack_rows`` fills in). Bytes after the last open record are ignored; a negative
 ``n_open`` is refused.
@@ -31,12 +34,12 @@ with its own row and open-pass records (:data:`OLD_PACK_VERSIONS` says what
 True
 >>> rec = np.zeros((), ROW_DTYPE)
 >>> rec["n_open"] = 2
->>> blob = encode(layout(5), rec, np.zeros(2, OPEN_DTYPE))
->>> len(blob) == 1 + 572 + 2 * 184
+>>> blob = encode(layout(6), rec, np.zeros(2, OPEN_DTYPE))
+>>> len(blob) == 1 + 572 + 2 * 224
 True
 >>> lay, rec, op = decode(blob)
 >>> lay.version, int(rec["n_open"]), op.dtype == OPEN_DTYPE, len(op)
-(5, 2, True, 2)
+(6, 2, True, 2)
 """
 
 from __future__ import annotations
@@ -45,12 +48,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-PACK_VERSION = 5
-OLD_PACK_VERSIONS = (1, 2, 3, 4)
+PACK_VERSION = 6
+OLD_PACK_VERSIONS = (1, 2, 3, 4, 5)
 """Version 1 kept open passes' raw sums in ``A`` and ``b`` as well; they are taken out
 on load (its closed passes keep their unweighted sums; its open passes had no angular
 variance sum: treated as precise). Versions 1 and 2 had no ray weight sums: taken as
-weights of 1. Versions 1-3 had no held passes. Versions 1-4 had no pull sum (0)."""
+weights of 1. Versions 1-3 had no held passes. Versions 1-4 had no pull sum (0). Versions
+1-5 had no range scale sums (0)."""
 
 ROW_DTYPE_V2 = np.dtype(
     [
@@ -81,7 +85,8 @@ OPEN_DTYPE_V3 = np.dtype(
     ]
 )
 OPEN_DTYPE_V4 = np.dtype([*OPEN_DTYPE_V3.descr, ("w2", "<f8"), ("hold", "<i8"), ("j6", "<f8", 6)])
-OPEN_DTYPE = np.dtype([*OPEN_DTYPE_V4.descr, ("c1", "<f8")])
+OPEN_DTYPE_V5 = np.dtype([*OPEN_DTYPE_V4.descr, ("c1", "<f8")])
+OPEN_DTYPE = np.dtype([*OPEN_DTYPE_V5.descr, ("t5", "<f8", 5)])
 OPEN_DTYPE_V1 = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )
@@ -105,6 +110,7 @@ class Layout:
 
 _LAYOUTS = {
     PACK_VERSION: Layout(PACK_VERSION, ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE),
+    5: Layout(5, ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE_V5),
     4: Layout(4, ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V4),
     3: Layout(3, ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V3),
     2: Layout(2, ROW_DTYPE_V2, ROW_FIELDS_V2, OPEN_DTYPE_V2),

@@ -32,7 +32,7 @@ packed by :meth:`pack_rows`: the byte layout and its sizes are in
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
 interleaved with other passes, so each open (landmark, pass) keeps its partial sums in the
-open-pass table (:mod:`hdmap.mapping.estimator.open_passes`: 184 bytes a pass, the
+open-pass table (:mod:`hdmap.mapping.estimator.open_passes`: 224 bytes a pass, the
 random-effects weighting a pass gets when it closes, the eviction rule). :meth:`solve`
 includes the open passes weighted the same way, so a result never depends on when a pass
 is closed. Callers close passes they know are over with :meth:`close_passes`.
@@ -63,6 +63,7 @@ from hdmap.mapping.estimator.model import (
     predicted_information,
     pull_terms,
     ray_terms,
+    scale_terms,
 )
 from hdmap.mapping.estimator.open_passes import OpenPasses
 from hdmap.mapping.estimator.packing import OPEN_DTYPE, PACK_VERSION, decode, encode, layout
@@ -264,6 +265,7 @@ class LandmarkSums:
         f = float(weight) / np.maximum(o.w[slots] / n, 1e-300)
         o.a6[slots] *= f[:, None]
         o.b[slots] *= f[:, None]
+        o.t5[slots] *= f[:, None]
         _scatter_add(self._j6, rows, f[:, None] * o.j6[slots])
         o.c1[slots] *= f  # linear in the rays' weight, like A_p
         _scatter_add(self._w1, rows, (f - 1.0) * o.w[slots])
@@ -327,6 +329,7 @@ class LandmarkSums:
             raise ValueError("held passes need pass-level sums (cluster_robust)")
         origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
         alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
+        t5 = scale_terms(rays, origin_rel, self.config)
         j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
         _scatter_add(self._j6, r[~held], j6[~held])
         # the pull sum of an unreported pass bias: only when configured (zeros otherwise)
@@ -339,6 +342,8 @@ class LandmarkSums:
         _scatter_add(self._w1, r, wr)
         _scatter_add(self._w2, r, wr**2)
         if not self.config.cluster_robust:
+            if t5 is not None:
+                raise ValueError("per-pass range scales need pass-level sums (cluster_robust)")
             if pull is not None:
                 _scatter_add(self._c1, r, pull)
             _scatter_add(self._a6, r, alpha)
@@ -380,6 +385,8 @@ class LandmarkSums:
         o.w2[slots] += np.add.reduceat((wr**2)[order], starts)
         o.a6[slots] += g_a6
         o.b[slots] += g_b
+        if t5 is not None:
+            o.t5[slots] += np.add.reduceat(t5[order], starts, axis=0)
         if pull is not None:
             o.c1[slots] += np.add.reduceat(pull[order], starts)
         o.s2[slots] += g_s2
@@ -485,7 +492,7 @@ class LandmarkSums:
             to = o.slot.get(key)
             if to is None:
                 to = self._alloc_slot(key)
-            o.fold(to, sl, a6o, bo, frame.information(o.j6[sl]))
+            o.fold(to, sl, a6o, bo, frame.information(o.j6[sl]), frame.scale(o.t5[sl]))
         o.release(mine)
         for name in _ROW_ARRAYS:
             getattr(self, name)[s_row] = 0
@@ -506,7 +513,8 @@ class LandmarkSums:
             mine = o.of_row(row)
             mine = mine[np.lexsort((o.cluster[mine], o.last[mine]))]
             pulled = bool(self._c1[row] != 0 or np.any(o.c1[mine] != 0))
-            lay = layout(PACK_VERSION if pulled else 4)
+            scaled = bool(np.any(o.t5[mine] != 0))
+            lay = layout(PACK_VERSION if scaled else 5 if pulled else 4)
             rec = np.zeros((), lay.row)
             for f in lay.fields:
                 rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
@@ -534,7 +542,7 @@ class LandmarkSums:
                 )
             if v < 3:
                 self._w1[row] = self._w2[row] = float(rec["n_obs"])
-            if v < PACK_VERSION:
+            if v < 5:
                 self._c1[row] = 0.0
             old = v == 1
             self._n_open[row] = 0
