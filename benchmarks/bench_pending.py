@@ -48,10 +48,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import machine, machine_line, write_json
 from fleetsim.synthetic import ray_observations
 from hdmap.geo.tiles import quadkeys_of
-from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry, Observations, ObsGroup
 from schemas.ids import pass_key
-from services.matcher.service import MatcherConfig, MatcherService
+from services.matcher.replay import open_matcher
+from services.matcher.service import MatcherConfig
 
 LAT, LON = 60.17, 24.94
 SIGN = np.array([10.0, 30.0, 2.5])
@@ -70,13 +70,6 @@ MODES = {
 }
 PATTERNS = {"restart": 3, "parked": 10}
 """Pattern: rays per upload."""
-
-
-class Sink:
-    """Stands in for the bus."""
-
-    def put(self, key: str, payload: bytes) -> None:
-        pass
 
 
 def upload_rays(frame, pattern: str, k: int, rng: np.random.Generator) -> Observations:
@@ -100,9 +93,8 @@ def run_one(mode: str, pattern: str, pool: int, uploads: int, seed: int = 0) -> 
     """Fill the pass's pool with ``pool`` rays, then time ``uploads`` uploads."""
     rng = np.random.default_rng(seed)
     with tempfile.TemporaryDirectory() as tmp:
-        opts = ServiceOptions(data_dir=Path(tmp))
-        svc = MatcherService(opts, MODES[mode])
-        svc.pubs = Sink()  # type: ignore[assignment]
+        svc = open_matcher(Path(tmp), MODES[mode])
+        opts = svc.opts
         tile = str(quadkeys_of(np.array([LAT]), np.array([LON]), opts.zoom)[0])
         frame = svc.frames(tile)
         per = PATTERNS[pattern]

@@ -25,10 +25,16 @@ from services.matcher.service import MatcherConfig, MatcherService
 
 
 class Sink:
-    """Stands in for the bus: what a replay publishes goes nowhere."""
+    """Stands in for the bus: what a service publishes goes nowhere, or, with ``keep``,
+    into ``sent`` (tests read it; a replay keeps nothing)."""
+
+    def __init__(self, keep: bool = False) -> None:
+        self.keep = keep
+        self.sent: list[tuple[str, bytes]] = []
 
     def put(self, key: str, payload: bytes) -> None:
-        pass
+        if self.keep:
+            self.sent.append((key, payload))
 
     def close(self) -> None:
         pass

@@ -14,6 +14,8 @@ from fleetsim.synthetic import ray_observations
 from hdmap.geo.tiles import quadkeys_of
 from hdmap.runtime.service import ServiceOptions
 from schemas import AssocGroup, LandmarkUpdates, Links, LogEntry, NewLandmarks, Observations
+from services.matcher import replay
+from services.matcher.replay import open_matcher
 from services.matcher.service import MatcherService
 from services.solver.service import SolverService
 
@@ -29,14 +31,11 @@ LAT = 60.17
 LON = 24.94
 
 
-class Sink:
-    """Stands in for the bus: keeps what a service publishes."""
+class Sink(replay.Sink):
+    """Stands in for the bus: keeps what a service publishes (in ``sent``)."""
 
     def __init__(self) -> None:
-        self.sent: list[tuple[str, bytes]] = []
-
-    def put(self, key: str, payload: bytes) -> None:
-        self.sent.append((key, payload))
+        super().__init__(keep=True)
 
 
 def tile_of(zoom: int) -> str:
@@ -57,7 +56,7 @@ def sign_rays(frame, p: int, rng, from_north: bool = False, n: int = 10, image0:
 
 
 def matcher(path: Path) -> MatcherService:
-    svc = MatcherService(ServiceOptions(data_dir=path))
+    svc = open_matcher(path)
     svc.pubs = Sink()  # type: ignore[assignment]
     return svc
 
