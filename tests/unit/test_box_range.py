@@ -106,7 +106,8 @@ def test_a_per_pass_scale_fixes_the_line_of_sight_of_an_off_size_panel():
             for _ in range(PASSES)
         ]
         for mode in err:
-            x, cov = solve(passes, mode != "off", "per_pass" if mode == "off" else mode)
+            box_range = mode != "off"
+            x, cov = solve(passes, box_range, mode if box_range else "nominal")
             e = x - SIGN
             err[mode].append(float(np.hypot(e[0], e[1])))
             if mode == "per_pass":

@@ -10,8 +10,9 @@ import numpy as np
 
 from fleetsim.evaluation.paper_sim import CHI2_2_95, CORRELATED
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
-from hdmap.mapping.estimator.model import pull_terms, ray_terms, sym_to_mat
+from hdmap.mapping.estimator.model import pull_terms, sym_to_mat
 from hdmap.mapping.estimator.solve import pull_inflation
+from hdmap.mapping.estimator.terms import ray_terms
 from tests.support.paper import side_by_side
 
 SIGN = np.array([6.0, 40.0, 2.0])

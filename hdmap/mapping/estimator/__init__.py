@@ -34,11 +34,11 @@ from hdmap.mapping.estimator.model import (
     Rays,
     projector_terms,
     ray_angles,
-    ray_terms,
     weights,
 )
 from hdmap.mapping.estimator.solve import Solution, hotelling_inflation, solve_sums
 from hdmap.mapping.estimator.sums import LandmarkSums
+from hdmap.mapping.estimator.terms import ray_terms
 
 __all__ = [
     "EstimatorConfig",

@@ -11,7 +11,7 @@ alpha'`` and the sandwich sums follow:
     S_bb' = R S_bb R^T + R S_Ab^T T^T L^T + L T S_Ab R^T + L S_AA' L^T.
 
 Traces (the pull ``c1``) and counts are the same in every frame. An open pass's range
-scale terms (:func:`~hdmap.mapping.estimator.model.scale_terms`) move as ``A_xs' = R A_xs``,
+scale terms (:func:`~hdmap.mapping.estimator.terms.scale_terms`) move as ``A_xs' = R A_xs``,
 ``A_ss' = A_ss``, ``b_s' = b_s + A_xs' . d``.
 
 >>> f = FrameChange.between(np.zeros(3), np.zeros(3))

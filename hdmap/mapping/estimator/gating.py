@@ -26,9 +26,9 @@ from hdmap.mapping.estimator.model import (
     Rays,
     effective_sigmas,
     ray_angles,
-    ray_terms,
     sym_to_mat,
 )
+from hdmap.mapping.estimator.terms import ray_terms
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

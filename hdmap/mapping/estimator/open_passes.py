@@ -34,8 +34,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from hdmap.mapping.estimator.model import EstimatorConfig, eliminate_scale, pass_weighted
+from hdmap.mapping.estimator.model import EstimatorConfig, pass_weighted
 from hdmap.mapping.estimator.packing import PACK_VERSION, Layout
+from hdmap.mapping.estimator.terms import eliminate_scale
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -50,9 +51,10 @@ class OpenPasses:
     Per slot: ``row`` (-1: a free slot), ``cluster``, ``last`` (the activity stamp),
     ``n`` (rays), ``a6`` and ``b`` (the raw ``A_p`` and ``b_p``), ``s2`` (sum of the rays'
     angular variances), ``w`` and ``w2`` (sums of the rays' weights and of their squares),
-    ``hold`` (the holder's key, 0: not held), ``j6`` (a held pass's predicted information)
-    , ``c1`` (the pass's raw pull, :func:`~hdmap.mapping.estimator.model.pull_terms`) and
-    ``t5`` (its range scale sums, :func:`~hdmap.mapping.estimator.model.scale_terms`).
+    ``hold`` (the holder's key, 0: not held), ``j6`` (a held pass's predicted
+    information), ``c1`` (the pass's raw pull,
+    :func:`~hdmap.mapping.estimator.model.pull_terms`) and ``t5`` (its range scale sums,
+    :func:`~hdmap.mapping.estimator.terms.scale_terms`).
     """
 
     def __init__(self, capacity: int = 16) -> None:
@@ -211,7 +213,7 @@ class OpenPasses:
         """Open passes' raw sums -> what they add to ``A``, ``b`` and the pull
         (:func:`pass_weighted`; passes of imprecise rays unweighted, see
         ``pass_weighting_max_sigma_rad``), each pass's range scale eliminated first
-        (:func:`~hdmap.mapping.estimator.model.eliminate_scale`). The pull
+        (:func:`~hdmap.mapping.estimator.terms.eliminate_scale`). The pull
         scales with the pass's horizontal information, ``tr_h W_p / tr_h A_p``: ``C_p``
         goes through the weighting as ``A_p`` does (``C_p ~ kappa_p A_p``)."""
         a6, b = eliminate_scale(self.a6[slots], self.b[slots], self.t5[slots])

@@ -1,7 +1,8 @@
 """Estimate, pass-level (cluster) sandwich covariance and conditioning, from fixed-size sums.
 
 Per landmark, with ``A = sum_p A_p`` and ``b = sum_p b_p`` summed over passes ``p`` (each
-``A_p``, ``b_p`` the sum of the pass's ray terms, :func:`hdmap.mapping.estimator.model.ray_terms`):
+``A_p``, ``b_p`` the sum of the pass's ray terms,
+:func:`hdmap.mapping.estimator.terms.ray_terms`):
 
 - estimate ``x^ = A^-1 b`` (the root of the unbiased estimating function
   ``G(x) = sum_p g_p(x)``, ``g_p(x) = A_p x - b_p``);

@@ -62,12 +62,11 @@ from hdmap.mapping.estimator.model import (
     outer6_to_tri,
     predicted_information,
     pull_terms,
-    ray_terms,
-    scale_terms,
 )
 from hdmap.mapping.estimator.open_passes import OpenPasses
 from hdmap.mapping.estimator.packing import OPEN_DTYPE, PACK_VERSION, decode, encode, layout
 from hdmap.mapping.estimator.solve import Solution, solve_sums
+from hdmap.mapping.estimator.terms import ray_terms, scale_terms
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
