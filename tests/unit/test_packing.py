@@ -17,13 +17,16 @@ from hdmap.mapping.estimator.packing import (
     OPEN_DTYPE_V3,
     OPEN_DTYPE_V4,
     OPEN_DTYPE_V5,
+    OPEN_DTYPE_V6,
     PACK_VERSION,
     ROW_DTYPE,
     ROW_DTYPE_V2,
     ROW_DTYPE_V4,
+    ROW_DTYPE_V5,
     ROW_FIELDS,
     ROW_FIELDS_V2,
     ROW_FIELDS_V4,
+    ROW_FIELDS_V5,
     Layout,
     decode,
     encode,
@@ -37,8 +40,9 @@ UNKNOWN = "unknown landmark state version"
 def test_layout_table():
     """Each version's records and their sizes, as the module's docstring gives them."""
     table = {
-        6: (ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE, 572, 224),
-        5: (ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE_V5, 572, 184),
+        7: (ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE, 588, 440),
+        6: (ROW_DTYPE_V5, ROW_FIELDS_V5, OPEN_DTYPE_V6, 572, 224),
+        5: (ROW_DTYPE_V5, ROW_FIELDS_V5, OPEN_DTYPE_V5, 572, 184),
         4: (ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V4, 564, 176),
         3: (ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V3, 564, 112),
         2: (ROW_DTYPE_V2, ROW_FIELDS_V2, OPEN_DTYPE_V2, 548, 104),
@@ -59,7 +63,7 @@ def test_layout_is_frozen():
         layout(5).version = 4  # type: ignore[misc]
 
 
-@pytest.mark.parametrize("version", [0, 7, 8, 255, -1])
+@pytest.mark.parametrize("version", [0, 8, 9, 255, -1])
 def test_unknown_version_raises(version):
     with pytest.raises(ValueError, match=UNKNOWN):
         layout(version)
@@ -75,14 +79,14 @@ def test_empty_blob_raises():
 
 def test_short_blob_raises_value_error():
     with pytest.raises(ValueError):
-        decode(bytes([5]) + bytes(ROW_DTYPE.itemsize - 1))
-    rec = np.zeros((), ROW_DTYPE)
+        decode(bytes([5]) + bytes(ROW_DTYPE_V5.itemsize - 1))
+    rec = np.zeros((), ROW_DTYPE_V5)
     rec["n_open"] = 2
     with pytest.raises(ValueError):
-        decode(encode(layout(5), rec, np.zeros(1, OPEN_DTYPE)))
+        decode(encode(layout(5), rec, np.zeros(1, OPEN_DTYPE_V5)))
 
 
-@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6])
+@pytest.mark.parametrize("version", [1, 2, 3, 4, 5, 6, 7])
 def test_encode_decode_round_trip(version):
     lay = layout(version)
     rng = np.random.default_rng(version)

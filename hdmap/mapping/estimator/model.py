@@ -161,13 +161,22 @@ class EstimatorConfig:
     box_range: bool = False
     """Rays' box ranges enter the normal equations as constraints along the rays
     (:func:`~hdmap.mapping.estimator.terms.range_terms`); False: bearings only (the paper's)."""
-    range_scale: Literal["nominal", "per_pass"] = "per_pass"
+    range_scale: Literal["nominal", "per_pass", "inverse"] = "per_pass"
     """With ``box_range``: ``nominal`` takes the ranges as they are (the panel at its class's
     nominal size); ``per_pass`` gives each pass its own unknown range scale ``s`` (``d . (x -
     a) = s r``), eliminated when the pass enters the sums
     (:func:`~hdmap.mapping.estimator.terms.scale_terms`), so only the
     ratios of one pass's ranges count (how the box grows as the car drives at the sign),
-    whatever the panel's real size."""
+    whatever the panel's real size; ``inverse`` is the same in inverse range (``rho d . (x -
+    a) = s``), its box-noise bias compensated by the noise measured from the passes
+    (:mod:`~hdmap.mapping.estimator.box_noise`)."""
+    panel_rel_sigma: float = 0.10
+    """The sign catalogue's relative panel-size spread that every ray's ``sigma_range_m``
+    includes (``hdmap.geo.signs.DEFAULT_SIZE_REL_SIGMA``); the inverse form takes it out to
+    get the box's white part (the panel's scale is the pass's unknown)."""
+    range_noise_prior_dof: float = 4.0
+    """Pseudo degrees of freedom of the vehicle's claimed box noise in the measured ratio
+    (:func:`~hdmap.mapping.estimator.box_noise.noise_ratio`)."""
     compensate: bool = True
     """Bias-compensated sums (``E[Q~_j] = Q_t``); False = the textbook orthogonal-distance
     sums of the paper's eq. (4), biased toward the ray origins when direction noise is large."""

@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hdmap.mapping.estimator import box_noise
 from hdmap.mapping.estimator.model import EstimatorConfig, pass_weighted
 from hdmap.mapping.estimator.packing import PACK_VERSION, Layout
 from hdmap.mapping.estimator.terms import eliminate_scale
@@ -41,7 +42,7 @@ from hdmap.mapping.estimator.terms import eliminate_scale
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-_ARRAYS = ("row", "cluster", "last", "n", "a6", "b", "s2", "w", "w2", "hold", "j6", "c1", "t5")
+_ARRAYS = ("row", "cluster", "last", "n", "a6", "b", "s2", "w", "w2", "hold", "j6", "c1", "t5", "k")
 """The per-slot arrays of :class:`OpenPasses`, grown together."""
 
 
@@ -54,7 +55,8 @@ class OpenPasses:
     ``hold`` (the holder's key, 0: not held), ``j6`` (a held pass's predicted
     information), ``c1`` (the pass's raw pull,
     :func:`~hdmap.mapping.estimator.model.pull_terms`) and ``t5`` (its range scale sums,
-    :func:`~hdmap.mapping.estimator.terms.scale_terms`).
+    :func:`~hdmap.mapping.estimator.terms.scale_terms`) and ``k`` (in the inverse-range
+    form its compensation and box-noise fit sums, :mod:`~hdmap.mapping.estimator.box_noise`).
     """
 
     def __init__(self, capacity: int = 16) -> None:
@@ -79,6 +81,7 @@ class OpenPasses:
         self.j6 = np.zeros((cap, 6))  # held passes' predicted information
         self.c1 = np.zeros(cap)  # the pass's pull (model.pull_terms), raw
         self.t5 = np.zeros((cap, 5))  # its range scale sums (model.scale_terms)
+        self.k = np.zeros((cap, box_noise.WIDTH))  # inverse form: compensation, noise fit
 
     def __len__(self) -> int:
         return len(self.slot)
@@ -117,6 +120,7 @@ class OpenPasses:
         self.j6[s] = 0.0
         self.c1[s] = 0.0
         self.t5[s] = 0.0
+        self.k[s] = 0.0
         return s
 
     def release(self, slots: IntArray) -> None:
@@ -155,13 +159,16 @@ class OpenPasses:
         slots = self.all_slots()
         return slots[self.hold[slots] == int(hold)] if hold else slots[:0]
 
-    def fold(self, to: int, sl: int, a6: Array, b: Array, j6: Array, t5: Array) -> None:
-        """Add the pass of slot ``sl`` into slot ``to``: its ``a6``, ``b``, ``j6`` and
-        ``t5`` as given (moved to ``to``'s frame), its other sums as they are; ``to`` takes
-        ``sl``'s holder and the later of their activity stamps."""
+    def fold(self, to: int, sl: int, a6: Array, b: Array, j6: Array, t5: Array, k: Array) -> None:
+        """Add the pass of slot ``sl`` into slot ``to``: its ``a6``, ``b``, ``j6``, ``t5``
+        and ``k`` as given (moved to ``to``'s frame), its other sums as they are; ``to``
+        takes ``sl``'s holder and the later of their activity stamps. Both noise fits are
+        settled first (they were about different references)."""
         self.a6[to] += a6
         self.b[to] += b
         self.t5[to] += t5
+        if k.any() or self.k[to].any():
+            self.k[to] = box_noise.settle(self.k[to]) + box_noise.settle(k)
         self.n[to] += self.n[sl]
         self.s2[to] += self.s2[sl]
         self.w[to] += self.w[sl]
@@ -209,14 +216,22 @@ class OpenPasses:
         return mine[rank < np.repeat(count, count) - keep]
 
     # ------------------------------------------------------------------ weighting
-    def weighted(self, slots: IntArray, config: EstimatorConfig) -> tuple[Array, Array, Array]:
+    def weighted(
+        self, slots: IntArray, config: EstimatorConfig, ratio: Array | None = None
+    ) -> tuple[Array, Array, Array]:
         """Open passes' raw sums -> what they add to ``A``, ``b`` and the pull
         (:func:`pass_weighted`; passes of imprecise rays unweighted, see
-        ``pass_weighting_max_sigma_rad``), each pass's range scale eliminated first
+        ``pass_weighting_max_sigma_rad``), each pass's box-noise compensation taken off
+        with its landmark's measured ``ratio`` (per slot; inverse-range form only) and its
+        range scale eliminated first
         (:func:`~hdmap.mapping.estimator.terms.eliminate_scale`). The pull
         scales with the pass's horizontal information, ``tr_h W_p / tr_h A_p``: ``C_p``
         goes through the weighting as ``A_p`` does (``C_p ~ kappa_p A_p``)."""
-        a6, b = eliminate_scale(self.a6[slots], self.b[slots], self.t5[slots])
+        a6, b = self.a6[slots], self.b[slots]
+        if ratio is not None:
+            comp = self.k[slots][:, box_noise.COMP]
+            a6, b = a6 - ratio[:, None] * comp[:, :6], b - ratio[:, None] * comp[:, 6:]
+        a6, b = eliminate_scale(a6, b, self.t5[slots])
         c1 = self.c1[slots].copy()
         n = np.maximum(self.n[slots], 1)
         rms2 = self.s2[slots] / n
@@ -233,9 +248,14 @@ class OpenPasses:
                 c1[precise] *= np.divide(w_h, raw_h, out=np.zeros_like(w_h), where=raw_h > 0)
         return a6, b, c1
 
+    def residuals(self, slots: IntArray) -> tuple[Array, Array]:
+        """Open passes' box-noise residual sums and degrees of freedom
+        (:func:`~hdmap.mapping.estimator.box_noise.pass_residuals`)."""
+        return box_noise.pass_residuals(self.k[slots])
+
     # ------------------------------------------------------------------ records
     def records(self, slots: IntArray, lay: Layout) -> np.ndarray:
-        """The packed open-pass records of ``slots`` in ``lay.open`` (version 4, 5 or 6)."""
+        """The packed open-pass records of ``slots`` in ``lay.open`` (version 4 to 7)."""
         op = np.zeros(slots.size, lay.open)
         op["cluster"], op["last"], op["n"] = (
             self.cluster[slots],
@@ -247,8 +267,10 @@ class OpenPasses:
         op["hold"], op["j6"] = self.hold[slots], self.j6[slots]
         if lay.version >= 5:
             op["c1"] = self.c1[slots]
-        if lay.version == PACK_VERSION:
+        if lay.version >= 6:
             op["t5"] = self.t5[slots]
+        if lay.version == PACK_VERSION:
+            op["k"] = self.k[slots]
         return op
 
     def load(self, s: int, o: np.void, version: int) -> None:
@@ -263,6 +285,7 @@ class OpenPasses:
             self.w2[s], self.hold[s] = float(o["w2"]), int(o["hold"])
             self.j6[s] = o["j6"]
             self.c1[s] = float(o["c1"]) if version >= 5 else 0.0
-            self.t5[s] = o["t5"] if version == PACK_VERSION else 0.0
+            self.t5[s] = o["t5"] if version >= 6 else 0.0
+            self.k[s] = o["k"] if version == PACK_VERSION else 0.0
         else:
             self.w2[s] = self.w[s] ** 2 / max(int(o["n"]), 1)

@@ -8,8 +8,9 @@ structured records without padding. Per version, with their sizes in bytes:
 =======  =================  ==================  ============================================
 version  row record         open-pass record    new in this version
 =======  =================  ==================  ============================================
-6        ROW_DTYPE 572      OPEN_DTYPE 224      open passes' range scale sums ``t5``
-5        ROW_DTYPE 572      OPEN_DTYPE_V5 184     the pull sum ``c1`` (row and open passes)
+7        ROW_DTYPE 588      OPEN_DTYPE 440      inverse form: box-noise sums ``q2``, ``k``
+6        ROW_DTYPE_V5 572   OPEN_DTYPE_V6 224   open passes' range scale sums ``t5``
+5        ROW_DTYPE_V5 572   OPEN_DTYPE_V5 184   the pull sum ``c1`` (row and open passes)
 4        ROW_DTYPE_V4 564   OPEN_DTYPE_V4 176   held passes (``w2``, ``hold``, ``j6``)
 3        ROW_DTYPE_V4 564   OPEN_DTYPE_V3 112   ray weight sums (``w1``, ``w2``; ``w``)
 2        ROW_DTYPE_V2 548   OPEN_DTYPE_V2 104   pass weighting (``s2``)
@@ -19,9 +20,11 @@ version  row record         open-pass record    new in this version
 So a row packs to 565 bytes plus 176 per open pass, or, where it keeps a pull
 (``EstimatorConfig.extra_sigma_pos_m`` set), 573 plus 184, or, where an open pass keeps
 range scale sums (``EstimatorConfig.box_range`` with ``range_scale="per_pass"``), 573 plus
-224: ``pack_rows`` writes version 6 only for rows with such sums, 5 for rows with a pull,
+224, or, in the inverse-range form (``range_scale="inverse"``), 589 plus 440:
+``pack_rows`` writes version 7 only for rows with box-noise sums, 6 for rows with range
+scale sums, 5 for rows with a pull,
 version 4 otherwise (8 bytes less per row and per open pass, which
-keeps two rows with 8 open passes in one SQLite page). Versions 1-5 load as well, each
+keeps two rows with 8 open passes in one SQLite page). Versions 1-6 load as well, each
 with its own row and open-pass records (:data:`OLD_PACK_VERSIONS` says what
 ``unpack_rows`` fills in). Bytes after the last open record are ignored; a negative
 ``n_open`` is refused.
@@ -34,12 +37,12 @@ with its own row and open-pass records (:data:`OLD_PACK_VERSIONS` says what
 True
 >>> rec = np.zeros((), ROW_DTYPE)
 >>> rec["n_open"] = 2
->>> blob = encode(layout(6), rec, np.zeros(2, OPEN_DTYPE))
->>> len(blob) == 1 + 572 + 2 * 224
+>>> blob = encode(layout(7), rec, np.zeros(2, OPEN_DTYPE))
+>>> len(blob) == 1 + 588 + 2 * 440
 True
 >>> lay, rec, op = decode(blob)
 >>> lay.version, int(rec["n_open"]), op.dtype == OPEN_DTYPE, len(op)
-(6, 2, True, 2)
+(7, 2, True, 2)
 """
 
 from __future__ import annotations
@@ -48,13 +51,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-PACK_VERSION = 6
-OLD_PACK_VERSIONS = (1, 2, 3, 4, 5)
+PACK_VERSION = 7
+OLD_PACK_VERSIONS = (1, 2, 3, 4, 5, 6)
 """Version 1 kept open passes' raw sums in ``A`` and ``b`` as well; they are taken out
 on load (its closed passes keep their unweighted sums; its open passes had no angular
 variance sum: treated as precise). Versions 1 and 2 had no ray weight sums: taken as
 weights of 1. Versions 1-3 had no held passes. Versions 1-4 had no pull sum (0). Versions
-1-5 had no range scale sums (0)."""
+1-5 had no range scale sums (0), versions 1-6 no box-noise sums (0)."""
 
 ROW_DTYPE_V2 = np.dtype(
     [
@@ -72,7 +75,8 @@ ROW_DTYPE_V2 = np.dtype(
     ]
 )
 ROW_DTYPE_V4 = np.dtype([*ROW_DTYPE_V2.descr, ("w1", "<f8"), ("w2", "<f8")])
-ROW_DTYPE = np.dtype([*ROW_DTYPE_V4.descr, ("c1", "<f8")])
+ROW_DTYPE_V5 = np.dtype([*ROW_DTYPE_V4.descr, ("c1", "<f8")])
+ROW_DTYPE = np.dtype([*ROW_DTYPE_V5.descr, ("q2", "<f8", 2)])
 OPEN_DTYPE_V3 = np.dtype(
     [
         ("cluster", "<i8"),
@@ -86,14 +90,16 @@ OPEN_DTYPE_V3 = np.dtype(
 )
 OPEN_DTYPE_V4 = np.dtype([*OPEN_DTYPE_V3.descr, ("w2", "<f8"), ("hold", "<i8"), ("j6", "<f8", 6)])
 OPEN_DTYPE_V5 = np.dtype([*OPEN_DTYPE_V4.descr, ("c1", "<f8")])
-OPEN_DTYPE = np.dtype([*OPEN_DTYPE_V5.descr, ("t5", "<f8", 5)])
+OPEN_DTYPE_V6 = np.dtype([*OPEN_DTYPE_V5.descr, ("t5", "<f8", 5)])
+OPEN_DTYPE = np.dtype([*OPEN_DTYPE_V6.descr, ("k", "<f8", 27)])
 OPEN_DTYPE_V1 = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )
 OPEN_DTYPE_V2 = np.dtype([*OPEN_DTYPE_V1.descr, ("s2", "<f8")])
 ROW_FIELDS_V2 = ("anchor", "x_ref", "a6", "j6", "b", "saa", "sab", "sbb", "n_obs", "n_closed")
 ROW_FIELDS_V4 = (*ROW_FIELDS_V2, "w1", "w2")
-ROW_FIELDS = (*ROW_FIELDS_V4, "c1")
+ROW_FIELDS_V5 = (*ROW_FIELDS_V4, "c1")
+ROW_FIELDS = (*ROW_FIELDS_V5, "q2")
 """The row record's fields that are ``LandmarkSums`` arrays of the same name (``_`` +
 field); ``n_open`` is derived from the open-pass records."""
 
@@ -110,7 +116,8 @@ class Layout:
 
 _LAYOUTS = {
     PACK_VERSION: Layout(PACK_VERSION, ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE),
-    5: Layout(5, ROW_DTYPE, ROW_FIELDS, OPEN_DTYPE_V5),
+    6: Layout(6, ROW_DTYPE_V5, ROW_FIELDS_V5, OPEN_DTYPE_V6),
+    5: Layout(5, ROW_DTYPE_V5, ROW_FIELDS_V5, OPEN_DTYPE_V5),
     4: Layout(4, ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V4),
     3: Layout(3, ROW_DTYPE_V4, ROW_FIELDS_V4, OPEN_DTYPE_V3),
     2: Layout(2, ROW_DTYPE_V2, ROW_FIELDS_V2, OPEN_DTYPE_V2),

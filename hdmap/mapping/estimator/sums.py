@@ -24,15 +24,17 @@ w1, w2     2     sums of the rays' weights and of their squares (``Rays.weight``
 c1         1     sum over closed passes of their pull ``tr C_p`` (the rays'
                  :func:`~hdmap.mapping.estimator.model.pull_terms`, scaled like ``A_p`` by the
                  pass weighting; 0 unless ``EstimatorConfig.extra_sigma_pos_m`` is set)
+q2         2     closed passes' box-noise residual sum and degrees of freedom (inverse-range
+                 form only, :mod:`hdmap.mapping.estimator.box_noise`)
 =========  ====  =============================================================
 
-so 69 float64 + 3 int64 = 576 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
+so 71 float64 + 3 int64 = 592 bytes per landmark (:attr:`LandmarkSums.bytes_per_landmark`;
 packed by :meth:`pack_rows`: the byte layout and its sizes are in
 :mod:`hdmap.mapping.estimator.packing`).
 
 Open passes: rays of one pass may arrive split over several :meth:`accumulate` calls,
 interleaved with other passes, so each open (landmark, pass) keeps its partial sums in the
-open-pass table (:mod:`hdmap.mapping.estimator.open_passes`: 224 bytes a pass, the
+open-pass table (:mod:`hdmap.mapping.estimator.open_passes`: 440 bytes a pass, the
 random-effects weighting a pass gets when it closes, the eviction rule). :meth:`solve`
 includes the open passes weighted the same way, so a result never depends on when a pass
 is closed. Callers close passes they know are over with :meth:`close_passes`.
@@ -42,7 +44,7 @@ is closed. Callers close passes they know are over with :meth:`close_passes`.
 >>> s = LandmarkSums(capacity=2)
 >>> rows = s.new_rows(1, np.array([[0.0, 20.0, 2.0]]))
 >>> rows.tolist(), s.bytes_per_landmark, len(s.pack_rows(rows)[0])
-([0], 576, 565)
+([0], 592, 565)
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hdmap.mapping.estimator.box_noise import COMP, in_frame, noise_ratio
 from hdmap.mapping.estimator.frame_change import FrameChange
 from hdmap.mapping.estimator.model import (
     EstimatorConfig,
@@ -66,13 +69,13 @@ from hdmap.mapping.estimator.model import (
 from hdmap.mapping.estimator.open_passes import OpenPasses
 from hdmap.mapping.estimator.packing import OPEN_DTYPE, PACK_VERSION, decode, encode, layout
 from hdmap.mapping.estimator.solve import Solution, solve_sums
-from hdmap.mapping.estimator.terms import ray_terms, scale_terms
+from hdmap.mapping.estimator.terms import noise_terms, ray_terms, scale_terms
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 _ROW_ARRAYS = ("_anchor", "_x_ref", "_a6", "_j6", "_b", "_saa", "_sab", "_sbb")
-_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2", "_c1")
+_ROW_ARRAYS += ("_n_obs", "_n_closed", "_n_open", "_w1", "_w2", "_c1", "_q2")
 """The per-row arrays of :class:`LandmarkSums`, grown together: the closed state."""
 
 
@@ -111,6 +114,7 @@ class LandmarkSums:
         self._w1 = np.zeros(cap)  # sum of the rays' weights (Rays.weight, default 1)
         self._w2 = np.zeros(cap)  # sum of their squares (the model floor's scale)
         self._c1 = np.zeros(cap)  # closed passes' pull (model.pull_terms, pass-weighted)
+        self._q2 = np.zeros((cap, 2))  # closed passes' box-noise residuals, dof (box_noise)
         self._open = OpenPasses()  # the open (landmark, pass) partial sums
 
     # ------------------------------------------------------------------ sizes
@@ -210,7 +214,11 @@ class LandmarkSums:
         if slots.size == 0:
             return
         rows = self._open.row[slots]
-        a6, b, c1 = self._open.weighted(slots, self.config)
+        ratio = None
+        if self._inverse:
+            _scatter_add(self._q2, rows, np.stack(self._open.residuals(slots), axis=1))
+            ratio = self._noise_ratio(self._q2[rows])
+        a6, b, c1 = self._open.weighted(slots, self.config, ratio)
         _scatter_add(self._c1, rows, c1)
         _scatter_add(self._a6, rows, a6)
         _scatter_add(self._b, rows, b)
@@ -220,6 +228,24 @@ class LandmarkSums:
         _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
         _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
         self._open.release(slots)
+
+    @property
+    def _inverse(self) -> bool:
+        return self.config.box_range and self.config.range_scale == "inverse"
+
+    def _noise_ratio(self, q2: Array) -> Array:
+        """Measured box-noise ratios from pooled (residual sum, dof) rows ``q2``."""
+        return noise_ratio(q2[:, 0], q2[:, 1], self.config.range_noise_prior_dof)
+
+    def box_noise_ratio(self, rows: ArrayLike) -> Array:
+        """Per row the measured ratio of its boxes' inverse-range noise variance to the
+        vehicles' claim, open passes included (:mod:`~hdmap.mapping.estimator.box_noise`;
+        1 where nothing is measured yet)."""
+        r = self._check_rows(rows)
+        q2 = self._q2[r].copy()
+        for i, row in enumerate(r.tolist()):
+            q2[i] += np.stack(self._open.residuals(self._open.of_row(row)), axis=1).sum(0)
+        return self._noise_ratio(q2)
 
     def close_passes(self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None) -> int:
         """Close open passes: all (no arguments), those of ``rows``, those with a cluster id
@@ -265,6 +291,7 @@ class LandmarkSums:
         o.a6[slots] *= f[:, None]
         o.b[slots] *= f[:, None]
         o.t5[slots] *= f[:, None]
+        o.k[slots, COMP] *= f[:, None]  # the fit's weights are the claim's, not the trust's
         _scatter_add(self._j6, rows, f[:, None] * o.j6[slots])
         o.c1[slots] *= f  # linear in the rays' weight, like A_p
         _scatter_add(self._w1, rows, (f - 1.0) * o.w[slots])
@@ -328,7 +355,8 @@ class LandmarkSums:
             raise ValueError("held passes need pass-level sums (cluster_robust)")
         origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
         alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
-        t5 = scale_terms(rays, origin_rel, self.config)
+        t5 = scale_terms(rays, origin_rel, self.config, self._x_ref[r])
+        kn = noise_terms(rays, origin_rel, self._x_ref[r], self.config)
         j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
         _scatter_add(self._j6, r[~held], j6[~held])
         # the pull sum of an unreported pass bias: only when configured (zeros otherwise)
@@ -386,6 +414,8 @@ class LandmarkSums:
         o.b[slots] += g_b
         if t5 is not None:
             o.t5[slots] += np.add.reduceat(t5[order], starts, axis=0)
+        if kn is not None:
+            o.k[slots] += np.add.reduceat(kn[order], starts, axis=0)
         if pull is not None:
             o.c1[slots] += np.add.reduceat(pull[order], starts)
         o.s2[slots] += g_s2
@@ -414,7 +444,12 @@ class LandmarkSums:
         if slots.size:
             pos = np.searchsorted(uniq, o.row[slots])
             _scatter_add(j6, pos, o.j6[slots])
-            a6, b, c1o = o.weighted(slots, self.config)
+            ratio = None
+            if self._inverse:
+                q2 = self._q2[uniq].copy()
+                _scatter_add(q2, pos, np.stack(o.residuals(slots), axis=1))
+                ratio = self._noise_ratio(q2)[pos]
+            a6, b, c1o = o.weighted(slots, self.config, ratio)
             _scatter_add(c1, pos, c1o)
             _scatter_add(a_all, pos, a6)
             _scatter_add(b_all, pos, b)
@@ -475,6 +510,7 @@ class LandmarkSums:
         self._b[d_row] += b
         self._j6[d_row] += frame.information(self._j6[s_row])
         self._c1[d_row] += self._c1[s_row]  # a trace: the same in every frame
+        self._q2[d_row] += self._q2[s_row]  # scalars: the same in every frame
         saa, sab, sbb = frame.sandwich(self._saa[s_row], self._sab[s_row], self._sbb[s_row])
         self._saa[d_row] += saa
         self._sab[d_row] += sab
@@ -491,7 +527,15 @@ class LandmarkSums:
             to = o.slot.get(key)
             if to is None:
                 to = self._alloc_slot(key)
-            o.fold(to, sl, a6o, bo, frame.information(o.j6[sl]), frame.scale(o.t5[sl]))
+            o.fold(
+                to,
+                sl,
+                a6o,
+                bo,
+                frame.information(o.j6[sl]),
+                frame.scale(o.t5[sl]),
+                in_frame(o.k[sl], frame),
+            )
         o.release(mine)
         for name in _ROW_ARRAYS:
             getattr(self, name)[s_row] = 0
@@ -513,7 +557,8 @@ class LandmarkSums:
             mine = mine[np.lexsort((o.cluster[mine], o.last[mine]))]
             pulled = bool(self._c1[row] != 0 or np.any(o.c1[mine] != 0))
             scaled = bool(np.any(o.t5[mine] != 0))
-            lay = layout(PACK_VERSION if scaled else 5 if pulled else 4)
+            noisy = bool(np.any(self._q2[row] != 0) or np.any(o.k[mine] != 0))
+            lay = layout(PACK_VERSION if noisy else 6 if scaled else 5 if pulled else 4)
             rec = np.zeros((), lay.row)
             for f in lay.fields:
                 rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
@@ -543,6 +588,8 @@ class LandmarkSums:
                 self._w1[row] = self._w2[row] = float(rec["n_obs"])
             if v < 5:
                 self._c1[row] = 0.0
+            if v < 7:
+                self._q2[row] = 0.0
             old = v == 1
             self._n_open[row] = 0
             for o in op:

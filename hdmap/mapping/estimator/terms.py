@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from hdmap.mapping.estimator.box_noise import COMP, FIT, WIDTH, fit_sums
 from hdmap.mapping.estimator.model import (
     EstimatorConfig,
     Rays,
@@ -60,7 +61,64 @@ def range_terms(rays: Rays) -> Array:
     return w * rays.weights_or_ones()
 
 
-def scale_terms(rays: Rays, origin_rel: Array, cfg: EstimatorConfig) -> Array | None:
+def inverse_range_terms(
+    rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
+) -> tuple[Array, Array, Array]:
+    """Per ray of the inverse-range form (``range_scale="inverse"``), ``rho d . (x - a) =
+    s``: its weight ``w``, inverse range ``rho = 1 / r`` and claimed white variance
+    ``sigma_rho^2`` (0 and 0 where the ray has no range).
+
+    ``sigma_rho = rel_w / r`` with ``rel_w^2 = (sigma_r / r)^2 - panel_rel_sigma^2`` (the
+    vehicle sends the box's white part and the catalogue's panel spread summed; the panel's
+    scale is the pass's ``s`` here, so only the white part is noise), floored at 1 %. For a
+    box of ``h`` px, ``rel_w = sqrt(2) sigma_px / h`` grows as ``r``, so ``sigma_rho`` is
+    about the same for every ray of one camera and class: free of the measured box, as the
+    compensation needs. ``w = 1 / (sigma_rho^2 r_ref^2 + sigma_h^2 / r_ref^2)`` with the
+    range ``r_ref`` to the reference position (never the ray's own), times the ray weight.
+    """
+    r = np.asarray(rays.range_m, float).reshape(-1)
+    sr = np.asarray(rays.sigma_range_m, float).reshape(-1)
+    use = (r > 0) & (sr > 0) & np.isfinite(r) & np.isfinite(sr)
+    rs = np.where(use, r, 1.0)
+    rel_w2 = np.maximum((sr / rs) ** 2 - cfg.panel_rel_sigma**2, 1e-4)
+    s_rho2 = np.where(use, rel_w2 / rs**2, 0.0)
+    v = x_ref_rel - origin_rel
+    r_ref2 = np.maximum(np.einsum("ni,ni->n", v, v), cfg.min_range_m**2)
+    s_h2 = np.maximum(np.asarray(rays.sigma_pos_h, float), cfg.min_sigma_pos_m) ** 2
+    w = np.where(use, 1.0 / (s_rho2 * r_ref2 + s_h2 / r_ref2), 0.0) * rays.weights_or_ones()
+    return w, np.where(use, 1.0 / rs, 0.0), s_rho2
+
+
+def noise_terms(
+    rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
+) -> Array | None:
+    """Per ray (n, WIDTH) its compensation sums and its terms of the pass's box-noise fit
+    (:mod:`hdmap.mapping.estimator.box_noise`: ``w sigma_rho^2 D~``, the same times the
+    origin, and :func:`~hdmap.mapping.estimator.box_noise.fit_sums` of ``u = rho D``, ``D =
+    d . (x_ref - a)``, weights ``1 / (D^2 sigma_rho^2)``); None unless
+    ``range_scale="inverse"`` with box ranges."""
+    if not (cfg.box_range and cfg.range_scale == "inverse") or rays.range_m is None:
+        return None
+    w, rho, s_rho2 = inverse_range_terms(rays, origin_rel, x_ref_rel, cfg)
+    az, el = ray_angles(rays.direction)
+    s_az, s_el = effective_sigmas(rays, cfg)
+    m, _h = projector_terms(az, el, s_az, s_el, cfg.compensate)
+    out = np.zeros((len(rays), WIDTH))
+    comp = (w * s_rho2)[:, None] * (_I6 - m)
+    out[:, COMP.start : COMP.start + 6] = comp
+    out[:, COMP.start + 6 : COMP.stop] = np.einsum("nij,nj->ni", sym_to_mat(comp), origin_rel)
+    d = np.asarray(rays.direction, float)
+    dist = np.einsum("ni,ni->n", d, x_ref_rel - origin_rel)
+    ok = (s_rho2 > 0) & (dist > cfg.min_range_m)
+    wf = np.where(ok, 1.0 / np.where(ok, dist**2 * s_rho2, 1.0), 0.0)
+    inv_dist = np.divide(1.0, dist, out=np.zeros_like(dist), where=ok)
+    out[:, FIT] = fit_sums(wf, inv_dist, d, np.where(ok, rho * dist, 0.0))
+    return out
+
+
+def scale_terms(
+    rays: Rays, origin_rel: Array, cfg: EstimatorConfig, x_ref_rel: Array | None = None
+) -> Array | None:
     """Per ray its terms in a pass's unknown range scale ``s`` (``range_scale="per_pass"``):
     (n, 5) columns ``A_xs`` (3), ``A_ss``, ``b_s`` with, over the pass's rays,
 
@@ -72,7 +130,10 @@ def scale_terms(rays: Rays, origin_rel: Array, cfg: EstimatorConfig) -> Array | 
     ``A_xx - A_xs A_xs^T / A_ss``. One ranged ray then adds nothing along its line of
     sight; two or more fix the distance by how their ranges differ as the origin moves
     (``d . (a_j - a_i) = s (r_i - r_j)``), a pass's shared position error cancelling.
-    None when no ray has a range or the mode is off.
+    None when no ray has a range or the mode is off. In the inverse form
+    (``range_scale="inverse"``, ``rho d . (x - a) = s``; needs ``x_ref_rel``) the same
+    columns are ``-sum w rho d``, ``sum w``, ``-sum w rho d . a``
+    (:func:`inverse_range_terms`).
 
     >>> r = Rays.from_angles([[0.0, 0, 0], [0, 5, 0]], [0.0, 0.0], [0.0, 0.0], 0.0, 0.0, 0.1, 0.1)
     >>> from dataclasses import replace
@@ -84,8 +145,18 @@ def scale_terms(rays: Rays, origin_rel: Array, cfg: EstimatorConfig) -> Array | 
     >>> round(float(b[1] / a6[1]), 6)  # the sign 15 m ahead, whatever the panel size
     15.0
     """
-    if not (cfg.box_range and cfg.range_scale == "per_pass") or rays.range_m is None:
+    if not (cfg.box_range and cfg.range_scale != "nominal") or rays.range_m is None:
         return None
+    if cfg.range_scale == "inverse":
+        if x_ref_rel is None:
+            raise ValueError("the inverse-range form needs the reference positions")
+        w, rho, _ = inverse_range_terms(rays, origin_rel, x_ref_rel, cfg)
+        d = np.asarray(rays.direction, float)
+        out = np.empty((len(rays), 5))
+        out[:, :3] = -(w * rho)[:, None] * d
+        out[:, 3] = w
+        out[:, 4] = -w * rho * np.einsum("ni,ni->n", d, origin_rel)
+        return out
     w_r = range_terms(rays)
     r = np.where(w_r > 0, np.asarray(rays.range_m, float), 0.0)
     d = np.asarray(rays.direction, float)
@@ -114,9 +185,10 @@ def ray_terms(
     """Per-ray normal-equation terms ``(alpha, beta)``: ``alpha`` (n, 6) is ``Q~_j`` as a
     6-vector and ``beta`` (n, 3) is ``Q~_j a_j`` (origins relative to the anchor).
 
-    Pitfall: with ``box_range`` and ``range_scale="per_pass"`` these hold only the ``x``
-    block of the range terms; a pass's sums need its :func:`scale_terms` eliminated
-    (:func:`eliminate_scale`) before they mean anything (``LandmarkSums`` does it).
+    Pitfall: with ``box_range`` and ``range_scale="per_pass"`` or ``"inverse"`` these hold
+    only the ``x`` block of the range terms; a pass's sums need its :func:`scale_terms`
+    eliminated (:func:`eliminate_scale`), and in the inverse form its measured compensation
+    (:func:`noise_terms`) taken off, before they mean anything (``LandmarkSums`` does both).
 
     ``sum alpha`` and ``sum beta`` are the landmark's ``A`` and ``b``; ``A x = b`` is the
     estimate. ``x_ref_rel`` is each ray's landmark reference position (for the weights).
@@ -127,6 +199,10 @@ def ray_terms(
     w_h, w_v, g_h, g_v = weights(rays, origin_rel, x_ref_rel, cfg)
     alpha = w_v[:, None] * m + (w_h - w_v)[:, None] * h
     w_r = range_terms(rays) if cfg.box_range and rays.range_m is not None else None
+    if w_r is not None and cfg.range_scale == "inverse":
+        # raw rho^2 here; the measured compensation is applied per pass (noise_terms)
+        w_i, rho, _ = inverse_range_terms(rays, origin_rel, x_ref_rel, cfg)
+        w_r = w_i * rho**2
     if w_r is not None:
         alpha = alpha + w_r[:, None] * (_I6 - m)
     beta = np.einsum("nij,nj->ni", sym_to_mat(alpha), origin_rel)
