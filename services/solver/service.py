@@ -354,12 +354,13 @@ class SolverService(StageService):
         h = np.empty(ok.size)
         cov = np.empty((ok.size, 3, 3))
         floor = self.config.shared_floor()
-        for j, k in enumerate(ok):
-            frame = self.frames(lms[k].home)
-            la, lo, hh = frame.to_geodetic(sol.x[k][None])
-            lat[j], lon[j], h[j] = la[0], lo[0], hh[0]
-            r = enu_rotation(la[0], lo[0]) @ frame.rotation.T
-            cov[j] = r @ sol_cov[k] @ r.T + floor
+        homes = np.array([lms[k].home for k in ok])
+        for home in np.unique(homes).tolist():  # one geodetic conversion per home frame
+            sel = np.flatnonzero(homes == home)
+            frame = self.frames(home)
+            lat[sel], lon[sel], h[sel] = frame.to_geodetic(sol.x[ok[sel]])
+            r = enu_rotation(lat[sel], lon[sel]) @ frame.rotation.T
+            cov[sel] = r @ sol_cov[ok[sel]] @ np.swapaxes(r, -1, -2) + floor
         tiles = quadkeys_of(lat, lon, self.opts.zoom)
         upserts: dict[str, list[int]] = defaultdict(list)
         status = np.where(sol.ok[ok], STATUS_CONFIRMED, STATUS_CANDIDATE)

@@ -241,10 +241,14 @@ class LandmarkSums:
         """Per row the measured ratio of its boxes' inverse-range noise variance to the
         vehicles' claim, open passes included (:mod:`~hdmap.mapping.estimator.box_noise`;
         1 where nothing is measured yet)."""
-        r = self._check_rows(rows)
-        q2 = self._q2[r].copy()
-        for i, row in enumerate(r.tolist()):
-            q2[i] += np.stack(self._open.residuals(self._open.of_row(row)), axis=1).sum(0)
+        uniq, inv = np.unique(self._check_rows(rows), return_inverse=True)
+        slots = self._open.of_rows(uniq)
+        return self._pooled_ratio(uniq, slots, np.searchsorted(uniq, self._open.row[slots]))[inv]
+
+    def _pooled_ratio(self, uniq: IntArray, slots: IntArray, pos: IntArray) -> Array:
+        """Box-noise ratios of rows ``uniq`` with their open ``slots`` (at ``pos``) pooled."""
+        q2 = self._q2[uniq].copy()
+        _scatter_add(q2, pos, np.stack(self._open.residuals(slots), axis=1))
         return self._noise_ratio(q2)
 
     def close_passes(self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None) -> int:
@@ -444,11 +448,7 @@ class LandmarkSums:
         if slots.size:
             pos = np.searchsorted(uniq, o.row[slots])
             _scatter_add(j6, pos, o.j6[slots])
-            ratio = None
-            if self._inverse:
-                q2 = self._q2[uniq].copy()
-                _scatter_add(q2, pos, np.stack(o.residuals(slots), axis=1))
-                ratio = self._noise_ratio(q2)[pos]
+            ratio = self._pooled_ratio(uniq, slots, pos)[pos] if self._inverse else None
             a6, b, c1o = o.weighted(slots, self.config, ratio)
             _scatter_add(c1, pos, c1o)
             _scatter_add(a_all, pos, a6)
