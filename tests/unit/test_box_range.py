@@ -167,20 +167,22 @@ def test_rays_without_ranges_leave_the_sums_as_bearings_only():
             np.testing.assert_allclose(x, x_off, rtol=0, atol=1e-9)
 
 
-def test_per_pass_scale_sums_survive_merge_and_packing():
-    """Open passes' range scale sums move with a merge (another anchor) and a pack /
-    unpack round trip: both give the solution of one row fed every ray."""
-    rng = np.random.default_rng(11)
-    passes = [head_on_pass(rng, panel_scale=1.2, range_rel=0.03, claim_rel=0.05) for _ in range(6)]
-    cfg = EstimatorConfig(box_range=True, range_scale="per_pass")
-    x0 = SIGN[None] + np.array([2.0, -5.0, 0.5])
-
-    one = LandmarkSums(cfg)
-    row = one.new_rows(1, x0)
+def one_row(
+    passes: list[Rays], cfg: EstimatorConfig, x0: np.ndarray
+) -> tuple[LandmarkSums, np.ndarray]:
+    """One row fed every ray of ``passes`` (pass ``k`` as cluster ``k``)."""
+    sums = LandmarkSums(cfg)
+    row = sums.new_rows(1, x0)
     for k, rays in enumerate(passes):
-        one.accumulate(np.repeat(row, len(rays)), np.full(len(rays), k), rays)
-    want = one.solve(row, update_reference=False).x[0]
+        sums.accumulate(np.repeat(row, len(rays)), np.full(len(rays), k), rays)
+    return sums, row
 
+
+def split_and_merged(
+    passes: list[Rays], cfg: EstimatorConfig, x0: np.ndarray
+) -> tuple[LandmarkSums, int]:
+    """Two rows (another anchor, the same reference) each fed every other ray of every pass,
+    then merged: the sums and the row kept."""
     two = LandmarkSums(cfg)
     a, b = two.new_rows(2, np.vstack([x0, x0 + np.array([7.0, -3.0, 1.0])]))
     two.set_reference([b], x0)  # the same reference: the same weights
@@ -190,6 +192,21 @@ def test_per_pass_scale_sums_survive_merge_and_packing():
             two.accumulate(np.full(int(m.sum()), dst), np.full(int(m.sum()), k), rays.take(m))
     assert two.n_open_passes == 2 * len(passes)
     two.merge_rows(int(a), int(b))
+    return two, int(a)
+
+
+def test_per_pass_scale_sums_survive_merge_and_packing():
+    """Open passes' range scale sums move with a merge (another anchor) and a pack /
+    unpack round trip: both give the solution of one row fed every ray."""
+    rng = np.random.default_rng(11)
+    passes = [head_on_pass(rng, panel_scale=1.2, range_rel=0.03, claim_rel=0.05) for _ in range(6)]
+    cfg = EstimatorConfig(box_range=True, range_scale="per_pass")
+    x0 = SIGN[None] + np.array([2.0, -5.0, 0.5])
+
+    one, row = one_row(passes, cfg, x0)
+    want = one.solve(row, update_reference=False).x[0]
+
+    two, a = split_and_merged(passes, cfg, x0)
     np.testing.assert_allclose(two.solve([a], update_reference=False).x[0], want, atol=1e-9)
 
     blob = one.pack_rows(row)[0]
@@ -299,10 +316,7 @@ def test_inverse_form_sums_survive_merge_and_packing():
     passes = [pixel_box_pass(rng, CLAIM_PX, panel_scale=1.1) for _ in range(6)]
     cfg = EstimatorConfig(box_range=True, range_scale="inverse")
     x0 = SIGN[None] + np.array([2.0, -5.0, 0.5])
-    one = LandmarkSums(cfg)
-    row = one.new_rows(1, x0)
-    for k, rays in enumerate(passes):
-        one.accumulate(np.repeat(row, len(rays)), np.full(len(rays), k), rays)
+    one, row = one_row(passes, cfg, x0)
     want = one.solve(row, update_reference=False).x[0]
 
     closed = LandmarkSums(cfg)  # some passes closed: the row's pooled sums are packed too
@@ -319,14 +333,7 @@ def test_inverse_form_sums_survive_merge_and_packing():
     )
     assert back.box_noise_ratio(rows)[0] == closed.box_noise_ratio(unpacked)[0]
 
-    two = LandmarkSums(cfg)
-    a, b = two.new_rows(2, np.vstack([x0, x0 + np.array([7.0, -3.0, 1.0])]))
-    two.set_reference([b], x0)
-    for k, rays in enumerate(passes):
-        half = np.arange(len(rays)) % 2 == 0
-        for dst, m in ((a, half), (b, ~half)):
-            two.accumulate(np.full(int(m.sum()), dst), np.full(int(m.sum()), k), rays.take(m))
-    two.merge_rows(int(a), int(b))
+    two, a = split_and_merged(passes, cfg, x0)
     r1, r2 = one.box_noise_ratio(row)[0], two.box_noise_ratio([a])[0]
     assert abs(r2 / r1 - 1.0) < 0.5
     np.testing.assert_allclose(two.solve([a], update_reference=False).x[0], want, atol=0.1)
