@@ -337,3 +337,15 @@ def test_inverse_form_sums_survive_merge_and_packing():
     r1, r2 = one.box_noise_ratio(row)[0], two.box_noise_ratio([a])[0]
     assert abs(r2 / r1 - 1.0) < 0.5
     np.testing.assert_allclose(two.solve([a], update_reference=False).x[0], want, atol=0.1)
+
+
+def test_only_the_inverse_form_keeps_box_noise_sums():
+    """Off by default, the box-noise sums cost nothing per open pass (pack version 6 sizes);
+    the inverse form keeps its 27 floats more."""
+    off, on = LandmarkSums(), LandmarkSums(EstimatorConfig(box_range=True, range_scale="inverse"))
+    assert (off.open_pass_bytes, on.open_pass_bytes) == (224, 224 + 27 * 8)
+    rays = head_on_pass(np.random.default_rng(1))
+    for sums in (off, on):
+        row = sums.new_rows(1, SIGN[None])
+        sums.accumulate(np.repeat(row, len(rays)), np.zeros(len(rays)), rays)
+        assert sums.pack_rows(row)[0][0] == (7 if sums is on else 4)

@@ -67,7 +67,7 @@ from hdmap.mapping.estimator.model import (
     pull_terms,
 )
 from hdmap.mapping.estimator.open_passes import OpenPasses
-from hdmap.mapping.estimator.packing import OPEN_DTYPE, PACK_VERSION, decode, encode, layout
+from hdmap.mapping.estimator.packing import PACK_VERSION, decode, encode, layout
 from hdmap.mapping.estimator.solve import Solution, solve_sums
 from hdmap.mapping.estimator.terms import noise_terms, ray_terms, scale_terms
 
@@ -115,7 +115,7 @@ class LandmarkSums:
         self._w2 = np.zeros(cap)  # sum of their squares (the model floor's scale)
         self._c1 = np.zeros(cap)  # closed passes' pull (model.pull_terms, pass-weighted)
         self._q2 = np.zeros((cap, 2))  # closed passes' box-noise residuals, dof (box_noise)
-        self._open = OpenPasses()  # the open (landmark, pass) partial sums
+        self._open = OpenPasses(noise=self._inverse)  # the open (landmark, pass) sums
 
     # ------------------------------------------------------------------ sizes
     def __len__(self) -> int:
@@ -129,9 +129,9 @@ class LandmarkSums:
 
     @property
     def open_pass_bytes(self) -> int:
-        """Bytes of numeric state per open pass: the size of its packed (version 5) record
-        (the in-memory arrays hold the same fields, plus the slot's row)."""
-        return OPEN_DTYPE.itemsize
+        """Bytes of numeric state per open pass: its packed record with every sum this
+        configuration keeps (version 7 in the inverse-range form, else 6; plus the row)."""
+        return layout(PACK_VERSION if self._inverse else 6).open.itemsize
 
     @property
     def n_open_passes(self) -> int:
@@ -534,7 +534,7 @@ class LandmarkSums:
                 bo,
                 frame.information(o.j6[sl]),
                 frame.scale(o.t5[sl]),
-                in_frame(o.k[sl], frame),
+                in_frame(o.k[sl], frame) if o.k.shape[1] else o.k[sl],
             )
         o.release(mine)
         for name in _ROW_ARRAYS:
