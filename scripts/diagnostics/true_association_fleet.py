@@ -14,7 +14,9 @@ Prints, over the signs with 50+ passes, the horizontal error and, for those more
 off, how much of it lies along their mean viewing direction (negative: short of the sign).
 ``KNOB=V,...``: ``EstimatorConfig`` fields to change (numbers; ``compensate=0``), and
 ``pitch=RAD`` (the vehicle model's claimed pitch noise), ``rate=HZ`` (the GNSS rate),
-``yaw=RAD_S2`` (the pose model's yaw acceleration floor).
+``yaw=RAD_S2`` (the pose model's yaw acceleration floor), ``box=PX`` (noise on the
+boxes' width and height), ``scale=0|1|2`` (box ranges off, ``range_scale`` ``per_pass``,
+``inverse``: the ranges enter the sums).
 """
 
 from __future__ import annotations
@@ -89,6 +91,9 @@ def noise_for(which: str) -> NoiseModel:
 def main(which: str, n_passes: int, overrides: str = "") -> None:
     knobs = {k: float(v) for k, v in (kv.split("=") for kv in overrides.split(",") if kv)}
     noise = noise_for(which)
+    if "box" in knobs:
+        noise = replace(noise, detector=replace(noise.detector, size_sigma_px=knobs.pop("box")))
+    scale = int(knobs.pop("scale", 0))
     cfg = FleetEvalConfig(Path(tempfile.gettempdir()))
     world = evaluation_world(cfg)
     model = model_for(noise, load_vehicle_model())
@@ -107,6 +112,8 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
         est = EstimatorConfig(
             **{k: type(getattr(EstimatorConfig(), k))(float(v)) for k, v in knobs.items()}
         )
+        if scale:
+            est = replace(est, box_range=True, range_scale=("per_pass", "inverse")[scale - 1])
         sums = LandmarkSums(est)
         rows = sums.new_rows(k_signs, world.signs.position + np.array([1.0, 1.0, 0.0]))
         for k, p in enumerate(fleet.passes(n_passes)):

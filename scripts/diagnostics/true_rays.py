@@ -10,7 +10,8 @@ from hdmap.mapping.estimator import Rays
 
 def true_rays(world, agent, p, obs) -> tuple[Rays, np.ndarray] | None:
     """The rays of ``obs`` (what ``agent`` just recorded of pass ``p``) that saw a true
-    sign, and per ray the sign's row in ``world.signs``; None if there are none."""
+    sign, with their box ranges, and per ray the sign's row in ``world.signs``; None if
+    there are none."""
     sid = p.truth.sign_id[agent.last_kept]
     r = world.signs.index_of(sid)
     ok = (sid >= 0) & (r >= 0)
@@ -24,5 +25,7 @@ def true_rays(world, agent, p, obs) -> tuple[Rays, np.ndarray] | None:
         np.asarray(obs.sigma_pos_h)[ok],
         np.asarray(obs.sigma_pos_v)[ok],
         None,
+        np.asarray(obs.range_m, float)[ok],
+        np.asarray(obs.sigma_range_m, float)[ok],
     )
     return rays, r[ok]

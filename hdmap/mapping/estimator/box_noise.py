@@ -24,8 +24,11 @@ variance to the claimed one: the claim sets the shape (which rays are noisier), 
 its level. The reference's error does not enter the residuals to first order (a fit of
 ``1 / s`` and the error along the line of sight alone measured 1.45 times the true noise
 with the reference 5 m off). A pass's shared origin error is such an error too; the rays'
-white origin noise is not, and adds its share (``rho WHITE`` per ray; about 2 % of a
-4.24 px claim in the unit test's setting). The fit needs 16 sums per open pass
+white origin noise is not: it adds ``rho^2 d^T Sigma_a d`` per ray to ``u``'s variance,
+which does not bias ``rho^2``, so its claimed share is taken out of the residuals before
+they are pooled (in the fleet evaluation, 1 m of white origin noise is worth 0.1-0.2 of a
+4.24 px claim, and counted as box noise it put the landmarks 0.3-0.6 m beyond their
+signs). The fit needs 17 sums per open pass
 (:data:`FIT`: ``sum w z z^T``, ``sum w z u``, ``sum w u^2``, the ray count), and a pass's
 residual sum and degrees of freedom once it is settled (:func:`pass_residuals`); the
 landmark pools them. ``c`` is shrunk toward the claim (1) by ``prior_dof`` pseudo degrees
@@ -54,7 +57,7 @@ Invariants and pitfalls:
 >>> d /= np.linalg.norm(d, axis=1, keepdims=True)
 >>> e = np.array([1.0, -2.0, 0.3])  # the reference's error
 >>> u = 1.0 + rho * (d @ e) + 0.01 * np.array([1, -1, 1, -1, 1, -1])
->>> k[0, FIT] = fit_sums(np.ones(6), rho, d, u).sum(0)
+>>> k[0, FIT] = fit_sums(np.ones(6), rho, d, u, np.zeros(6)).sum(0)
 >>> rss, dof = pass_residuals(k)
 >>> dof.tolist(), bool(0 < rss[0] < 6e-4)  # d_E, d_U in proportion: rank 3
 ([3.0], True)
@@ -72,12 +75,13 @@ Array = NDArray[np.float64]
 COMP = slice(0, 9)
 """Columns of an open pass's compensation sums: ``sum w sigma_rho^2 D~`` (6, the symmetric
 3x3 as a 6-vector) and ``sum w sigma_rho^2 D~ a`` (3)."""
-FIT = slice(9, 25)
+FIT = slice(9, 26)
 """Columns of its fit sums: ``sum w z z^T`` (10, upper triangle of the 4x4, row-major),
-``sum w z u`` (4), ``sum w u^2`` and the ray count."""
-SETTLED = slice(25, 27)
+``sum w z u`` (4), ``sum w u^2``, the ray count and ``sum w v_pos``, the claimed white
+origin noise's variance in ``u`` (:func:`pass_residuals` takes its share out)."""
+SETTLED = slice(26, 28)
 """Columns of its settled residual sum and degrees of freedom (:func:`settle`)."""
-WIDTH = 27
+WIDTH = 28
 """Floats per open pass."""
 
 _TRI_I, _TRI_J = np.triu_indices(4)
@@ -86,25 +90,28 @@ _RANK_TOL = 1e-9
 directions the pass's rays do not determine: not fitted, no degree of freedom taken."""
 
 
-def fit_sums(w: Array, q: Array, d: Array, u: Array) -> Array:
+def fit_sums(w: Array, q: Array, d: Array, u: Array, v_pos: Array) -> Array:
     """Per ray its terms of the pass fit ``u ~ z . beta``, ``z = (1, q d)`` (weights
-    ``w``; rays with ``w`` 0 count nothing; ``q = 1 / D`` in the services): (n, 16), the
-    :data:`FIT` columns."""
+    ``w``; rays with ``w`` 0 count nothing; ``q = 1 / D`` in the services; ``v_pos`` the
+    variance the ray's white origin noise adds to ``u``): (n, 17), the :data:`FIT`
+    columns."""
     z = np.column_stack([np.ones_like(q), q[:, None] * np.asarray(d, float)])
-    out = np.empty((w.size, 16))
+    out = np.empty((w.size, 17))
     out[:, :10] = w[:, None] * z[:, _TRI_I] * z[:, _TRI_J]
     out[:, 10:14] = (w * u)[:, None] * z
     out[:, 14] = w * u**2
     out[:, 15] = (w > 0).astype(float)
+    out[:, 16] = w * v_pos
     return out
 
 
 def pass_residuals(k: Array) -> tuple[Array, Array]:
     """Weighted residual sum and degrees of freedom of passes' sums ``k`` (..., WIDTH): the
-    fit's (``n`` minus its rank; 0 and 0 where the rays are no more than the rank) plus the
-    settled part."""
+    fit's (``n`` minus its rank; 0 and 0 where the rays are no more than the rank), less
+    the claimed white origin noise's share (``sum w v_pos`` times ``dof / n``, the average
+    ``1 - h_jj``; so it can be negative), plus the settled part."""
     k = np.asarray(k, float)
-    f = k[..., FIT].reshape(-1, 16)
+    f = k[..., FIT].reshape(-1, 17)
     s = np.zeros((f.shape[0], 4, 4))
     s[:, _TRI_I, _TRI_J] = f[:, :10]
     s[:, _TRI_J, _TRI_I] = f[:, :10]
@@ -117,8 +124,9 @@ def pass_residuals(k: Array) -> tuple[Array, Array]:
     explained = np.sum(np.where(keep, proj**2 / np.where(keep, lam, 1.0), 0.0), axis=1)
     rank = keep.sum(axis=1)
     good = n > rank
-    rss = np.where(good, np.maximum(uu - explained, 0.0), 0.0)
     dof = np.where(good, n - rank, 0.0)
+    share = f[:, 16] * dof / np.maximum(n, 1.0)
+    rss = np.where(good, np.maximum(uu - explained, 0.0) - share, 0.0)
     shape = k.shape[:-1]
     return (
         rss.reshape(shape) + k[..., SETTLED.start],
@@ -153,4 +161,5 @@ def noise_ratio(rss: Array, dof: Array, prior_dof: float) -> Array:
     >>> noise_ratio(rss, dof, 4.0).round(4).tolist()
     [1.0, 0.5192, 0.004]
     """
-    return (np.asarray(rss, float) + prior_dof) / (np.asarray(dof, float) + prior_dof)
+    rss = np.maximum(np.asarray(rss, float), 0.0)
+    return (rss + prior_dof) / (np.asarray(dof, float) + prior_dof)

@@ -8,7 +8,7 @@ structured records without padding. Per version, with their sizes in bytes:
 =======  =================  ==================  ============================================
 version  row record         open-pass record    new in this version
 =======  =================  ==================  ============================================
-7        ROW_DTYPE 588      OPEN_DTYPE 440      inverse form: box-noise sums ``q2``, ``k``
+7        ROW_DTYPE 588      OPEN_DTYPE 448      inverse form: box-noise sums ``q2``, ``k``
 6        ROW_DTYPE_V5 572   OPEN_DTYPE_V6 224   open passes' range scale sums ``t5``
 5        ROW_DTYPE_V5 572   OPEN_DTYPE_V5 184   the pull sum ``c1`` (row and open passes)
 4        ROW_DTYPE_V4 564   OPEN_DTYPE_V4 176   held passes (``w2``, ``hold``, ``j6``)
@@ -20,7 +20,7 @@ version  row record         open-pass record    new in this version
 So a row packs to 565 bytes plus 176 per open pass, or, where it keeps a pull
 (``EstimatorConfig.extra_sigma_pos_m`` set), 573 plus 184, or, where an open pass keeps
 range scale sums (``EstimatorConfig.box_range`` with ``range_scale="per_pass"``), 573 plus
-224, or, in the inverse-range form (``range_scale="inverse"``), 589 plus 440:
+224, or, in the inverse-range form (``range_scale="inverse"``), 589 plus 448:
 ``pack_rows`` writes version 7 only for rows with box-noise sums, 6 for rows with range
 scale sums, 5 for rows with a pull,
 version 4 otherwise (8 bytes less per row and per open pass, which
@@ -38,7 +38,7 @@ True
 >>> rec = np.zeros((), ROW_DTYPE)
 >>> rec["n_open"] = 2
 >>> blob = encode(layout(7), rec, np.zeros(2, OPEN_DTYPE))
->>> len(blob) == 1 + 588 + 2 * 440
+>>> len(blob) == 1 + 588 + 2 * 448
 True
 >>> lay, rec, op = decode(blob)
 >>> lay.version, int(rec["n_open"]), op.dtype == OPEN_DTYPE, len(op)
@@ -91,7 +91,7 @@ OPEN_DTYPE_V3 = np.dtype(
 OPEN_DTYPE_V4 = np.dtype([*OPEN_DTYPE_V3.descr, ("w2", "<f8"), ("hold", "<i8"), ("j6", "<f8", 6)])
 OPEN_DTYPE_V5 = np.dtype([*OPEN_DTYPE_V4.descr, ("c1", "<f8")])
 OPEN_DTYPE_V6 = np.dtype([*OPEN_DTYPE_V5.descr, ("t5", "<f8", 5)])
-OPEN_DTYPE = np.dtype([*OPEN_DTYPE_V6.descr, ("k", "<f8", 27)])
+OPEN_DTYPE = np.dtype([*OPEN_DTYPE_V6.descr, ("k", "<f8", 28)])
 OPEN_DTYPE_V1 = np.dtype(
     [("cluster", "<i8"), ("last", "<i8"), ("n", "<i8"), ("a6", "<f8", 6), ("b", "<f8", 3)]
 )

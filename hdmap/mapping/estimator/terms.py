@@ -112,7 +112,10 @@ def noise_terms(
     ok = (s_rho2 > 0) & (dist > cfg.min_range_m)
     wf = np.where(ok, 1.0 / np.where(ok, dist**2 * s_rho2, 1.0), 0.0)
     inv_dist = np.divide(1.0, dist, out=np.zeros_like(dist), where=ok)
-    out[:, FIT] = fit_sums(wf, inv_dist, d, np.where(ok, rho * dist, 0.0))
+    s_h2 = np.maximum(np.asarray(rays.sigma_pos_h, float), cfg.min_sigma_pos_m) ** 2
+    s_v2 = np.maximum(np.asarray(rays.sigma_pos_v, float), cfg.min_sigma_pos_m) ** 2
+    v_pos = rho**2 * (s_h2 * (d[:, 0] ** 2 + d[:, 1] ** 2) + s_v2 * d[:, 2] ** 2)
+    out[:, FIT] = fit_sums(wf, inv_dist, d, np.where(ok, rho * dist, 0.0), v_pos)
     return out
 
 
