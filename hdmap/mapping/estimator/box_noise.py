@@ -65,10 +65,13 @@ Invariants and pitfalls:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from hdmap.mapping.estimator.frame_change import FrameChange
 
 Array = NDArray[np.float64]
 
@@ -143,11 +146,14 @@ def settle(k: Array) -> Array:
     return out
 
 
-def in_frame(k: Array, frame: Any) -> Array:
+def in_frame(k: Array, frame: FrameChange) -> Array:
     """An open pass's sums ``k`` (WIDTH,) seen from another row's frame (a
     :class:`~hdmap.mapping.estimator.frame_change.FrameChange`): the compensation moves
-    like ``A`` and ``b``; the fit is about scalars and stays."""
+    like ``A`` and ``b``; the fit is about scalars and stays. Without the inverse form a
+    pass keeps no such sums (``k`` empty): returned as it is."""
     out = np.array(k, float, copy=True)
+    if out.size == 0:
+        return out
     a6, b = frame.terms(out[COMP.start : COMP.start + 6], out[COMP.start + 6 : COMP.stop])
     out[COMP.start : COMP.start + 6], out[COMP.start + 6 : COMP.stop] = a6, b
     return out

@@ -59,6 +59,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hdmap.geo.signs import DEFAULT_SIZE_REL_SIGMA
+
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -170,10 +172,10 @@ class EstimatorConfig:
     whatever the panel's real size; ``inverse`` is the same in inverse range (``rho d . (x -
     a) = s``), its box-noise bias compensated by the noise measured from the passes
     (:mod:`~hdmap.mapping.estimator.box_noise`)."""
-    panel_rel_sigma: float = 0.10
+    panel_rel_sigma: float = DEFAULT_SIZE_REL_SIGMA
     """The sign catalogue's relative panel-size spread that every ray's ``sigma_range_m``
-    includes (``hdmap.geo.signs.DEFAULT_SIZE_REL_SIGMA``); the inverse form takes it out to
-    get the box's white part (the panel's scale is the pass's unknown)."""
+    includes (the catalogue's default); the inverse form takes it out to get the box's
+    white part (the panel's scale is the pass's unknown)."""
     range_noise_prior_dof: float = 4.0
     """Pseudo degrees of freedom of the vehicle's claimed box noise in the measured ratio
     (:func:`~hdmap.mapping.estimator.box_noise.noise_ratio`)."""

@@ -69,7 +69,7 @@ from hdmap.mapping.estimator.model import (
 from hdmap.mapping.estimator.open_passes import OpenPasses
 from hdmap.mapping.estimator.packing import PACK_VERSION, decode, encode, layout
 from hdmap.mapping.estimator.solve import Solution, solve_sums
-from hdmap.mapping.estimator.terms import noise_terms, ray_terms, scale_terms
+from hdmap.mapping.estimator.terms import inverse_of, noise_terms, ray_terms, scale_terms
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -215,9 +215,10 @@ class LandmarkSums:
             return
         rows = self._open.row[slots]
         ratio = None
-        if self._inverse:
+        if self._inverse:  # pooled with the closing passes, which then join the pool
+            uniq, pos = np.unique(rows, return_inverse=True)
+            ratio = self._pooled_ratio(uniq, slots, pos)[pos]
             _scatter_add(self._q2, rows, np.stack(self._open.residuals(slots), axis=1))
-            ratio = self._noise_ratio(self._q2[rows])
         a6, b, c1 = self._open.weighted(slots, self.config, ratio)
         _scatter_add(self._c1, rows, c1)
         _scatter_add(self._a6, rows, a6)
@@ -233,10 +234,6 @@ class LandmarkSums:
     def _inverse(self) -> bool:
         return self.config.box_range and self.config.range_scale == "inverse"
 
-    def _noise_ratio(self, q2: Array) -> Array:
-        """Measured box-noise ratios from pooled (residual sum, dof) rows ``q2``."""
-        return noise_ratio(q2[:, 0], q2[:, 1], self.config.range_noise_prior_dof)
-
     def box_noise_ratio(self, rows: ArrayLike) -> Array:
         """Per row the measured ratio of its boxes' inverse-range noise variance to the
         vehicles' claim, open passes included (:mod:`~hdmap.mapping.estimator.box_noise`;
@@ -249,7 +246,7 @@ class LandmarkSums:
         """Box-noise ratios of rows ``uniq`` with their open ``slots`` (at ``pos``) pooled."""
         q2 = self._q2[uniq].copy()
         _scatter_add(q2, pos, np.stack(self._open.residuals(slots), axis=1))
-        return self._noise_ratio(q2)
+        return noise_ratio(q2[:, 0], q2[:, 1], self.config.range_noise_prior_dof)
 
     def close_passes(self, rows: ArrayLike | None = None, clusters: ArrayLike | None = None) -> int:
         """Close open passes: all (no arguments), those of ``rows``, those with a cluster id
@@ -358,9 +355,11 @@ class LandmarkSums:
         if held.any() and not self.config.cluster_robust:
             raise ValueError("held passes need pass-level sums (cluster_robust)")
         origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
-        alpha, beta = ray_terms(rays, origin_rel, self._x_ref[r], self.config)
-        t5 = scale_terms(rays, origin_rel, self.config, self._x_ref[r])
-        kn = noise_terms(rays, origin_rel, self._x_ref[r], self.config)
+        x_ref = self._x_ref[r]
+        inv = inverse_of(rays, origin_rel, x_ref, self.config)  # once for the three below
+        alpha, beta = ray_terms(rays, origin_rel, x_ref, self.config, inv)
+        t5 = scale_terms(rays, origin_rel, self.config, x_ref, inv)
+        kn = noise_terms(rays, origin_rel, x_ref, self.config, inv)
         j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
         _scatter_add(self._j6, r[~held], j6[~held])
         # the pull sum of an unreported pass bias: only when configured (zeros otherwise)
@@ -534,7 +533,7 @@ class LandmarkSums:
                 bo,
                 frame.information(o.j6[sl]),
                 frame.scale(o.t5[sl]),
-                in_frame(o.k[sl], frame) if o.k.shape[1] else o.k[sl],
+                in_frame(o.k[sl], frame),
             )
         o.release(mine)
         for name in _ROW_ARRAYS:

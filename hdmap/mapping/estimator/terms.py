@@ -14,6 +14,8 @@ True
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -61,9 +63,19 @@ def range_terms(rays: Rays) -> Array:
     return w * rays.weights_or_ones()
 
 
+class InverseTerms(NamedTuple):
+    """Per ray of the inverse-range form: weight, inverse range, claimed white variance
+    (:func:`inverse_range_terms`; computed once per ``accumulate`` and shared by
+    :func:`ray_terms`, :func:`scale_terms` and :func:`noise_terms`)."""
+
+    w: Array
+    rho: Array
+    s_rho2: Array
+
+
 def inverse_range_terms(
     rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
-) -> tuple[Array, Array, Array]:
+) -> InverseTerms:
     """Per ray of the inverse-range form (``range_scale="inverse"``), ``rho d . (x - a) =
     s``: its weight ``w``, inverse range ``rho = 1 / r`` and claimed white variance
     ``sigma_rho^2`` (0 and 0 where the ray has no range).
@@ -86,20 +98,37 @@ def inverse_range_terms(
     r_ref2 = np.maximum(np.einsum("ni,ni->n", v, v), cfg.min_range_m**2)
     s_h2 = np.maximum(np.asarray(rays.sigma_pos_h, float), cfg.min_sigma_pos_m) ** 2
     w = np.where(use, 1.0 / (s_rho2 * r_ref2 + s_h2 / r_ref2), 0.0) * rays.weights_or_ones()
-    return w, np.where(use, 1.0 / rs, 0.0), s_rho2
+    return InverseTerms(w, np.where(use, 1.0 / rs, 0.0), s_rho2)
+
+
+def inverse_of(
+    rays: Rays, origin_rel: Array, x_ref_rel: Array | None, cfg: EstimatorConfig
+) -> InverseTerms | None:
+    """The rays' :class:`InverseTerms` in the inverse-range form (None otherwise)."""
+    if not (cfg.box_range and cfg.range_scale == "inverse") or rays.range_m is None:
+        return None
+    if x_ref_rel is None:
+        raise ValueError("the inverse-range form needs the reference positions")
+    return inverse_range_terms(rays, origin_rel, x_ref_rel, cfg)
 
 
 def noise_terms(
-    rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
+    rays: Rays,
+    origin_rel: Array,
+    x_ref_rel: Array,
+    cfg: EstimatorConfig,
+    inv: InverseTerms | None = None,
 ) -> Array | None:
     """Per ray (n, WIDTH) its compensation sums and its terms of the pass's box-noise fit
     (:mod:`hdmap.mapping.estimator.box_noise`: ``w sigma_rho^2 D~``, the same times the
     origin, and :func:`~hdmap.mapping.estimator.box_noise.fit_sums` of ``u = rho D``, ``D =
     d . (x_ref - a)``, weights ``1 / (D^2 sigma_rho^2)``); None unless
-    ``range_scale="inverse"`` with box ranges."""
-    if not (cfg.box_range and cfg.range_scale == "inverse") or rays.range_m is None:
+    ``range_scale="inverse"`` with box ranges. ``inv``: the rays' :func:`inverse_of`, if
+    already at hand."""
+    inv = inv or inverse_of(rays, origin_rel, x_ref_rel, cfg)
+    if inv is None:
         return None
-    w, rho, s_rho2 = inverse_range_terms(rays, origin_rel, x_ref_rel, cfg)
+    w, rho, s_rho2 = inv
     az, el = ray_angles(rays.direction)
     s_az, s_el = effective_sigmas(rays, cfg)
     m, _h = projector_terms(az, el, s_az, s_el, cfg.compensate)
@@ -120,7 +149,11 @@ def noise_terms(
 
 
 def scale_terms(
-    rays: Rays, origin_rel: Array, cfg: EstimatorConfig, x_ref_rel: Array | None = None
+    rays: Rays,
+    origin_rel: Array,
+    cfg: EstimatorConfig,
+    x_ref_rel: Array | None = None,
+    inv: InverseTerms | None = None,
 ) -> Array | None:
     """Per ray its terms in a pass's unknown range scale ``s`` (``range_scale="per_pass"``):
     (n, 5) columns ``A_xs`` (3), ``A_ss``, ``b_s`` with, over the pass's rays,
@@ -136,7 +169,7 @@ def scale_terms(
     None when no ray has a range or the mode is off. In the inverse form
     (``range_scale="inverse"``, ``rho d . (x - a) = s``; needs ``x_ref_rel``) the same
     columns are ``-sum w rho d``, ``sum w``, ``-sum w rho d . a``
-    (:func:`inverse_range_terms`).
+    (:func:`inverse_range_terms`; ``inv`` if already at hand).
 
     >>> r = Rays.from_angles([[0.0, 0, 0], [0, 5, 0]], [0.0, 0.0], [0.0, 0.0], 0.0, 0.0, 0.1, 0.1)
     >>> from dataclasses import replace
@@ -150,23 +183,18 @@ def scale_terms(
     """
     if not (cfg.box_range and cfg.range_scale != "nominal") or rays.range_m is None:
         return None
-    if cfg.range_scale == "inverse":
-        if x_ref_rel is None:
-            raise ValueError("the inverse-range form needs the reference positions")
-        w, rho, _ = inverse_range_terms(rays, origin_rel, x_ref_rel, cfg)
-        d = np.asarray(rays.direction, float)
-        out = np.empty((len(rays), 5))
-        out[:, :3] = -(w * rho)[:, None] * d
-        out[:, 3] = w
-        out[:, 4] = -w * rho * np.einsum("ni,ni->n", d, origin_rel)
-        return out
-    w_r = range_terms(rays)
-    r = np.where(w_r > 0, np.asarray(rays.range_m, float), 0.0)
+    if cfg.range_scale == "inverse":  # rho d . (x - a) = s: d's coefficient w rho, s's w
+        w, rho, _ = inv or inverse_of(rays, origin_rel, x_ref_rel, cfg)
+        c, ss = w * rho, w
+    else:  # d . (x - a) = s r: d's coefficient w_r r, s's w_r r^2
+        w_r = range_terms(rays)
+        c = w_r * np.where(w_r > 0, np.asarray(rays.range_m, float), 0.0)
+        ss = c * np.where(w_r > 0, np.asarray(rays.range_m, float), 0.0)
     d = np.asarray(rays.direction, float)
     out = np.empty((len(rays), 5))
-    out[:, :3] = -(w_r * r)[:, None] * d
-    out[:, 3] = w_r * r**2
-    out[:, 4] = -w_r * r * np.einsum("ni,ni->n", d, origin_rel)
+    out[:, :3] = -c[:, None] * d
+    out[:, 3] = ss
+    out[:, 4] = -c * np.einsum("ni,ni->n", d, origin_rel)
     return out
 
 
@@ -183,7 +211,11 @@ def eliminate_scale(a6: Array, b: Array, t: Array) -> tuple[Array, Array]:
 
 
 def ray_terms(
-    rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
+    rays: Rays,
+    origin_rel: Array,
+    x_ref_rel: Array,
+    cfg: EstimatorConfig,
+    inv: InverseTerms | None = None,
 ) -> tuple[Array, Array]:
     """Per-ray normal-equation terms ``(alpha, beta)``: ``alpha`` (n, 6) is ``Q~_j`` as a
     6-vector and ``beta`` (n, 3) is ``Q~_j a_j`` (origins relative to the anchor).
@@ -204,7 +236,7 @@ def ray_terms(
     w_r = range_terms(rays) if cfg.box_range and rays.range_m is not None else None
     if w_r is not None and cfg.range_scale == "inverse":
         # raw rho^2 here; the measured compensation is applied per pass (noise_terms)
-        w_i, rho, _ = inverse_range_terms(rays, origin_rel, x_ref_rel, cfg)
+        w_i, rho, _ = inv or inverse_of(rays, origin_rel, x_ref_rel, cfg)
         w_r = w_i * rho**2
     if w_r is not None:
         alpha = alpha + w_r[:, None] * (_I6 - m)
