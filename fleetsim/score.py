@@ -1,8 +1,8 @@
 """Score a map against the simulator's ground truth.
 
 True signs and estimated landmarks are paired one-to-one by class and horizontal
-distance (:func:`fleetsim.truth.match_landmarks`, pairs farther than ``max_dist_m``
-not allowed).
+distance (:func:`fleetsim.truth.match_map`, pairs farther than ``max_dist_m`` not
+allowed; confirmed landmarks before candidates).
 
 - found: true signs with a landmark; missed: eligible true signs without one;
 - duplicated: unpaired landmarks within ``max_dist_m`` of a paired true sign of
@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetsim.truth import LandmarkMatch, match_landmarks
+from fleetsim.truth import LandmarkMatch, match_map
 from fleetsim.world import World
 from schemas import Landmarks
 
@@ -98,7 +98,7 @@ def score(
     signs = world.signs
     n_true = len(signs)
     elig = np.ones(n_true, bool) if eligible is None else np.asarray(eligible, bool)
-    m = match_landmarks(world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=max_dist_m)
+    m = match_map(world, lm, max_dist_m)
     paired_true = np.zeros(n_true, bool)
     paired_true[m.sign_row] = True
     dup = int(duplicate_mask(world, lm, m, max_dist_m).sum())

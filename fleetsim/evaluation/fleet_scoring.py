@@ -7,7 +7,8 @@ Per *number of passes past a sign* (``n``: passes that detected it so far), over
 - ``mean_err_m``, ``p95_err_m``: horizontal error of its landmark;
 - ``coverage95``: truth inside the reported 95% region (2D chi-square ellipse), of the
   ``found`` signs (``inside95`` of them);
-- ``recall``: signs with a landmark within ``match_m`` of the same class;
+- ``recall``: signs with a landmark within ``match_m`` of the same class (paired one to
+  one, confirmed landmarks before candidates: :func:`fleetsim.truth.match_map`);
 - ``precision``: landmarks (whose paired sign, or for unpaired ones whose own pass
   count, is in the bin) that pair with a true sign;
 - ``duplicated``: unpaired landmarks within ``match_m`` of a paired sign of their class;
@@ -43,7 +44,7 @@ import numpy as np
 from scipy.stats import binom
 
 from fleetsim.score import cov_en, duplicate_mask, inside_ellipse95
-from fleetsim.truth import match_landmarks
+from fleetsim.truth import match_map
 from fleetsim.world import World, corner_pair_rows
 from schemas import Landmarks
 from schemas.map import as_map_landmarks
@@ -123,7 +124,7 @@ def lookup(keys: list[ObsKeys], table: list[ObsKeys], missing: int = 0) -> np.nd
 
 
 def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> SignRecord:
-    m = match_landmarks(world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=match_m)
+    m = match_map(world, lm, match_m)
     k = len(world.signs)
     found = np.zeros(k, bool)
     err = np.full(k, np.nan)
@@ -152,7 +153,7 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
 
 def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> dict:
     """Per landmark: its bin key (n of its paired sign, else its own passes), paired, dup."""
-    m = match_landmarks(world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=match_m)
+    m = match_map(world, lm, match_m)
     key = np.asarray(lm.n_passes, np.int64).copy()
     paired = np.zeros(len(lm), bool)
     paired[m.landmark] = True
@@ -170,7 +171,7 @@ def unpaired_table(
     false positives, and the true sign most of the rest belong to with its count; links
     are by the id at link time, so rays linked to landmarks merged into it later are not
     counted)."""
-    m = match_landmarks(world, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=match_m)
+    m = match_map(world, lm, match_m)
     if not m.spurious.size:
         return []
     signs = world.signs

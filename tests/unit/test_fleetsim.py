@@ -410,6 +410,24 @@ def test_match_landmarks_pairs_by_class_and_distance() -> None:
 # --- the demo command ----------------------------------------------------------------
 
 
+def test_match_prefers_a_confirmed_landmark_to_a_nearer_candidate() -> None:
+    """Sign 0 has a confirmed landmark 1.0 m off and a candidate 0.5 m off: the confirmed
+    one is its pair, the candidate is the unpaired one (by distance alone it was the other
+    way round, and the confirmed landmark counted as a duplicate)."""
+    s = TOWN.signs
+    pos = np.stack([s.position[0] + [1.0, 0, 0], s.position[0] + [0.5, 0, 0]])
+    lat, lon, h = TOWN.frame.to_geodetic(pos)
+    cls = np.full(2, s.sign_class[0])
+    by_distance = match_landmarks(TOWN, lat, lon, h, cls, gate_m=5.0)
+    assert by_distance.landmark.tolist() == [1]
+    m = match_landmarks(TOWN, lat, lon, h, cls, gate_m=5.0, preferred=[True, False])
+    assert m.landmark.tolist() == [0] and m.spurious.tolist() == [1]
+    np.testing.assert_allclose(m.error_enu[0, 0], 1.0, atol=1e-6)
+    # a candidate still pairs where no confirmed landmark of the sign is in reach
+    m = match_landmarks(TOWN, lat[1:], lon[1:], h[1:], cls[1:], gate_m=5.0, preferred=[False])
+    assert m.landmark.tolist() == [0]
+
+
 def test_demo_command_writes_png_and_json(tmp_path: Path, capsys) -> None:
     from hdmap.cli import vehicle_demo as demo
 
