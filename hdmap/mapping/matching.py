@@ -158,8 +158,13 @@ class MatchingConfig:
     bias). With onboard tracks, co-visibility tells two signs apart reliably, so two passes
     are enough: on the four seeds, 2 rather than 5 cut the young map's duplicates at 3-4
     passes from 13-48 to 0-5 (with ``merge_max_covis`` 0.1; 2 / 0 / 9 / 3 with 0.2).
-    A landmark looks for a partner at each of its passes up to twice this, then at every
-    third (the search is most of a unit's cost otherwise)."""
+    A landmark looks for a partner at each of its passes up to ``merge_every_pass_until``,
+    then at every third (the search is most of a unit's cost otherwise)."""
+    merge_every_pass_until: int = 10
+    """Passes up to which a landmark looks for a partner at every pass. A young second copy
+    looked only at every third pass past 4: seed 3's sign 7 ended its run as two confirmed
+    landmarks 1.9 m apart (chi-square 0.1), the copy at 5 passes, so it counted as a
+    duplicate until one of them next looked."""
     provisional_passes: int = 0
     """If > 0, gating estimates follow the landmark's solution from this many passes on
     (before the estimator's ``min_clusters``, with the pass-bias prior in the covariance;

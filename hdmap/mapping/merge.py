@@ -40,10 +40,11 @@ def merge_touched(m: Matching, ids: list[int]) -> None:
 
 def _due(m: Matching, lm: Landmark) -> bool:
     """Whether ``lm`` looks for a partner now: at every pass from ``merge_min_passes`` to
-    twice that, then at every third."""
+    ``merge_every_pass_until`` (at least twice ``merge_min_passes``), then at every third."""
     cfg = m.config
     g = int(m.sums.n_passes([lm.row])[0])
-    return not (g < cfg.merge_min_passes or (g > 2 * cfg.merge_min_passes and g % 3))
+    every = max(2 * cfg.merge_min_passes, cfg.merge_every_pass_until)
+    return not (g < cfg.merge_min_passes or (g > every and g % 3))
 
 
 def _candidates(m: Matching, lm: Landmark) -> list[Landmark]:
