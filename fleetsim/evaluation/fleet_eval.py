@@ -288,6 +288,7 @@ def run_fleet_eval(
                         "median_passes_per_sign": float(np.median(rec.n)),
                         "landmarks": len(lm),
                         "false_landmarks": int((~kinds["paired"]).sum()),
+                        "false_confirmed": int((~kinds["paired"] & kinds["confirmed"]).sum()),
                         "left_queued": left,
                         "duplicates": int(kinds["dup"].sum()),
                         "recall": float(rec.found.mean()),

@@ -9,9 +9,13 @@ Per *number of passes past a sign* (``n``: passes that detected it so far), over
   ``found`` signs (``inside95`` of them);
 - ``recall``: signs with a landmark within ``match_m`` of the same class (paired one to
   one, confirmed landmarks before candidates: :func:`fleetsim.truth.match_map`);
-- ``precision``: landmarks (whose paired sign, or for unpaired ones whose own pass
-  count, is in the bin) that pair with a true sign;
-- ``duplicated``: unpaired landmarks within ``match_m`` of a paired sign of their class;
+- ``precision``: confirmed landmarks (whose paired sign, or for unpaired ones whose own
+  pass count, is in the bin) that pair with a true sign: what the map asserts (a
+  candidate is published as provisional, its position not yet known to
+  ``SolverConfig.confirm_max_sigma_m``); ``precision_all`` the same over every published
+  landmark;
+- ``duplicated``: unpaired confirmed landmarks within ``match_m`` of a paired sign of
+  their class (``duplicated_all``: of any status);
 - ``assoc_right``: of the sign's observations, the share the matcher linked to the
   landmark paired with that sign (from the matcher's association log, replayed at the end);
 - ``mean_err_enu_m``: the mean error *vector* (East, North, Up) of the found signs. Signs
@@ -46,7 +50,7 @@ from scipy.stats import binom
 from fleetsim.score import cov_en, duplicate_mask, inside_ellipse95
 from fleetsim.truth import match_map
 from fleetsim.world import World, corner_pair_rows
-from schemas import Landmarks
+from schemas import STATUS_CONFIRMED, Landmarks
 from schemas.map import as_map_landmarks
 
 BINS = (1, 2, 3, 5, 10, 20, 30, 50, 75, 100, 150)
@@ -152,13 +156,19 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
 
 
 def landmark_counts(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> dict:
-    """Per landmark: its bin key (n of its paired sign, else its own passes), paired, dup."""
+    """Per landmark: its bin key (n of its paired sign, else its own passes), paired, dup,
+    confirmed."""
     m = match_map(world, lm, match_m)
     key = np.asarray(lm.n_passes, np.int64).copy()
     paired = np.zeros(len(lm), bool)
     paired[m.landmark] = True
     key[m.landmark] = n[m.sign_row]
-    return {"key": key, "paired": paired, "dup": duplicate_mask(world, lm, m, match_m)}
+    return {
+        "key": key,
+        "paired": paired,
+        "dup": duplicate_mask(world, lm, m, match_m),
+        "confirmed": np.asarray(lm.status) == STATUS_CONFIRMED,
+    }
 
 
 def unpaired_table(
@@ -268,9 +278,10 @@ def bin_table(state: EvalState, lm_rows: list[dict], linked: Linked, bins=BINS) 
         enu = [last[s][0].err_enu[s] for s in signs if last[s][0].err_enu is not None]
         enu = [e for e in enu if np.isfinite(e).all()]
         lm_in = [r for r in lm_rows if r["lo"] == lo]
-        n_lm = sum(r["n"] for r in lm_in)
-        paired = sum(r["paired"] for r in lm_in)
-        dup = sum(r["dup"] for r in lm_in)
+        n_lm, paired, dup, n_all, paired_all, dup_all = (
+            sum(r[k] for r in lm_in)
+            for k in ("n", "paired", "dup", "n_all", "paired_all", "dup_all")
+        )
         good = err[found]
         rows.append(
             {
@@ -281,6 +292,9 @@ def bin_table(state: EvalState, lm_rows: list[dict], linked: Linked, bins=BINS) 
                 "landmarks": int(n_lm),
                 "precision": float(paired / n_lm) if n_lm else None,
                 "duplicated": int(dup),
+                "landmarks_all": int(n_all),
+                "precision_all": float(paired_all / n_all) if n_all else None,
+                "duplicated_all": int(dup_all),
                 "mean_err_m": float(good.mean()) if good.size else None,
                 "p95_err_m": float(np.percentile(good, 95)) if good.size else None,
                 "coverage95": float(inside[found].mean()) if good.size else None,
@@ -401,21 +415,26 @@ def assoc_shares(state: EvalState, linked: Linked, lo: int = 50) -> dict:
 
 def landmark_rows(state: EvalState, lms: list[Landmarks], match_m: float, bins=BINS) -> list[dict]:
     """Landmark precision/duplicates per bin, each landmark once per bin (last state)."""
-    per_bin: dict[float, dict[int, tuple[bool, bool]]] = {lo: {} for lo in bins}
+    per_bin: dict[float, dict[int, tuple[bool, bool, bool]]] = {lo: {} for lo in bins}
     for rec, lm in zip(state.records, lms, strict=True):
         c = landmark_counts(state.world, lm, rec.n, match_m)
         b = np.searchsorted(bins, c["key"], side="right") - 1  # bin of each landmark
         for j in np.flatnonzero(b >= 0):
-            per_bin[bins[b[j]]][int(lm.id[j])] = (bool(c["paired"][j]), bool(c["dup"][j]))
+            kind = (bool(c["paired"][j]), bool(c["dup"][j]), bool(c["confirmed"][j]))
+            per_bin[bins[b[j]]][int(lm.id[j])] = kind
     out = []
     for lo in bins:
         v = list(per_bin[lo].values())
+        conf = [(p, d) for p, d, c in v if c]
         out.append(
             {
                 "lo": lo,
-                "n": len(v),
-                "paired": sum(p for p, _ in v),
-                "dup": sum(d for _, d in v),
+                "n": len(conf),
+                "paired": sum(p for p, _ in conf),
+                "dup": sum(d for _, d in conf),
+                "n_all": len(v),
+                "paired_all": sum(p for p, _, _ in v),
+                "dup_all": sum(d for _, d, _ in v),
             }
         )
     return out
@@ -468,6 +487,10 @@ def targets(table: list[dict]) -> dict:
         "recall": avg("recall"),
         "precision": min((r["precision"] for r in hi if r["precision"] is not None), default=None),
         "duplicated": sum(r["duplicated"] for r in hi),
+        "precision_all": min(
+            (r["precision_all"] for r in hi if r.get("precision_all") is not None), default=None
+        ),
+        "duplicated_all": sum(r.get("duplicated_all", 0) for r in hi),
         "assoc_right": avg("assoc_right"),
     }
     out["pass"] = {

@@ -180,13 +180,19 @@ def test_bin_table_counts_each_sign_once_per_bin_with_its_last_state():
     truth = [ObsKeys("v", np.array([1, 2, 3]), np.array([0, 0, -1]))]  # obs 3: false positive
     state = EvalState(world, records=rec, truth=truth)
     links = [ObsKeys("v", np.array([1, 2, 3]), np.array([7, 8, 7]))]
-    lm_rows = [{"lo": lo, "n": 1, "paired": 1, "dup": 0} for lo in (1, 2)]
+    lm_rows = [
+        {"lo": lo, "n": 1, "paired": 1, "dup": 0, "n_all": 2, "paired_all": 1, "dup_all": 1}
+        for lo in (1, 2)
+    ]
     table = bin_table(state, lm_rows, Linked.of(state, links), bins=(1, 2))
     assert [r["passes_lo"] for r in table] == [1, 2]
     assert table[0]["mean_err_m"] == 3.0 and table[0]["coverage95"] == 1.0
     assert table[1]["mean_err_m"] == 2.0 and table[1]["coverage95"] == 0.0
     # of the sign's two observations one went to its landmark (7), one elsewhere (8)
     assert table[1]["assoc_right"] == 0.5 and table[1]["assoc_unpaired_landmark"] == 0.5
+    # precision over the confirmed landmarks, beside it over every published one
+    assert table[0]["precision"] == 1.0 and table[0]["precision_all"] == 0.5
+    assert table[0]["duplicated"] == 0 and table[0]["duplicated_all"] == 1
     assert targets(table) == {"evaluated": False}
     # per observation, each once: of the sign's two, one right; none made at its 2nd pass
     assert assoc_shares(state, Linked.of(state, links), lo=2) == {
@@ -231,6 +237,8 @@ def _result(assoc: float, dup: int, young_dup: int) -> dict:
         "recall": 1.0,
         "precision": 1.0,
         "duplicated": dup,
+        "precision_all": 0.9,
+        "duplicated_all": dup + 1,
         "mean_err_m": 0.7,
         "p95_err_m": 1.5,
         "coverage95": 0.9,
@@ -254,6 +262,7 @@ def test_seed_summary_counts_targets_per_seed_and_spreads():
         {"mean": 0.97, "min": 0.965, "max": 0.975, "n": 2}
     )
     assert s["summary"]["duplicated"]["max"] == 1.0
+    assert s["summary"]["duplicated_all"]["max"] == 2.0
     assert s["targets_passed"]["assoc_right>=0.97"] == 1
     assert s["targets_passed"]["no_duplicates"] == 1
     assert s["targets_passed"]["mean_err_m<=1.0"] == 2

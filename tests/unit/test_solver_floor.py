@@ -1,4 +1,5 @@
-"""The solver's shared-error floor (``SolverConfig.shared_floor_m2``): added to the published
+"""The solver's shared-error floor (``SolverConfig.shared_floor_m2``) and confirmation limit
+(``confirm_max_sigma_m``). The floor is added to the published
 covariance in the landmark's local ENU, the estimate unchanged; a floor that is not a
 covariance is refused naming the field. In-process services on real SQLite (scene of
 tests/support/services.py: one sign, passes driving north)."""
@@ -13,7 +14,7 @@ import pytest
 
 from hdmap.runtime.config import ConfigError, from_mapping
 from hdmap.runtime.service import ServiceOptions
-from schemas import Links, NewLandmarks
+from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks
 from services.solver.service import SolverConfig, SolverService
 from tests.support.services import (
     CLS,
@@ -30,7 +31,7 @@ FLOOR = (0.09, -0.25, 0.0, 0.70, 0.0, 0.0)
 """The GSDC phones' floor (hdmap/mapping/gnss_floor.py on fleetsim/data), rounded."""
 
 
-def published(tmp: Path, cfg: SolverConfig):
+def published(tmp: Path, cfg: SolverConfig, passes: int = 8):
     tile = tile_of(ServiceOptions().zoom)
     m = matcher(tmp / "m")
     frame = m.frames(tile)
@@ -40,7 +41,7 @@ def published(tmp: Path, cfg: SolverConfig):
     svc = SolverService(ServiceOptions(data_dir=tmp / "s"), cfg)
     svc.pubs = Sink()  # type: ignore[assignment]
     rng = np.random.default_rng(5)
-    for p in range(8):
+    for p in range(passes):
         obs = sign_rays(frame, p, rng)
         obs = replace(obs, t=np.full(len(obs), 1.7e9 + 60.0 * p))
         n = len(obs)
@@ -74,3 +75,24 @@ def test_a_floor_that_is_not_a_covariance_is_refused_naming_the_field():
         from_mapping(SolverConfig, {"shared_floor_m2": [1.0, 0.0]}, "solver")
     with pytest.raises(ConfigError, match="shared_floor_m2"):
         SolverConfig(shared_floor_m2=(float("nan"), 0.0, 0.0, 1.0, 0.0, 0.0))
+
+
+def test_a_landmark_is_confirmed_only_while_its_position_is_known_to_the_limit(tmp_path: Path):
+    """Confirmed with its own covariance (sub-metre here); the same landmark with 3 m of
+    floor East (sigma above ``confirm_max_sigma_m`` = 2 m) is published as a candidate,
+    estimate and covariance unchanged; with no limit, confirmed again."""
+    wide = (9.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    n = 30
+    base = published(tmp_path / "a", SolverConfig(), n)
+    vague = published(tmp_path / "b", SolverConfig(shared_floor_m2=wide), n)
+    free = published(
+        tmp_path / "c", replace(SolverConfig(shared_floor_m2=wide), confirm_max_sigma_m=np.inf), n
+    )
+    assert np.sqrt(base.cov[0, 0]) < 2.0 < np.sqrt(vague.cov[0, 0])
+    assert base.status.tolist() == [STATUS_CONFIRMED]
+    assert vague.status.tolist() == [STATUS_CANDIDATE]
+    assert free.status.tolist() == [STATUS_CONFIRMED]
+    np.testing.assert_array_equal(vague.lat, base.lat)
+    np.testing.assert_allclose(vague.cov - base.cov, np.array([wide]), atol=1e-12)
+    with pytest.raises(ConfigError, match=r"solver\.confirm_max_sigma_m"):
+        SolverConfig(confirm_max_sigma_m=0.0)
