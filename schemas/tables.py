@@ -91,7 +91,7 @@ class Landmarks(Table):
     lon: np.ndarray = col("f8", lo=-180.0, hi=180.0, unit_label="deg")
     h: np.ndarray = col("f8", lo=-1000.0, hi=10000.0, unit_label="m")
     cov: np.ndarray = col("f8", 6, unit_label="m^2", doc="ENU at the landmark: ee en eu nn nu uu")
-    status: np.ndarray = col("u1", lo=0, hi=2, doc="0 candidate, 1 confirmed, 2 retired")
+    status: np.ndarray = col("u1", lo=0, hi=2, doc="0 candidate, 1 confirmed (located), 2 retired")
     n_obs: np.ndarray = col("u4")
     n_passes: np.ndarray = col("u4")
     revision: np.ndarray = col("u8", doc="grows with every change of this landmark")
