@@ -10,7 +10,8 @@ reported), ``exact0`` (no GNSS error, the heading sigma reported as 0.001 deg),
 same, one course sigma for all speeds), ``white:DEG`` or ``bias:DEG`` (exact positions;
 heading errors of DEG, white per fix or one per pass, reported as DEG; ``bias:DEG@C``
 reports C).
-Prints, over the signs with 50+ passes, the horizontal error and, for those more than 1 m
+Prints, over the signs with 50+ passes, the horizontal error, the error along each sign's
+weakest direction against its sigma there (:func:`weak_axis`) and, for those more than 1 m
 off, how much of it lies along their mean viewing direction (negative: short of the sign).
 ``KNOB=V,...``: ``EstimatorConfig`` fields to change (numbers; ``compensate=0``), and
 ``pitch=RAD`` (the vehicle model's claimed pitch noise), ``rate=HZ`` (the GNSS rate),
@@ -88,6 +89,32 @@ def noise_for(which: str) -> NoiseModel:
     return replace(FLEET, gnss=exact)
 
 
+def weak_axis(sol, e: np.ndarray, m: np.ndarray, passes: np.ndarray, r_mean: np.ndarray) -> None:
+    """The error along each sign's weakest horizontal direction (the major axis of its
+    covariance) against its sigma there, by ``G sigma^2 / R`` (the per-pass variance along
+    that axis over the mean range: how far the passes' shared errors move a pass's solution
+    there, relative to the distance)."""
+    rows = []
+    for i in np.flatnonzero(m & np.isfinite(sol.x[:, 0])):
+        w, v = np.linalg.eigh(sol.cov[i][:2, :2])
+        s_major = math.sqrt(w[-1])
+        rows.append((s_major, float(e[i, :2] @ v[:, -1]), passes[i] * w[-1] / r_mean[i]))
+    if not rows:
+        return
+    s_major, e_w, b = np.array(rows).T
+    z = np.abs(e_w) / s_major
+    out = np.mean(z > 1.96)
+    print(f"major axis: |error| / sigma median {np.median(z):.2f}, outside 1.96 sigma {out:.3f}")
+    for lo, hi in ((0, 0.5), (0.5, 2), (2, 8), (8, np.inf)):
+        k = (b >= lo) & (b < hi)
+        if k.any():
+            print(
+                f"  G sigma^2 / R in [{lo}, {hi}): {int(k.sum())} signs, |error| median "
+                f"{np.median(np.abs(e_w[k])):.2f} m, sigma median {np.median(s_major[k]):.2f}, "
+                f"outside 1.96 sigma {np.mean(z[k] > 1.96):.2f}"
+            )
+
+
 def main(which: str, n_passes: int, overrides: str = "") -> None:
     knobs = {k: float(v) for k, v in (kv.split("=") for kv in overrides.split(",") if kv)}
     noise = noise_for(which)
@@ -104,6 +131,7 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
     fleet = Fleet(world, model, noise, fleet_cfg, 0)
     k_signs = len(world.signs)
     passes, dirs = np.zeros(k_signs, int), np.zeros((k_signs, 3))
+    ranges, n_rays = np.zeros(k_signs), np.zeros(k_signs)
     with tempfile.TemporaryDirectory() as queue:
         timing = PoseTiming()
         if "yaw" in knobs:  # the pose model's yaw acceleration floor, rad/s^2
@@ -123,6 +151,8 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
             rays, r = seen
             passes[np.unique(r)] += 1
             np.add.at(dirs, r, rays.direction)
+            np.add.at(ranges, r, np.linalg.norm(world.signs.position[r] - rays.origin, axis=1))
+            np.add.at(n_rays, r, 1)
             sums.accumulate(rows[r], np.full(r.size, k), rays)
         agent.close()
     sol = sums.solve(rows)
@@ -140,6 +170,7 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
         f"along the viewing direction (negative: short of the sign): mean "
         f"{np.nanmean(along_all):.3f} m, median {np.nanmedian(along_all):.3f}"
     )
+    weak_axis(sol, e, m, passes, ranges / np.maximum(n_rays, 1))
     big = m & (h > 1.0)
     if big.any():
         d = dirs[big, :2] / np.linalg.norm(dirs[big, :2], axis=1, keepdims=True)
