@@ -424,17 +424,17 @@ def landmark_rows(state: EvalState, lms: list[Landmarks], match_m: float, bins=B
             per_bin[bins[b[j]]][int(lm.id[j])] = kind
     out = []
     for lo in bins:
-        v = list(per_bin[lo].values())
-        conf = [(p, d) for p, d, c in v if c]
+        kinds = np.array(list(per_bin[lo].values()), bool).reshape(-1, 3)
+        paired, dup, conf = kinds.T
         out.append(
             {
                 "lo": lo,
-                "n": len(conf),
-                "paired": sum(p for p, _ in conf),
-                "dup": sum(d for _, d in conf),
-                "n_all": len(v),
-                "paired_all": sum(p for p, _, _ in v),
-                "dup_all": sum(d for _, d, _ in v),
+                "n": int(conf.sum()),
+                "paired": int((paired & conf).sum()),
+                "dup": int((dup & conf).sum()),
+                "n_all": len(kinds),
+                "paired_all": int(paired.sum()),
+                "dup_all": int(dup.sum()),
             }
         )
     return out

@@ -94,14 +94,13 @@ def weak_axis(sol, e: np.ndarray, m: np.ndarray, passes: np.ndarray, r_mean: np.
     covariance) against its sigma there, by ``G sigma^2 / R`` (the per-pass variance along
     that axis over the mean range: how far the passes' shared errors move a pass's solution
     there, relative to the distance)."""
-    rows = []
-    for i in np.flatnonzero(m & np.isfinite(sol.x[:, 0])):
-        w, v = np.linalg.eigh(sol.cov[i][:2, :2])
-        s_major = math.sqrt(w[-1])
-        rows.append((s_major, float(e[i, :2] @ v[:, -1]), passes[i] * w[-1] / r_mean[i]))
-    if not rows:
+    i = np.flatnonzero(m & np.isfinite(sol.x[:, 0]))
+    if not i.size:
         return
-    s_major, e_w, b = np.array(rows).T
+    w, v = np.linalg.eigh(sol.cov[i][:, :2, :2])  # ascending: the major axis is the last
+    s_major = np.sqrt(w[:, -1])
+    e_w = np.einsum("ki,ki->k", e[i, :2], v[:, :, -1])
+    b = passes[i] * w[:, -1] / r_mean[i]
     z = np.abs(e_w) / s_major
     out = np.mean(z > 1.96)
     print(f"major axis: |error| / sigma median {np.median(z):.2f}, outside 1.96 sigma {out:.3f}")
