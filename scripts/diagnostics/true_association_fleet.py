@@ -17,7 +17,8 @@ off, how much of it lies along their mean viewing direction (negative: short of 
 ``pitch=RAD`` (the vehicle model's claimed pitch noise), ``rate=HZ`` (the GNSS rate),
 ``yaw=RAD_S2`` (the pose model's yaw acceleration floor), ``box=PX`` (noise on the
 boxes' width and height), ``scale=0|1|2`` (box ranges off, ``range_scale`` ``per_pass``,
-``inverse``: the ranges enter the sums).
+``inverse``: the ranges enter the sums), ``pass_sigma=M`` (``pass_sigma_m`` = (M, M, M);
+0: no pass weights).
 """
 
 from __future__ import annotations
@@ -136,9 +137,12 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
         if "yaw" in knobs:  # the pose model's yaw acceleration floor, rad/s^2
             timing = replace(timing, yaw_accel_sigma_radps2=knobs.pop("yaw"))
         agent = VehicleAgent("veh-0001", model, queue, timing=timing)
+        ps = knobs.pop("pass_sigma", None)  # one figure for E, N and U, m; 0: no pass weights
         est = EstimatorConfig(
             **{k: type(getattr(EstimatorConfig(), k))(float(v)) for k, v in knobs.items()}
         )
+        if ps is not None:
+            est = replace(est, pass_sigma_m=(ps, ps, ps))
         if scale:
             est = replace(est, box_range=True, range_scale=("per_pass", "inverse")[scale - 1])
         sums = LandmarkSums(est)
