@@ -6,6 +6,7 @@ The paper's onboard block (perception output + GNSS -> geolocated feature marks,
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ from vehicle.geoloc import (
     geolocate,
 )
 from vehicle.mapclient import MapClient
+from vehicle.pitch import measured_sigma_el
 from vehicle.pose import PoseTiming
 from vehicle.tracking import TrackConfig, smoothed_rays, track_rays
 from vehicle.uploader import Uploader, UploadResult
@@ -85,6 +87,10 @@ class VehicleAgent:
         usable fix within ``timing.max_gap_s``."""
         self.dropped_gap = 0
         """Of those, timed detections with no usable fix near enough (never extrapolated)."""
+        self.last_pitch_sigma_rad = model.pitch_sigma_rad
+        """The white pitch std the last tracked :meth:`record` measured from its tracks and
+        put into its rays' elevation sigmas (:mod:`vehicle.pitch`; the model's bound when
+        the pass had too few)."""
 
     def record(self, pass_id: int, fixes: GnssFixes, det: Detections) -> Observations:
         """Geolocate a pass's detections and queue them (durably, before any upload).
@@ -93,7 +99,9 @@ class VehicleAgent:
         (``det.t``) the poses are interpolated from the other fixes, and a detection no
         remaining fix reaches within ``timing.max_gap_s`` is dropped (``dropped_gap``);
         without times (one fix per image) a suspect fix's detections are dropped.
-        :attr:`last_kept` says which detections were queued, in ``det``'s row order."""
+        :attr:`last_kept` says which detections were queued, in ``det``'s row order.
+        With tracking, the elevation sigmas carry the pitch measured from the pass's own
+        tracks instead of the model's bound (:mod:`vehicle.pitch`)."""
         keep = np.ones(len(det), bool)
         bad_fix = None
         use = fixes
@@ -114,6 +122,15 @@ class VehicleAgent:
         if self.tracking is not None and len(lines):
             rays = smoothed_rays(use, lines, self.tracking, bad_fix, timing=self.timing)
             track = track_rays(rays, self.tracking)
+            sigma_el, self.last_pitch_sigma_rad = measured_sigma_el(
+                lines.t,
+                lines.direction,
+                lines.sigma_el,
+                lines.range_m,
+                track,
+                self.model.pitch_sigma_rad,
+            )
+            lines = replace(lines, sigma_el=sigma_el)
         obs = to_observations(lines, self.uploader.next_obs_ids(len(lines)), track)
         self.uploader.enqueue(pass_id, obs)
         return obs
