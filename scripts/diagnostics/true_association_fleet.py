@@ -18,7 +18,8 @@ off, how much of it lies along their mean viewing direction (negative: short of 
 ``yaw=RAD_S2`` (the pose model's yaw acceleration floor), ``box=PX`` (noise on the
 boxes' width and height), ``scale=0|1|2`` (box ranges off, ``range_scale`` ``per_pass``,
 ``inverse``: the ranges enter the sums), ``pass_sigma=M`` (``pass_sigma_m`` = (M, M, M);
-0: no pass weights).
+0: no pass weights), ``ref=M`` (the weights' reference position M metres East and North
+of the sign, default 1).
 """
 
 from __future__ import annotations
@@ -121,6 +122,7 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
     if "box" in knobs:
         noise = replace(noise, detector=replace(noise.detector, size_sigma_px=knobs.pop("box")))
     scale = int(knobs.pop("scale", 0))
+    ref_off = knobs.pop("ref", 1.0)  # the reference's offset from the sign, m (E and N)
     cfg = FleetEvalConfig(Path(tempfile.gettempdir()))
     world = evaluation_world(cfg)
     model = model_for(noise, load_vehicle_model())
@@ -146,7 +148,7 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
         if scale:
             est = replace(est, box_range=True, range_scale=("per_pass", "inverse")[scale - 1])
         sums = LandmarkSums(est)
-        rows = sums.new_rows(k_signs, world.signs.position + np.array([1.0, 1.0, 0.0]))
+        rows = sums.new_rows(k_signs, world.signs.position + np.array([ref_off, ref_off, 0.0]))
         for k, p in enumerate(fleet.passes(n_passes)):
             seen = true_rays(world, agent, p, agent.record(p.pass_id, p.fixes, p.detections))
             if seen is None:
