@@ -90,7 +90,9 @@ class VehicleModel:
     pixel_sigma: float = 3.0
     """Standard deviation of the detected box centre, pixels (per axis)."""
     pitch_sigma_rad: float = 0.0
-    """Unmodelled vehicle pitch (GNSS gives none), rad; adds to elevation noise."""
+    """Bound on the unmodelled vehicle pitch (GNSS gives none), rad. The agent measures the
+    white pitch of each pass from its own tracks and uses the smaller of the two
+    (``vehicle/pitch.py``); ``geolocate`` called directly adds this value itself."""
     min_box_px: float = 12.0
     """Boxes shorter than this give no range estimate."""
     catalog: SignCatalog = CATALOG

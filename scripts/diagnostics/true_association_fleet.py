@@ -117,7 +117,9 @@ def weak_axis(sol, e: np.ndarray, m: np.ndarray, passes: np.ndarray, r_mean: np.
 
 
 def main(which: str, n_passes: int, overrides: str = "") -> None:
-    knobs = {k: float(v) for k, v in (kv.split("=") for kv in overrides.split(",") if kv)}
+    pairs = [kv.split("=") for kv in overrides.split(",") if kv]
+    knobs_out = {k: v for k, v in pairs if k == "dump"}  # dump=PATH.npz
+    knobs = {k: float(v) for k, v in pairs if k != "dump"}
     noise = noise_for(which)
     if "box" in knobs:
         noise = replace(noise, detector=replace(noise.detector, size_sigma_px=knobs.pop("box")))
@@ -176,6 +178,8 @@ def main(which: str, n_passes: int, overrides: str = "") -> None:
         f"{np.nanmean(along_all):.3f} m, median {np.nanmedian(along_all):.3f}"
     )
     weak_axis(sol, e, m, passes, ranges / np.maximum(n_rays, 1))
+    if "dump" in knobs_out:  # per sign: error (E, N, U), passes, covariance
+        np.savez(knobs_out["dump"], e=e, passes=passes, cov=sol.cov, ids=world.signs.id)
     big = m & (h > 1.0)
     if big.any():
         d = dirs[big, :2] / np.linalg.norm(dirs[big, :2], axis=1, keepdims=True)
