@@ -77,6 +77,34 @@ def test_two_landmarks_of_one_sign_merge_and_the_merge_persists(tmp_path: Path) 
     assert again.state.covis == {}
 
 
+def test_a_far_loose_landmark_with_the_smallest_chi2_does_not_hide_the_partner(
+    tmp_path: Path,
+) -> None:
+    """A third landmark of the class 15 m away with a 100 m sigma has a smaller chi-square
+    against ``b`` than ``a`` has, but is beyond ``merge_max_m``: ``b`` still finds ``a``."""
+    from hdmap.mapping.merge import merge_partner
+
+    svc = matcher(tmp_path)
+    a, b = two_copies(svc)
+    frame = svc.frames(tile_of(svc.opts.zoom))
+    far = create(
+        svc.matching,
+        tile_of(svc.opts.zoom),
+        CLS,
+        frame.to_ecef((SIGN + np.array([9.0, 12.0, 0.0]))[None])[0],
+        np.eye(3) * 1e4,
+    )
+    rng = np.random.default_rng(5)
+    for p in range(12, 14):  # two passes: enough to be a merge candidate
+        link(svc.matching, sign_rays(frame, p, rng), [far] * 10, "veh-2", p, time.time())
+    d = (np.array([a.x, far.x]) - b.x) @ frame.rotation.T
+    c = b.cov[None] + np.array([a.cov, far.cov])
+    chi2 = np.einsum("ki,ki->k", d, np.linalg.solve(c, d[:, :, None])[:, :, 0])
+    assert chi2[1] < chi2[0] <= svc.matching.config.merge_chi2
+    assert np.hypot(*d[1, :2]) > svc.matching.config.merge_max_m
+    assert merge_partner(svc.matching, b) is a
+
+
 @pytest.mark.parametrize("kind", ["covisible", "opposite"])
 def test_landmarks_seen_together_or_from_opposite_sides_stay_apart(tmp_path, kind) -> None:
     svc = matcher(tmp_path)
