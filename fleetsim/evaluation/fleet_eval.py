@@ -43,6 +43,7 @@ from fleetsim.evaluation.fleet_scoring import (
     targets,
     unpaired_table,
 )
+from fleetsim.evaluation.map_floor_file import FLOOR_FILE, calibrated_sigma, measured_floor
 from fleetsim.fleet import Fleet, FleetConfig, vehicle_id
 from fleetsim.gnss_replay import gsdc
 from fleetsim.noise import FLEET, GnssNoise, NoiseModel
@@ -58,6 +59,7 @@ from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session
 from hdmap.runtime.stream import LogConsumer
 from schemas import AssocGroup, Landmarks
+from services.solver.service import SolverConfig
 from vehicle.config import load_vehicle_model
 from vehicle.mapclient import MapClient
 
@@ -123,6 +125,10 @@ class FleetEvalConfig:
     at its nominal size."""
     gnss_rate_hz: float | None = None
     """The receivers' fix rate, Hz (None: the simulator's, ``DriveParams.gnss_rate_hz``)."""
+    map_floor: bool = True
+    """The solver's ``systematic_sigma_m`` measured for this noise on held-out seeds
+    (:mod:`fleetsim.evaluation.map_floor_file`); False, or none measured: the solver's
+    default."""
     bulk_every: int = 4
     """Every ``bulk_every``-th vehicle (indices 3, 7, ...) uploads its round's passes at once
     at the round's end, after the others' later passes (0: every vehicle uploads each pass
@@ -162,15 +168,29 @@ def gsdc_floor() -> SharedFloor:
     return shared_floor([t.t for t in traces], [np.column_stack([t.east, t.north]) for t in traces])
 
 
+def map_floor_sigma(cfg: FleetEvalConfig) -> tuple[tuple[float, float, float], str]:
+    """The ``systematic_sigma_m`` the evaluation gives the solver and where it comes from."""
+    measured = calibrated_sigma(cfg.noise().name) if cfg.map_floor else None
+    if measured is None:
+        return SolverConfig().systematic_sigma_m, "SolverConfig default"
+    return measured, f"{FLOOR_FILE.relative_to(FLOOR_FILE.parents[2])} ({cfg.noise().name})"
+
+
 def solver_floor_args(cfg: FleetEvalConfig, run_dir: Path) -> tuple[dict, dict[str, list[str]]]:
-    """The floor the evaluation gives the solver (as JSON values) and the services'
-    extra arguments that pass it (a services config file in ``run_dir``)."""
+    """The GNSS floor the evaluation gives the solver (as JSON values) and the services'
+    extra arguments that pass it and the map floor (:func:`map_floor_sigma`; a services
+    config file in ``run_dir``)."""
+    sigma, _ = map_floor_sigma(cfg)
+    lines = [f"systematic_sigma_m = [{', '.join(repr(float(v)) for v in sigma)}]"]
+    path = run_dir / "services.toml"
+    args = {"solver": ["--config", str(path)]}
     if cfg.gnss != "gsdc" or not cfg.shared_floor:
-        return {"source": None, "cov_enu_m2": None}, {}
+        path.write_text("[solver]\n" + "\n".join(lines) + "\n")
+        return {"source": None, "cov_enu_m2": None}, args
     f = gsdc_floor()
     six = shared_floor_m2(f)
-    path = run_dir / "services.toml"
-    path.write_text(f"[solver]\nshared_floor_m2 = [{', '.join(repr(v) for v in six)}]\n")
+    lines.append(f"shared_floor_m2 = [{', '.join(repr(v) for v in six)}]")
+    path.write_text("[solver]\n" + "\n".join(lines) + "\n")
     info = {
         "source": "fleetsim/data/gsdc2020_mtv1_phone_gnss_errors.csv (hdmap.mapping.gnss_floor)",
         "cov_enu_m2": floor_enu(f).tolist(),
@@ -179,7 +199,7 @@ def solver_floor_args(cfg: FleetEvalConfig, run_dir: Path) -> tuple[dict, dict[s
         "batches": list(f.batches),
         "drive_means_en_m": f.drive_means.tolist(),
     }
-    return info, {"solver": ["--config", str(path)]}
+    return info, args
 
 
 def evaluation_world(cfg: FleetEvalConfig) -> World:
@@ -260,6 +280,8 @@ def run_fleet_eval(
     )
     run_dir.mkdir(parents=True)
     floor_info, service_args = solver_floor_args(cfg, run_dir)
+    floor_sigma, floor_source = map_floor_sigma(cfg)
+    say(f"map floor (E, N, U sigma m): {np.round(floor_sigma, 3).tolist()} from {floor_source}")
     if floor_info["cov_enu_m2"] is not None:
         say(f"shared-error floor (E, N sigma m): {np.round(floor_info['sigma_en_m'], 3).tolist()}")
     with Stack(run_dir / "var", extra_service_args=service_args) as stack:
@@ -351,6 +373,11 @@ def run_fleet_eval(
         "targets_at_50_passes": targets(table),
         "signs": sign_table(state, linked),
         "unpaired": unpaired_table(world, lms[-1], cfg.match_m, linked),
+        "map_floor": {
+            "applied_sigma_m": list(floor_sigma),
+            "source": floor_source,
+            "measured": measured_floor(state.records[-1], floor_sigma),
+        },
     }
     if result["targets_at_50_passes"]["evaluated"]:
         result["targets_at_50_passes"].update(assoc_shares(state, linked))

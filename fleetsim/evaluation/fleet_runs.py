@@ -22,6 +22,7 @@ from typing import IO
 from fleetsim.evaluation.fleet_eval import FleetEvalConfig, run_fleet_eval
 from fleetsim.evaluation.fleet_plots import write_fleet_figures, write_seed_figure
 from fleetsim.evaluation.fleet_seeds import FLEET_COLUMNS, seed_row, summarise_seeds
+from fleetsim.evaluation.map_floor_file import FLOOR_FILE, record_floor
 from fleetsim.evaluation.results import write_json, write_seed_summary
 from hdmap.runtime.orphan import PARENT_ENV
 
@@ -60,6 +61,12 @@ class FleetRunOptions:
     """The receivers' fix rate (None: :class:`FleetEvalConfig`'s, the simulator's 5 Hz)."""
     panel_size_rel_sigma: float | None = None
     """Panels' size spread (None: the catalogue's; :class:`FleetEvalConfig`)."""
+    map_floor: bool = True
+    """The solver's map floor measured on held-out seeds (:attr:`FleetEvalConfig.map_floor`);
+    False: ``--no-map-floor``."""
+    calibrate_floor: bool = False
+    """Write the floor each run measures into the calibration file
+    (:func:`fleetsim.evaluation.map_floor_file.record_floor`): for held-out seeds only."""
     quick: bool = False
     """A small run for the test suite."""
 
@@ -75,6 +82,8 @@ class FleetRunOptions:
         if self.panel_size_rel_sigma is not None:
             flags += [f"--panel-size-sigma {self.panel_size_rel_sigma:g}"]
         flags += [] if self.shared_floor else ["--no-shared-floor"]
+        flags += [] if self.map_floor else ["--no-map-floor"]
+        flags += ["--calibrate-floor"] if self.calibrate_floor else []
         return flags + (["--quick"] if self.quick else [])
 
 
@@ -162,6 +171,7 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         box_size_sigma_px=opts.box_size_sigma_px,
         gnss=opts.gnss,
         shared_floor=opts.shared_floor,
+        map_floor=opts.map_floor,
     )
     if opts.bulk_every is not None:
         cfg = replace(cfg, bulk_every=opts.bulk_every)
@@ -177,8 +187,15 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         + ([f"--gnss {cfg.gnss}"] if cfg.gnss != "fleet" else [])
         + [f"--bulk-every {cfg.bulk_every}"]
         + ([] if cfg.shared_floor else ["--no-shared-floor"])
+        + ([] if cfg.map_floor else ["--no-map-floor"])
         + (["--quick"] if opts.quick else [])
     )
+    measured = result["map_floor"]["measured"]
+    if opts.calibrate_floor:
+        if measured is None:
+            raise SeedRunError(f"seed {seed}: too few signs to measure the map floor")
+        record_floor(cfg.noise().name, measured, result["meta"]["command"] + " --calibrate-floor")
+        print(f"fleet: map floor of {cfg.noise().name} written to {FLOOR_FILE}", file=sys.stderr)
     figures = write_fleet_figures(result, state.world, final, out)
     result["meta"]["figures"] = [f.name for f in figures]
     path = out / "fleet.json"

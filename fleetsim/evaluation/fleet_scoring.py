@@ -77,6 +77,8 @@ class SignRecord:
     so this is the viewing offset plus the estimate's error."""
     facing_sigma_deg: np.ndarray | None = None
     """(k,) published facing sigma, degrees (NaN: not found or unknown)."""
+    cov_enu: np.ndarray | None = None
+    """(k, 6) published ENU covariance (ee en eu nn nu uu, m^2; NaN: not found)."""
 
 
 @dataclass
@@ -138,6 +140,7 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
     sigma_en = np.full((k, 2), np.nan)
     facing_err = np.full(k, np.nan)
     facing_sigma = np.full(k, np.nan)
+    cov_enu = np.full((k, 6), np.nan)
     found[m.sign_row] = True
     err[m.sign_row] = m.horizontal_error_m
     if m.landmark.size:
@@ -146,12 +149,13 @@ def score_round(world: World, lm: Landmarks, n: np.ndarray, match_m: float) -> S
         err_enu[m.sign_row] = m.error_enu
         c = cov_en(lm.cov[m.landmark])
         sigma_en[m.sign_row] = np.sqrt(np.maximum(np.stack([c[:, 0, 0], c[:, 1, 1]], -1), 0.0))
+        cov_enu[m.sign_row] = np.asarray(lm.cov, float).reshape(-1, 6)[m.landmark]
         az, az_sigma, _known = as_map_landmarks(lm).facing()
         normal = world.signs.facing_azimuth_deg[m.sign_row]
         facing_err[m.sign_row] = (az[m.landmark] - normal + 180.0) % 360.0 - 180.0
         facing_sigma[m.sign_row] = az_sigma[m.landmark]
     return SignRecord(
-        n.copy(), found, err, inside, landmark, err_enu, sigma_en, facing_err, facing_sigma
+        n.copy(), found, err, inside, landmark, err_enu, sigma_en, facing_err, facing_sigma, cov_enu
     )
 
 

@@ -26,6 +26,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "hdmap.cli.calibrate",
         "the solver's shared-error floor from a fix-minus-truth GNSS log",
     ),
+    "calibrate-map": (
+        "hdmap.cli.calibrate_map",
+        "the solver's map floor from surveyed signs against the live map",
+    ),
 }
 
 

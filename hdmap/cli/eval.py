@@ -132,6 +132,20 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         "the replayed log, hdmap/mapping/gnss_floor.py)",
     )
     p.add_argument(
+        "--no-map-floor",
+        dest="map_floor",
+        action="store_false",
+        help="the solver's default systematic sigma instead of the map floor measured on "
+        "held-out seeds (fleetsim/data/map_floor.json)",
+    )
+    p.add_argument(
+        "--calibrate-floor",
+        action="store_true",
+        help="measure the map floor on this run's final map (signs with 150+ passes) and "
+        "write it into fleetsim/data/map_floor.json for its noise: run it on seeds that are "
+        "not evaluated",
+    )
+    p.add_argument(
         "--bulk-every",
         type=non_negative_int,
         default=None,
@@ -171,6 +185,8 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         gnss=args.gnss,
         bulk_every=args.bulk_every,
         shared_floor=args.shared_floor,
+        map_floor=args.map_floor,
+        calibrate_floor=args.calibrate_floor,
         gnss_rate_hz=args.gnss_rate,
         panel_size_rel_sigma=args.panel_size_sigma,
         quick=args.quick,

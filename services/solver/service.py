@@ -60,11 +60,12 @@ class SolverConfig:
     since the between-pass spread of so few passes cannot measure it."""
     systematic_sigma_m: tuple[float, float, float] = (0.1, 0.1, 0.1)
     """Standard deviation (E, N, U) of the error more passes do not average away, added to
-    the published covariance: association mistakes (a neighbour's rays; a sign's rays that
-    failed the gate against an estimate they would have moved) and the fleet's shared
-    calibration. 0.1 m keeps the fleet evaluation's coverage from 30 passes inside
-    0.93-0.97 on four seeds; 0.2 m over-covers (0.97-1.00). docs/estimator.md, sections 12
-    and 15, has the measurement."""
+    the published covariance: the map floor (association mistakes, the pass weights' bias,
+    geometry every car repeats). Measure it for a deployment against surveyed signs with
+    ``hdmap calibrate-map`` (:mod:`hdmap.mapping.map_floor`); the fleet evaluation
+    measures its own on held-out seeds (``fleetsim/data/map_floor.json``). The default,
+    0.1 m, is what the fleet evaluation needed at 160 passes; at a few hundred passes a
+    landmark needs more (docs/estimator.md section 12)."""
     shared_floor_m2: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     """ENU covariance (ee, en, eu, nn, nu, uu; m^2) of the GNSS error a landmark's passes
     share, added to the published covariance in the landmark's local ENU: what more passes

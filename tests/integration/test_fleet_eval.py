@@ -318,3 +318,40 @@ def test_box_size_noise_is_an_option_off_by_default(tmp_path):
     for bad in ("-1", "nan", "inf", "px"):
         with pytest.raises(argparse.ArgumentError, match="box-size-sigma"):
             p.parse_args(["--out", "x", "--box-size-sigma", bad])
+
+
+def test_calibrate_map_measures_the_floor_of_a_live_map(quick, tmp_path):
+    """``hdmap calibrate-map`` against the quick run's map, served again by a stack restored
+    from a copy of its data dir; the town's true signs are the surveyed controls (landmarks
+    of 10+ passes: the quick run has no 150). What it prints is what its JSON says, and
+    the floor takes at least 95 % of the paired controls inside."""
+    from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
+    from hdmap.geo.signs import CATALOG
+    from hdmap.ops.stack import Stack
+
+    out, d, _ = quick
+    world = evaluation_world(FleetEvalConfig.quick(out))
+    lat, lon, h = world.signs_geodetic()
+    rows = ["traffic_sign,lat,lon,h"]
+    for c, a, b, z in zip(
+        world.signs.sign_class.tolist(), *np.c_[lat, lon, h].T.tolist(), strict=True
+    ):
+        rows.append(f"{CATALOG.by_code(c).osm},{a!r},{b!r},{z!r}")
+    control = tmp_path / "control.csv"
+    control.write_text("\n".join(rows) + "\n")
+    var = tmp_path / "var"
+    shutil.copytree(out / "run" / "var", var)
+    art_path = tmp_path / "floor.json"
+    with Stack(var) as stack:
+        stack.start_all()
+        cmd = [sys.executable, "-m", "hdmap.cli", "calibrate-map", "--control", str(control)]
+        cmd += ["--connect", stack.listen, "--min-passes", "10", "--out", str(art_path)]
+        cmd += ["--config", str(out / "run" / "services.toml")]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    art = json.loads(art_path.read_text())
+    assert art["controls"] == len(world.signs)
+    assert art["paired"] >= 20
+    assert art["published_sigma_m"] == d["map_floor"]["applied_sigma_m"]
+    assert art["horizontal"]["inside_after"] >= 0.95
+    assert "[solver]\nsystematic_sigma_m = [" in proc.stdout
