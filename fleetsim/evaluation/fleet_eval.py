@@ -8,13 +8,16 @@ The scores are :mod:`fleetsim.evaluation.fleet_scoring`'s (its doc says what eac
 figure means and how the targets are judged).
 
 ``DIR/fleet.json``: ``meta`` (town, noise, seed, wall time), ``rounds`` (per round: map
-size, recall, mean error, coverage), ``by_passes`` (the bins of passes,
+size, false landmarks and duplicates, all and confirmed, recall, mean error, coverage),
+``by_passes`` (the bins of passes,
 :func:`~fleetsim.evaluation.fleet_scoring.bin_table`), ``observations`` (uploaded, of true
 signs, linked), ``services`` (the services' counters at the end), ``targets_at_50_passes``
 (:func:`~fleetsim.evaluation.fleet_scoring.targets`, with
 :func:`~fleetsim.evaluation.fleet_scoring.assoc_shares`) and ``signs``
 (:func:`~fleetsim.evaluation.fleet_scoring.sign_table`: per sign its final passes,
-landmark, error vector, reported sigmas, ellipse test and association share).
+landmark, error vector, reported sigmas, ellipse test and association share) and
+``map_floor`` (the solver's map floor, where it came from, and the floor this run's final
+map would need: :mod:`fleetsim.evaluation.map_floor_file`).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from fleetsim.evaluation.fleet_scoring import (
     targets,
     unpaired_table,
 )
-from fleetsim.evaluation.map_floor_file import FLOOR_FILE, calibrated_sigma, measured_floor
+from fleetsim.evaluation.map_floor_file import AppliedFloor, applied_floor, measured_floor
 from fleetsim.fleet import Fleet, FleetConfig, vehicle_id
 from fleetsim.gnss_replay import gsdc
 from fleetsim.noise import FLEET, GnssNoise, NoiseModel
@@ -125,10 +128,11 @@ class FleetEvalConfig:
     at its nominal size."""
     gnss_rate_hz: float | None = None
     """The receivers' fix rate, Hz (None: the simulator's, ``DriveParams.gnss_rate_hz``)."""
-    map_floor: bool = True
-    """The solver's ``systematic_sigma_m`` measured for this noise on held-out seeds
-    (:mod:`fleetsim.evaluation.map_floor_file`); False, or none measured: the solver's
-    default."""
+    map_floor: str = "isotropic"
+    """The map floor measured for this noise on held-out seeds, in the form it names
+    (:data:`fleetsim.evaluation.map_floor_file.FORMS`: ``correlation``, the solver's
+    ``pass_correlation``; ``isotropic``, its ``systematic_sigma_m``); ``none``, or none
+    measured: the solver's defaults."""
     bulk_every: int = 4
     """Every ``bulk_every``-th vehicle (indices 3, 7, ...) uploads its round's passes at once
     at the round's end, after the others' later passes (0: every vehicle uploads each pass
@@ -168,28 +172,23 @@ def gsdc_floor() -> SharedFloor:
     return shared_floor([t.t for t in traces], [np.column_stack([t.east, t.north]) for t in traces])
 
 
-def map_floor_sigma(cfg: FleetEvalConfig) -> tuple[tuple[float, float, float], str]:
-    """The ``systematic_sigma_m`` the evaluation gives the solver and where it comes from."""
-    measured = calibrated_sigma(cfg.noise().name) if cfg.map_floor else None
-    if measured is None:
-        return SolverConfig().systematic_sigma_m, "SolverConfig default"
-    return measured, f"{FLOOR_FILE.relative_to(FLOOR_FILE.parents[2])} ({cfg.noise().name})"
-
-
-def solver_floor_args(cfg: FleetEvalConfig, run_dir: Path) -> tuple[dict, dict[str, list[str]]]:
-    """The GNSS floor the evaluation gives the solver (as JSON values) and the services'
-    extra arguments that pass it and the map floor (:func:`map_floor_sigma`; a services
-    config file in ``run_dir``)."""
-    sigma, _ = map_floor_sigma(cfg)
-    lines = [f"systematic_sigma_m = [{', '.join(repr(float(v)) for v in sigma)}]"]
+def solver_floor_args(
+    cfg: FleetEvalConfig, run_dir: Path
+) -> tuple[dict, AppliedFloor, dict[str, list[str]]]:
+    """The GNSS floor the evaluation gives the solver (as JSON values), the map floor
+    (:func:`fleetsim.evaluation.map_floor_file.applied_floor` of ``cfg.map_floor``) and
+    the services' extra arguments that pass both (a services config file in ``run_dir``)."""
     path = run_dir / "services.toml"
     args = {"solver": ["--config", str(path)]}
+    default = SolverConfig().systematic_sigma_m
     if cfg.gnss != "gsdc" or not cfg.shared_floor:
-        path.write_text("[solver]\n" + "\n".join(lines) + "\n")
-        return {"source": None, "cov_enu_m2": None}, args
+        floor = applied_floor(cfg.noise().name, cfg.map_floor, np.zeros((3, 3)), default)
+        path.write_text("[solver]\n" + "\n".join(floor.solver_lines()) + "\n")
+        return {"source": None, "cov_enu_m2": None}, floor, args
     f = gsdc_floor()
     six = shared_floor_m2(f)
-    lines.append(f"shared_floor_m2 = [{', '.join(repr(v) for v in six)}]")
+    floor = applied_floor(cfg.noise().name, cfg.map_floor, floor_enu(f), default)
+    lines = [*floor.solver_lines(), f"shared_floor_m2 = [{', '.join(repr(v) for v in six)}]"]
     path.write_text("[solver]\n" + "\n".join(lines) + "\n")
     info = {
         "source": "fleetsim/data/gsdc2020_mtv1_phone_gnss_errors.csv (hdmap.mapping.gnss_floor)",
@@ -199,7 +198,7 @@ def solver_floor_args(cfg: FleetEvalConfig, run_dir: Path) -> tuple[dict, dict[s
         "batches": list(f.batches),
         "drive_means_en_m": f.drive_means.tolist(),
     }
-    return info, args
+    return info, floor, args
 
 
 def evaluation_world(cfg: FleetEvalConfig) -> World:
@@ -279,9 +278,11 @@ def run_fleet_eval(
         f"{np.unique(world.signs.sign_class).size} classes, {total} passes in {cfg.rounds} rounds"
     )
     run_dir.mkdir(parents=True)
-    floor_info, service_args = solver_floor_args(cfg, run_dir)
-    floor_sigma, floor_source = map_floor_sigma(cfg)
-    say(f"map floor (E, N, U sigma m): {np.round(floor_sigma, 3).tolist()} from {floor_source}")
+    floor_info, floor, service_args = solver_floor_args(cfg, run_dir)
+    say(
+        f"map floor: pass correlation {floor.kappa:.4g}, sigma (E, N, U) "
+        f"{np.round(floor.sigma_m, 3).tolist()} m, from {floor.source}"
+    )
     if floor_info["cov_enu_m2"] is not None:
         say(f"shared-error floor (E, N sigma m): {np.round(floor_info['sigma_en_m'], 3).tolist()}")
     with Stack(run_dir / "var", extra_service_args=service_args) as stack:
@@ -313,6 +314,7 @@ def run_fleet_eval(
                         "false_confirmed": int((~kinds["paired"] & kinds["confirmed"]).sum()),
                         "left_queued": left,
                         "duplicates": int(kinds["dup"].sum()),
+                        "duplicates_confirmed": int((kinds["dup"] & kinds["confirmed"]).sum()),
                         "recall": float(rec.found.mean()),
                         "mean_err_m": float(e.mean()) if e.size else None,
                         "coverage95": float(rec.inside[rec.found].mean()) if e.size else None,
@@ -323,7 +325,8 @@ def run_fleet_eval(
                     state.rounds.append(row)
                     say(
                         f"round {r + 1}/{cfg.rounds}: median {row['median_passes_per_sign']:.0f} "
-                        f"passes/sign, {len(lm)} landmarks ({row['false_landmarks']} false), "
+                        f"passes/sign, {len(lm)} landmarks ({row['false_landmarks']} false, "
+                        f"{row['false_confirmed']} of them confirmed), "
                         f"recall {row['recall']:.3f}, "
                         f"error {row['mean_err_m'] or float('nan'):.2f} m, "
                         f"coverage {row['coverage95'] or float('nan'):.2f}, "
@@ -374,9 +377,8 @@ def run_fleet_eval(
         "signs": sign_table(state, linked),
         "unpaired": unpaired_table(world, lms[-1], cfg.match_m, linked),
         "map_floor": {
-            "applied_sigma_m": list(floor_sigma),
-            "source": floor_source,
-            "measured": measured_floor(state.records[-1], floor_sigma),
+            "applied": floor.as_dict(),
+            "measured": measured_floor(state.records[-1], floor),
         },
     }
     if result["targets_at_50_passes"]["evaluated"]:

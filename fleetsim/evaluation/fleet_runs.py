@@ -61,9 +61,9 @@ class FleetRunOptions:
     """The receivers' fix rate (None: :class:`FleetEvalConfig`'s, the simulator's 5 Hz)."""
     panel_size_rel_sigma: float | None = None
     """Panels' size spread (None: the catalogue's; :class:`FleetEvalConfig`)."""
-    map_floor: bool = True
-    """The solver's map floor measured on held-out seeds (:attr:`FleetEvalConfig.map_floor`);
-    False: ``--no-map-floor``."""
+    map_floor: str = FleetEvalConfig.map_floor
+    """The form of the map floor measured on held-out seeds (:attr:`FleetEvalConfig.map_floor`,
+    ``--map-floor``)."""
     calibrate_floor: bool = False
     """Write the floor each run measures into the calibration file
     (:func:`fleetsim.evaluation.map_floor_file.record_floor`): for held-out seeds only."""
@@ -82,7 +82,9 @@ class FleetRunOptions:
         if self.panel_size_rel_sigma is not None:
             flags += [f"--panel-size-sigma {self.panel_size_rel_sigma:g}"]
         flags += [] if self.shared_floor else ["--no-shared-floor"]
-        flags += [] if self.map_floor else ["--no-map-floor"]
+        flags += (
+            [] if self.map_floor == FleetEvalConfig.map_floor else [f"--map-floor {self.map_floor}"]
+        )
         flags += ["--calibrate-floor"] if self.calibrate_floor else []
         return flags + (["--quick"] if self.quick else [])
 
@@ -187,7 +189,7 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         + ([f"--gnss {cfg.gnss}"] if cfg.gnss != "fleet" else [])
         + [f"--bulk-every {cfg.bulk_every}"]
         + ([] if cfg.shared_floor else ["--no-shared-floor"])
-        + ([] if cfg.map_floor else ["--no-map-floor"])
+        + [f"--map-floor {cfg.map_floor}"]
         + (["--quick"] if opts.quick else [])
     )
     measured = result["map_floor"]["measured"]

@@ -322,7 +322,8 @@ def sign_table(state: EvalState, linked: Linked) -> list[dict]:
     """One row per sign in the final map: what a user checks sign by sign.
 
     ``err_enu_m`` is landmark minus truth (East, North, Up); ``sigma_en_m`` the reported
-    standard deviations; ``assoc_right`` the share of the sign's observations linked to its
+    standard deviations, ``cov_enu_m2`` the published covariance (ee en eu nn nu uu);
+    ``assoc_right`` the share of the sign's observations linked to its
     landmark (final pairing).
     """
     if not state.records:
@@ -339,6 +340,7 @@ def sign_table(state: EvalState, linked: Linked) -> list[dict]:
     nan = np.full(k, np.nan)
     f_err = final.facing_err_deg if final.facing_err_deg is not None else nan
     f_sig = final.facing_sigma_deg if final.facing_sigma_deg is not None else nan
+    cov = final.cov_enu if final.cov_enu is not None else np.full((k, 6), np.nan)
     out = []
     for s in range(k):
         found = bool(final.found[s])
@@ -352,6 +354,7 @@ def sign_table(state: EvalState, linked: Linked) -> list[dict]:
                 "err_m": float(final.err[s]) if found else None,
                 "err_enu_m": enu[s].tolist() if found else None,
                 "sigma_en_m": sig[s].tolist() if found else None,
+                "cov_enu_m2": cov[s].tolist() if found else None,
                 "inside95": bool(final.inside[s]) if found else None,
                 "observations": int(n_obs[s]),
                 "assoc_right": float(n_right[s] / n_obs[s]) if n_obs[s] else None,

@@ -1,65 +1,116 @@
 """The fleet evaluation's map floor: measured on held-out seeds, applied to the others.
 
-The solver's ``systematic_sigma_m`` is the error more passes do not average away
-(:mod:`hdmap.mapping.map_floor`). A deployment measures it against surveyed signs; the
-evaluation's surveyed signs are the simulated town's truth, so the floor it applies is
+The error more passes do not average away (:mod:`hdmap.mapping.map_floor`) reaches the
+solver in one of two forms: a pass correlation ``kappa`` (``SolverConfig.pass_correlation``:
+the between-pass covariance times ``1 + kappa G``) or a per-axis sigma
+(``SolverConfig.systematic_sigma_m``). A deployment measures it against surveyed signs;
+the evaluation's surveyed signs are the simulated town's truth, so the floor it applies is
 measured on *other* seeds (other towns, other fleets) than the ones it scores:
 
     hdmap eval fleet --seed 10 --passes 1200 --rounds 4 --calibrate-floor --out DIR
 
-measures it on the final map (controls: paired signs with at least ``CONTROL_MIN_PASSES``
-passes) and writes it into :data:`FLOOR_FILE` under the run's noise name, with the command
-that made it; later runs of that noise read it (``--no-map-floor``: the solver's default).
-Every run also reports the floor its own map would need (``fleet.json`` ``map_floor.measured``),
-in-sample, as a check.
+measures both forms on the final map (controls: paired signs with at least
+``CONTROL_MIN_PASSES`` passes) and writes them into :data:`FLOOR_FILE` under the run's
+noise name, with the command that made them; later runs of that noise apply the form
+``--map-floor`` names (``none``: the solver's defaults). Every run also reports the floor
+its own map would need (``fleet.json`` ``map_floor.measured``), in-sample, as a check.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fleetsim.evaluation.fleet_scoring import SignRecord
-from hdmap.mapping.map_floor import coverage_floor
+from hdmap.mapping.map_floor import coverage_floor, pass_correlation
 
 FLOOR_FILE = Path(__file__).resolve().parents[1] / "data" / "map_floor.json"
-"""Per noise name: the measured floor (horizontal and vertical sigma, m) and its provenance."""
+"""Per noise name: the measured floor in both forms and its provenance."""
 
 CONTROL_MIN_PASSES = 150
 """Controls are signs with at least this many passes: the floor shows where the
 between-pass part has averaged out (below, it hides under the sandwich)."""
 
+FORMS = ("correlation", "isotropic", "none")
+"""What ``--map-floor`` may name."""
+
+
+@dataclass(frozen=True)
+class AppliedFloor:
+    """What the solver was given: the pass correlation, the per-axis sigma (E, N, U) and
+    the shared GNSS floor (ENU, m^2) added after both."""
+
+    kappa: float
+    sigma_m: tuple[float, float, float]
+    shared_enu_m2: np.ndarray
+    source: str
+
+    def solver_lines(self) -> list[str]:
+        s = ", ".join(repr(float(v)) for v in self.sigma_m)
+        return [f"pass_correlation = {self.kappa!r}", f"systematic_sigma_m = [{s}]"]
+
+    def as_dict(self) -> dict:
+        return {"kappa": self.kappa, "sigma_m": list(self.sigma_m), "source": self.source}
+
+
+def _en(c6: np.ndarray) -> np.ndarray:
+    return np.stack([np.stack([c6[:, 0], c6[:, 1]], -1), np.stack([c6[:, 1], c6[:, 3]], -1)], -2)
+
 
 def measured_floor(
-    rec: SignRecord, base_sigma_m: tuple[float, float, float], min_passes: int = CONTROL_MIN_PASSES
+    rec: SignRecord, applied: AppliedFloor, min_passes: int = CONTROL_MIN_PASSES
 ) -> dict | None:
-    """The floor a round's map needs (:func:`hdmap.mapping.map_floor.coverage_floor`) from
-    its paired signs with ``min_passes`` passes or more: horizontal (East/North, 2D region)
-    and vertical (1D); None with fewer than 20 such signs."""
+    """The floor a round's map needs, from its paired signs with ``min_passes`` passes or
+    more: per-axis sigma horizontally (2D regions, ``horizontal``) and vertically (1D,
+    ``vertical``), and the horizontal pass correlation (``pass_correlation``), each with
+    the applied floor taken out first; None with fewer than 20 such signs."""
     if rec.cov_enu is None or rec.err_enu is None:
         return None
     m = rec.found & (rec.n >= min_passes) & np.all(np.isfinite(rec.cov_enu), axis=1)
     if int(m.sum()) < 20:
         return None
-    c = rec.cov_enu[m]
-    e = rec.err_enu[m]
-    cov_h = np.stack([np.stack([c[:, 0], c[:, 1]], -1), np.stack([c[:, 1], c[:, 3]], -1)], -2)
-    h = coverage_floor(e[:, :2], cov_h, base_sigma_m=float(base_sigma_m[0]))
-    v = coverage_floor(e[:, 2:3], c[:, 5].reshape(-1, 1, 1), base_sigma_m=float(base_sigma_m[2]))
-    return {"min_passes": min_passes, "horizontal": h.as_dict(), "vertical": v.as_dict()}
+    c, e, g = rec.cov_enu[m], rec.err_enu[m], rec.n[m].astype(float)
+    s0 = np.asarray(applied.sigma_m, float)
+    shared = applied.shared_enu_m2[:2, :2]
+    pub_h = _en(c)
+    between = (pub_h - shared - np.diag(s0[:2] ** 2)) / (1.0 + applied.kappa * g)[:, None, None]
+    w, v = np.linalg.eigh(between)
+    between = (v * np.maximum(w, 1e-12)[..., None, :]) @ np.swapaxes(v, -1, -2)
+    # each form alone (the solver gets one of them): its fit starts from neither
+    h = coverage_floor(e[:, :2], between + shared, published=pub_h)
+    su = applied.shared_enu_m2[2, 2]
+    v_between = np.maximum(c[:, 5] - su - s0[2] ** 2, 1e-12) / (1.0 + applied.kappa * g)
+    vert = coverage_floor(
+        e[:, 2:3], (v_between + su).reshape(-1, 1, 1), published=c[:, 5].reshape(-1, 1, 1)
+    )
+    k = pass_correlation(e[:, :2], between, g, pub_h, other=shared)
+    return {
+        "min_passes": min_passes,
+        "horizontal": h.as_dict(),
+        "vertical": vert.as_dict(),
+        "pass_correlation": k.as_dict(),
+    }
 
 
-def calibrated_sigma(noise_name: str, path: Path = FLOOR_FILE) -> tuple[float, float, float] | None:
-    """``systematic_sigma_m`` (E, N, U) measured for ``noise_name``, None if not measured."""
-    if not path.exists():
-        return None
-    entry = json.loads(path.read_text()).get(noise_name)
-    if entry is None:
-        return None
+def applied_floor(noise_name: str, form: str, shared_enu_m2: np.ndarray, default_sigma_m,
+                  path: Path = FLOOR_FILE) -> AppliedFloor:  # fmt: skip
+    """What the evaluation gives the solver for ``form`` (:data:`FORMS`): the measured
+    correlation (no per-axis sigma), the measured per-axis sigma (no correlation), or,
+    with ``none`` or nothing measured for ``noise_name``, the solver's defaults."""
+    if form not in FORMS:
+        raise ValueError(f"map floor form {form!r}: one of {', '.join(FORMS)}")
+    entry = json.loads(path.read_text()).get(noise_name) if path.exists() else None
+    where = f"{path.relative_to(path.parents[2])} ({noise_name})"
+    if form == "none" or entry is None:
+        return AppliedFloor(0.0, tuple(default_sigma_m), shared_enu_m2, "SolverConfig defaults")
+    if form == "correlation":
+        kappa = float(entry["pass_correlation"]["kappa"])
+        return AppliedFloor(kappa, (0.0, 0.0, 0.0), shared_enu_m2, f"{where}: correlation")
     h, v = float(entry["horizontal"]["sigma_m"]), float(entry["vertical"]["sigma_m"])
-    return (h, h, v)
+    return AppliedFloor(0.0, (h, h, v), shared_enu_m2, f"{where}: isotropic")
 
 
 def record_floor(noise_name: str, measured: dict, command: str, path: Path = FLOOR_FILE) -> None:

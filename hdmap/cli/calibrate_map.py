@@ -28,7 +28,12 @@ from hdmap.cli.common import add_bus_arguments, bus_from_args
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.signs import CATALOG, UnknownSignClass
 from hdmap.geo.tiles import neighbours, quadkeys_of
-from hdmap.mapping.map_floor import coverage_floor, pair_controls
+from hdmap.mapping.map_floor import (
+    coverage_floor,
+    pair_controls,
+    pass_correlation,
+    without_floor,
+)
 from hdmap.runtime.bus import open_session
 from hdmap.runtime.config import ConfigError, from_mapping, load_toml
 from services.solver.service import SolverConfig
@@ -84,27 +89,24 @@ def read_controls(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array(rows), np.array(classes, np.int64)
 
 
-def published_sigma(config: str | None) -> tuple[float, float, float]:
+def published_floor(config: str | None) -> SolverConfig:
+    """The solver config the map was published with (its floors are taken out first)."""
     if config is None:
-        return SolverConfig().systematic_sigma_m
-    solver = from_mapping(SolverConfig, load_toml(config).get("solver", {}), "solver")
-    return solver.systematic_sigma_m
+        return SolverConfig()
+    return from_mapping(SolverConfig, load_toml(config).get("solver", {}), "solver")
 
 
-def floor_from_map(lms, ctl: np.ndarray, ctl_class: np.ndarray, args, base) -> dict:
-    """Pair, measure, and the artefact (what a reader needs to judge the figure)."""
+def floor_from_map(lms, ctl: np.ndarray, ctl_class: np.ndarray, args, solver: SolverConfig) -> dict:
+    """Pair, measure both forms of the floor, and the artefact (what a reader needs to
+    judge the figures)."""
     frame = EnuFrame(*np.mean(ctl, axis=0))
     c_xyz = frame.from_geodetic(ctl[:, 0], ctl[:, 1], ctl[:, 2])
     l_xyz = frame.from_geodetic(lms.lat, lms.lon, lms.h)
+    passes = lms.n_passes.astype(np.int64)
     ci, li = pair_controls(
-        l_xyz,
-        lms.sign_class.astype(np.int64),
-        lms.n_passes.astype(np.int64),
-        c_xyz,
-        ctl_class,
-        args.match_m,
+        l_xyz, lms.sign_class.astype(np.int64), passes, c_xyz, ctl_class, args.match_m,
         args.min_passes,
-    )
+    )  # fmt: skip
     if ci.size < 20:
         raise ValueError(
             f"{ci.size} control(s) paired with a landmark of {args.min_passes}+ passes "
@@ -112,25 +114,33 @@ def floor_from_map(lms, ctl: np.ndarray, ctl_class: np.ndarray, args, base) -> d
         )
     err = l_xyz[li] - c_xyz[ci]
     c6 = np.asarray(lms.cov, float)[li]
-    cov_h = np.stack([np.stack([c6[:, 0], c6[:, 1]], -1), np.stack([c6[:, 1], c6[:, 3]], -1)], -2)
-    h = coverage_floor(err[:, :2], cov_h, base_sigma_m=float(base[0]))
-    v = coverage_floor(err[:, 2:3], c6[:, 5].reshape(-1, 1, 1), base_sigma_m=float(base[2]))
+    g = passes[li].astype(float)
+    s0 = np.asarray(solver.systematic_sigma_m, float)
+    pub_h = np.stack([np.stack([c6[:, 0], c6[:, 1]], -1), np.stack([c6[:, 1], c6[:, 3]], -1)], -2)
+    shared = solver.shared_floor()[:2, :2]
+    design = (1.0 + solver.pass_correlation * g)[:, None, None]
+    between = without_floor(pub_h - shared, float(s0[0])) / design
+    h = coverage_floor(err[:, :2], between + shared, published=pub_h)  # no correlation
+    v = coverage_floor(err[:, 2:3], c6[:, 5].reshape(-1, 1, 1), base_sigma_m=float(s0[2]))
+    k = pass_correlation(err[:, :2], between, g, pub_h, other=shared)
     return {
         "controls": len(ctl),
         "paired": int(ci.size),
         "match_m": args.match_m,
         "min_passes": args.min_passes,
-        "published_sigma_m": list(base),
+        "published_sigma_m": list(solver.systematic_sigma_m),
+        "published_pass_correlation": solver.pass_correlation,
         "horizontal": h.as_dict(),
         "vertical": v.as_dict(),
-        "systematic_sigma_m": [h.sigma_m, h.sigma_m, v.sigma_m],
+        "pass_correlation": k.as_dict(),
+        "systematic_sigma_m": [h.value, h.value, v.value],
     }
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         ctl, ctl_class = read_controls(Path(args.control))
-        base = published_sigma(args.config)
+        solver = published_floor(args.config)
     except (OSError, ValueError, ConfigError) as exc:
         print(f"calibrate-map: {exc}", file=sys.stderr)
         return 2
@@ -150,21 +160,29 @@ def run(args: argparse.Namespace) -> int:
         print(f"calibrate-map: cannot reach the bus: {exc}", file=sys.stderr)
         return 2
     try:
-        art = floor_from_map(lms, ctl, ctl_class, args, base)
+        art = floor_from_map(lms, ctl, ctl_class, args, solver)
     except ValueError as exc:
         print(f"calibrate-map: {exc}", file=sys.stderr)
         return 1
-    h, v = art["horizontal"], art["vertical"]
+    h, v, k = art["horizontal"], art["vertical"], art["pass_correlation"]
     print(
         f"{art['paired']} of {art['controls']} controls paired; inside their 95 % regions: "
-        f"{h['inside_before']:.3f} as published, {h['inside_after']:.3f} with the floor"
+        f"{h['inside_before']:.3f} as published"
     )
     print(
-        f"floor sigma horizontal {h['sigma_m']:.3f} m "
-        f"[{h['interval_m'][0]:.3f}, {h['interval_m'][1]:.3f}], vertical {v['sigma_m']:.3f} m"
+        f"as a pass correlation: {k['kappa']:.4g} [{k['interval'][0]:.4g}, "
+        f"{k['interval'][1]:.4g}], {k['inside_after']:.3f} inside"
     )
-    print("[solver]")
-    print(f"systematic_sigma_m = [{', '.join(f'{s:.4g}' for s in art['systematic_sigma_m'])}]")
+    print(
+        f"as a per-axis sigma: horizontal {h['sigma_m']:.3f} m [{h['interval'][0]:.3f}, "
+        f"{h['interval'][1]:.3f}], vertical {v['sigma_m']:.3f} m, {h['inside_after']:.3f} inside"
+    )
+    print("[solver]  # one of the two forms")
+    print(f"pass_correlation = {k['kappa']:.4g}")
+    print("systematic_sigma_m = [0, 0, 0]")
+    print("# or")
+    print("pass_correlation = 0")
+    print(f"systematic_sigma_m = [{', '.join(f'{x:.4g}' for x in art['systematic_sigma_m'])}]")
     if args.out:
         Path(args.out).write_text(json.dumps(art, indent=2) + "\n")
     return 0

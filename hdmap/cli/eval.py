@@ -132,11 +132,12 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         "the replayed log, hdmap/mapping/gnss_floor.py)",
     )
     p.add_argument(
-        "--no-map-floor",
-        dest="map_floor",
-        action="store_false",
-        help="the solver's default systematic sigma instead of the map floor measured on "
-        "held-out seeds (fleetsim/data/map_floor.json)",
+        "--map-floor",
+        choices=["correlation", "isotropic", "none"],
+        default="isotropic",
+        help="the map floor measured on held-out seeds (fleetsim/data/map_floor.json) as a "
+        "pass correlation or a per-axis sigma (default isotropic), or none: the solver's "
+        "defaults",
     )
     p.add_argument(
         "--calibrate-floor",

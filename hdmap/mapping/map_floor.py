@@ -38,7 +38,7 @@ and comes out near 0; it then over-covers slightly where passes are few (the tar
 >>> e = np.array([[0.3, 0.0], [0.0, 0.3], [0.1, 0.1], [0.0, 0.0]])
 >>> c = np.repeat(np.eye(2)[None] * 0.01, 4, axis=0)
 >>> f = coverage_floor(e, c, level=0.75)
->>> round(f.sigma_m, 3), f.inside_before, f.inside_after
+>>> round(f.value, 3), f.inside_before, f.inside_after
 (0.15, 0.5, 1.0)
 """
 
@@ -54,31 +54,30 @@ Array = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class CoverageFloor:
-    """A measured floor and what it was measured from."""
+class FloorFit:
+    """A measured floor parameter and what it was measured from."""
 
-    sigma_m: float
-    """The floor per axis, m: published covariances become ``C - s0^2 I + sigma_m^2 I``."""
-    interval_m: tuple[float, float]
-    """Distribution-free interval of ``sigma_m`` (:func:`quantile_interval`, ``confidence``)."""
+    parameter: str
+    """``sigma_m``: the per-axis sigma ``s`` of an added ``s^2 I`` (m); ``kappa``: the pass
+    correlation of ``V (1 + kappa G)`` (:func:`pass_correlation`)."""
+    value: float
+    interval: tuple[float, float]
+    """Distribution-free interval of ``value`` (:func:`quantile_interval`, ``confidence``)."""
     controls: int
     level: float
     confidence: float
-    base_sigma_m: float
-    """``s0``: the floor the controls' covariances were published with."""
     inside_before: float
-    """Share of the controls inside their published regions."""
+    """Share of the controls inside their regions as published."""
     inside_after: float
-    """The same with the floor in place of ``s0``."""
+    """The same with the measured floor in place of the published one."""
 
     def as_dict(self) -> dict:
         return {
-            "sigma_m": self.sigma_m,
-            "interval_m": list(self.interval_m),
+            self.parameter: self.value,
+            "interval": list(self.interval),
             "controls": self.controls,
             "level": self.level,
             "confidence": self.confidence,
-            "base_sigma_m": self.base_sigma_m,
             "inside_before": self.inside_before,
             "inside_after": self.inside_after,
         }
@@ -97,24 +96,19 @@ def without_floor(cov: Array, base_sigma_m: float) -> Array:
     return (v * np.maximum(w, 1e-12)[..., None, :]) @ np.swapaxes(v, -1, -2)
 
 
-def least_floors(
-    err: Array, cov: Array, level: float, base_sigma_m: float = 0.0, iterations: int = 60
-) -> Array:
-    """Per control, the least floor ``s_i >= 0`` that puts it inside its ``level`` region
-    (``cov`` holding ``base_sigma_m^2 I``, taken out first). Bisection on each ``s_i``,
-    all at once; the upper bracket ``|e_i| / sqrt(chi2_k(level))`` is inside whatever
-    ``C_i`` is."""
+def least_scales(err: Array, own: Array, shape: Array, level: float, iterations: int = 60) -> Array:
+    """Per control, the least ``t_i >= 0`` that puts it inside its ``level`` region
+    ``own_i + t_i shape_i`` (0 if inside already). Bisection on each ``t_i``, all at once;
+    the upper bracket ``e_i^T shape_i^-1 e_i / chi2_k(level)`` is inside whatever
+    ``own_i`` is (positive definite ``shape_i``)."""
     err = np.asarray(err, float)
-    n, k = err.shape
-    eye = np.eye(k)
-    own = without_floor(cov, base_sigma_m)
-    q = chi2.ppf(level, k)
-    lo = np.zeros(n)
-    hi = np.linalg.norm(err, axis=1) / np.sqrt(q) + 1e-9
+    q = chi2.ppf(level, err.shape[1])
+    lo = np.zeros(err.shape[0])
+    hi = mahalanobis2(err, shape) / q * (1.0 + 1e-9) + 1e-18
     inside0 = mahalanobis2(err, own) <= q
     for _ in range(iterations):
         mid = 0.5 * (lo + hi)
-        ok = mahalanobis2(err, own + (mid**2)[:, None, None] * eye) <= q
+        ok = mahalanobis2(err, own + mid[:, None, None] * shape) <= q
         hi = np.where(ok, mid, hi)
         lo = np.where(ok, lo, mid)
     return np.where(inside0, 0.0, hi)
@@ -139,37 +133,86 @@ def quantile_interval(
     return float(x[rank - 1]), float(x[max(j, 1) - 1]), float(x[min(k, n) - 1])
 
 
+def _check(err: Array, cov: Array, level: float, confidence: float) -> None:
+    if err.ndim != 2 or cov.shape != (*err.shape, err.shape[1]) or err.shape[0] == 0:
+        raise ValueError("map floor: err (n, k) and cov (n, k, k), n >= 1")
+    if not (0.0 < level < 1.0 and 0.0 < confidence < 1.0):
+        raise ValueError("map floor: level and confidence in (0, 1)")
+
+
+def _fit(
+    parameter: str,
+    err: Array,
+    published: Array,
+    own: Array,
+    shape: Array,
+    level: float,
+    confidence: float,
+    to_value=lambda t: t,
+) -> FloorFit:
+    t, lo, hi = quantile_interval(least_scales(err, own, shape, level), level, confidence)
+    q = chi2.ppf(level, err.shape[1])
+    return FloorFit(
+        parameter=parameter,
+        value=float(to_value(t)),
+        interval=(float(to_value(lo)), float(to_value(hi))),
+        controls=err.shape[0],
+        level=level,
+        confidence=confidence,
+        inside_before=float(np.mean(mahalanobis2(err, published) <= q)),
+        inside_after=float(np.mean(mahalanobis2(err, own + t * shape) <= q * (1 + 1e-9))),
+    )
+
+
 def coverage_floor(
     err: Array,
     cov: Array,
     level: float = 0.95,
     base_sigma_m: float = 0.0,
     confidence: float = 0.95,
-) -> CoverageFloor:
-    """The floor that puts a share ``level`` of the controls inside their ``level`` regions
-    (see the module doc). ``err`` (n, k) landmark minus surveyed position, ``cov`` (n, k,
-    k) as published, holding ``base_sigma_m^2 I``."""
-    err = np.asarray(err, float)
-    cov = np.asarray(cov, float)
-    if err.ndim != 2 or cov.shape != (*err.shape, err.shape[1]) or err.shape[0] == 0:
-        raise ValueError("coverage_floor: err (n, k) and cov (n, k, k), n >= 1")
-    if not (0.0 < level < 1.0 and 0.0 < confidence < 1.0 and base_sigma_m >= 0.0):
-        raise ValueError("coverage_floor: level and confidence in (0, 1), base_sigma_m >= 0")
-    n, k = err.shape
-    s_i = least_floors(err, cov, level, base_sigma_m)
-    s, lo, hi = quantile_interval(s_i, level, confidence)
-    q = chi2.ppf(level, k)
-    after = without_floor(cov, base_sigma_m) + s**2 * np.eye(k)
-    return CoverageFloor(
-        sigma_m=s,
-        interval_m=(lo, hi),
-        controls=n,
-        level=level,
-        confidence=confidence,
-        base_sigma_m=base_sigma_m,
-        inside_before=float(np.mean(mahalanobis2(err, cov) <= q)),
-        inside_after=float(np.mean(mahalanobis2(err, after) <= q + 1e-9)),
-    )
+    published: Array | None = None,
+) -> FloorFit:
+    """The per-axis floor ``s`` (``parameter`` ``sigma_m``) that puts a share ``level`` of
+    the controls inside their ``level`` regions ``C_i - s0^2 I + s^2 I`` (see the module
+    doc). ``err`` (n, k) landmark minus surveyed position, ``cov`` (n, k, k) holding
+    ``base_sigma_m^2 I``; ``published`` what the map said, for ``inside_before`` (default
+    ``cov``)."""
+    err, cov = np.asarray(err, float), np.asarray(cov, float)
+    _check(err, cov, level, confidence)
+    if base_sigma_m < 0.0:
+        raise ValueError("map floor: base_sigma_m >= 0")
+    own = without_floor(cov, base_sigma_m)
+    shape = np.broadcast_to(np.eye(err.shape[1]), cov.shape)
+    pub = cov if published is None else np.asarray(published, float)
+    return _fit("sigma_m", err, pub, own, shape, level, confidence, np.sqrt)
+
+
+def pass_correlation(
+    err: Array,
+    between: Array,
+    passes: NDArray[np.int64],
+    published: Array,
+    other: Array | None = None,
+    level: float = 0.95,
+    confidence: float = 0.95,
+) -> FloorFit:
+    """The pass correlation ``kappa`` (``parameter`` ``kappa``) that puts a share ``level``
+    of the controls inside their regions ``V_i (1 + kappa G_i) + other_i``: ``V_i`` the
+    between-pass covariance of control ``i`` (its ``G_i`` passes), ``other_i`` the floors
+    kept as they are (a shared GNSS floor), ``published`` what the map said (for
+    ``inside_before``).
+
+    The model is Kish's design effect: if the errors of a landmark's passes share a part
+    ``u`` with ``Var(u) = kappa Var(pass error)``, the between-pass scatter sees only the
+    rest and the estimate's variance is ``V (1 + kappa G)``: a floor that grows with the
+    passes where the sandwich shrinks, and along the direction each pass's error is
+    largest (the line of sight of a sign seen head-on) rather than the same on every axis.
+    """
+    err, between = np.asarray(err, float), np.asarray(between, float)
+    _check(err, between, level, confidence)
+    own = between + (0.0 if other is None else np.asarray(other, float))
+    shape = np.asarray(passes, float)[:, None, None] * between
+    return _fit("kappa", err, np.asarray(published, float), own, shape, level, confidence)
 
 
 def pair_controls(

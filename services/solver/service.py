@@ -66,6 +66,13 @@ class SolverConfig:
     measures its own on held-out seeds (``fleetsim/data/map_floor.json``). The default,
     0.1 m, is what the fleet evaluation needed at 160 passes; at a few hundred passes a
     landmark needs more (docs/estimator.md section 12)."""
+    pass_correlation: float = 0.0
+    """``kappa``: the share of a pass's error that every pass of a landmark has in common
+    (Kish's design effect, :func:`hdmap.mapping.map_floor.pass_correlation`); the
+    published covariance is the between-pass covariance times ``1 + kappa G`` (``G`` its
+    passes), before ``systematic_sigma_m`` and the shared floor are added. Measured
+    against surveyed signs by ``hdmap calibrate-map``; 0: none. ConfigError naming the
+    field if negative or not finite."""
     shared_floor_m2: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     """ENU covariance (ee, en, eu, nn, nu, uu; m^2) of the GNSS error a landmark's passes
     share, added to the published covariance in the landmark's local ENU: what more passes
@@ -104,6 +111,10 @@ class SolverConfig:
     def __post_init__(self) -> None:
         if not self.confirm_max_sigma_m > 0:
             raise ConfigError("solver.confirm_max_sigma_m: a positive number of metres")
+        if not (np.isfinite(self.pass_correlation) and self.pass_correlation >= 0):
+            raise ConfigError("solver.pass_correlation: a finite number >= 0")
+        if not all(np.isfinite(v) and v >= 0 for v in self.systematic_sigma_m):
+            raise ConfigError("solver.systematic_sigma_m: three finite numbers >= 0 (E, N, U)")
         f = self.shared_floor_m2
         if len(f) != 6 or not np.isfinite(f).all():
             raise ConfigError("solver.shared_floor_m2: six finite numbers (ee en eu nn nu uu)")
@@ -346,7 +357,10 @@ class SolverService(StageService):
             self.config.provisional_passes,
             self.config.pass_bias_sigma_m,
         )
-        sol_cov = sol_cov + np.diag(np.square(self.config.systematic_sigma_m))
+        design = 1.0 + self.config.pass_correlation * n_clusters.astype(float)
+        sol_cov = sol_cov * design[:, None, None] + np.diag(
+            np.square(self.config.systematic_sigma_m)
+        )
         for k in np.flatnonzero(~good & (n_obs == 0)):
             lm = lms[k]  # every ray taken out (a caught vehicle's): off the map until seen again
             if lm.tile:

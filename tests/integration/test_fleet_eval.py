@@ -352,6 +352,7 @@ def test_calibrate_map_measures_the_floor_of_a_live_map(quick, tmp_path):
     art = json.loads(art_path.read_text())
     assert art["controls"] == len(world.signs)
     assert art["paired"] >= 20
-    assert art["published_sigma_m"] == d["map_floor"]["applied_sigma_m"]
+    assert art["published_sigma_m"] == d["map_floor"]["applied"]["sigma_m"]
+    assert art["published_pass_correlation"] == d["map_floor"]["applied"]["kappa"]
     assert art["horizontal"]["inside_after"] >= 0.95
     assert "[solver]\nsystematic_sigma_m = [" in proc.stdout

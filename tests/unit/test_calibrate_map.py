@@ -13,8 +13,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from hdmap.cli.calibrate_map import floor_from_map, published_sigma, read_controls
+from hdmap.cli.calibrate_map import floor_from_map, published_floor, read_controls
 from hdmap.geo.geodesy import EnuFrame
+from services.solver.service import SolverConfig
 
 
 def _map(rng, n: int = 150, floor: float = 0.3, base: float = 0.1):
@@ -46,18 +47,22 @@ def _map(rng, n: int = 150, floor: float = 0.3, base: float = 0.1):
 def test_the_floor_of_a_map_is_measured_from_its_controls():
     lms, ctl, cls = _map(np.random.default_rng(0))
     args = argparse.Namespace(match_m=5.0, min_passes=150)
-    art = floor_from_map(lms, ctl, cls, args, (0.1, 0.1, 0.1))
+    art = floor_from_map(lms, ctl, cls, args, SolverConfig())
     assert art["paired"] == 150 - 3 - 5
     h = art["horizontal"]
-    assert h["interval_m"][0] <= 0.3 <= h["interval_m"][1], h
+    assert h["interval"][0] <= 0.3 <= h["interval"][1], h
     assert h["inside_after"] >= 0.95 > h["inside_before"]
     assert art["systematic_sigma_m"][0] == h["sigma_m"]
+    k = art["pass_correlation"]
+    assert k["kappa"] > 0 and k["inside_after"] >= 0.95 and k["controls"] == art["paired"]
 
 
 def test_too_few_controls_is_an_error():
     lms, ctl, cls = _map(np.random.default_rng(1), n=25)
     with pytest.raises(ValueError, match="at least 20"):
-        floor_from_map(lms, ctl, cls, argparse.Namespace(match_m=5.0, min_passes=150), (0, 0, 0))
+        floor_from_map(
+            lms, ctl, cls, argparse.Namespace(match_m=5.0, min_passes=150), SolverConfig()
+        )
 
 
 def test_control_files_are_read_and_bad_rows_named(tmp_path):
@@ -80,6 +85,7 @@ def test_control_files_are_read_and_bad_rows_named(tmp_path):
 
 def test_the_published_floor_comes_from_the_services_config(tmp_path):
     cfg = tmp_path / "services.toml"
-    cfg.write_text("[solver]\nsystematic_sigma_m = [0.25, 0.25, 0.4]\n")
-    assert published_sigma(str(cfg)) == (0.25, 0.25, 0.4)
-    assert published_sigma(None) == (0.1, 0.1, 0.1)
+    cfg.write_text("[solver]\nsystematic_sigma_m = [0.25, 0.25, 0.4]\npass_correlation = 0.003\n")
+    assert published_floor(str(cfg)).systematic_sigma_m == (0.25, 0.25, 0.4)
+    assert published_floor(str(cfg)).pass_correlation == 0.003
+    assert published_floor(None).systematic_sigma_m == (0.1, 0.1, 0.1)

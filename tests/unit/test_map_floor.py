@@ -14,7 +14,12 @@ import numpy as np
 import pytest
 from scipy.stats import binom, chi2
 
-from hdmap.mapping.map_floor import coverage_floor, least_floors, quantile_interval
+from hdmap.mapping.map_floor import (
+    coverage_floor,
+    least_scales,
+    pass_correlation,
+    quantile_interval,
+)
 
 SEEDS = 100
 LOW = binom.ppf(0.001, SEEDS, 0.95)
@@ -36,7 +41,7 @@ def test_the_interval_holds_the_true_floor(k):
     for seed in range(SEEDS):
         err, cov = _controls(np.random.default_rng(seed), 200, 0.3, k=k)
         f = coverage_floor(err, cov)
-        hits += f.interval_m[0] <= 0.3 <= f.interval_m[1]
+        hits += f.interval[0] <= 0.3 <= f.interval[1]
     assert hits >= LOW, hits
 
 
@@ -52,7 +57,7 @@ def test_a_floor_measured_on_some_controls_covers_new_ones():
         f = coverage_floor(err, cov, base_sigma_m=0.1)
         e2, c2 = _controls(rng, 200, 0.25)
         m2 = np.einsum(
-            "ni,ni->n", e2, np.linalg.solve(c2 + f.sigma_m**2 * np.eye(2), e2[..., None])[..., 0]
+            "ni,ni->n", e2, np.linalg.solve(c2 + f.value**2 * np.eye(2), e2[..., None])[..., 0]
         )
         shares.append(np.mean(m2 <= chi2.ppf(0.95, 2)))
     s = np.array(shares)
@@ -65,7 +70,7 @@ def test_no_floor_where_the_covariance_is_right():
     zero = 0
     for seed in range(SEEDS):
         err, cov = _controls(np.random.default_rng(2000 + seed), 200, 0.0)
-        zero += coverage_floor(err, cov).interval_m[0] == 0.0
+        zero += coverage_floor(err, cov).interval[0] == 0.0
     assert zero >= LOW, zero
 
 
@@ -74,7 +79,7 @@ def test_the_floor_a_map_was_published_with_is_taken_out():
     err, own = _controls(rng, 300, 0.2)
     a = coverage_floor(err, own)
     b = coverage_floor(err, own + 0.15**2 * np.eye(2), base_sigma_m=0.15)
-    assert b.sigma_m == pytest.approx(a.sigma_m, abs=1e-9)
+    assert b.value == pytest.approx(a.value, abs=1e-9)
     assert b.inside_after == a.inside_after
     assert b.inside_before >= a.inside_before
 
@@ -90,13 +95,13 @@ def test_a_few_contaminated_controls_move_the_floor_less_than_a_second_moment():
     f = coverage_floor(err, cov)
     moment = np.sqrt(np.mean(np.sum(err**2, axis=1) - np.trace(cov, axis1=1, axis2=2)) / 2)
     assert f.inside_after >= 0.95
-    assert f.sigma_m < 0.5 * moment, (f.sigma_m, moment)
+    assert f.value < 0.5 * moment, (f.value, moment)
 
 
-def test_least_floors_put_each_control_on_its_boundary():
+def test_least_scales_put_each_control_on_its_boundary():
     rng = np.random.default_rng(3)
     err, cov = _controls(rng, 50, 0.4)
-    s = least_floors(err, cov, 0.95)
+    s = np.sqrt(least_scales(err, cov, np.broadcast_to(np.eye(2), cov.shape), 0.95))
     out = s > 0
     m2 = np.einsum(
         "ni,ni->n",
@@ -123,12 +128,58 @@ def test_bad_shapes_are_refused():
         coverage_floor(np.zeros((3, 2)), np.repeat(np.eye(2)[None], 3, 0), level=1.5)
 
 
+def _correlated(rng, n: int, kappa: float):
+    """Controls whose passes share a part of their error: between-pass covariance ``V_i``
+    (0.2-2 m per axis per pass over ``G_i`` of 150-900 passes), true error covariance
+    ``V_i (1 + kappa G_i)``."""
+    g = rng.integers(150, 900, n)
+    sd = rng.uniform(0.2, 2.0, (n, 2)) / np.sqrt(g)[:, None]
+    rot = np.linalg.qr(rng.normal(size=(n, 2, 2)))[0]
+    v = rot @ (sd[:, :, None] ** 2 * np.eye(2)) @ np.swapaxes(rot, -1, -2)
+    true = v * (1 + kappa * g)[:, None, None]
+    err = np.einsum("nij,nj->ni", np.linalg.cholesky(true), rng.normal(size=(n, 2)))
+    return err, v, g
+
+
+def test_the_pass_correlation_interval_holds_the_true_one():
+    """At the true ``kappa`` a control is inside its 95 % region with probability 0.95
+    exactly, so ``kappa`` is the 0.95 quantile of the least ones: the interval holds it
+    on at least the binomial share of seeds."""
+    hits = 0
+    for seed in range(SEEDS):
+        err, v, g = _correlated(np.random.default_rng(3000 + seed), 200, 0.004)
+        f = pass_correlation(err, v, g, v)
+        hits += f.interval[0] <= 0.004 <= f.interval[1]
+    assert hits >= LOW, hits
+
+
+def test_a_pass_correlation_covers_controls_with_few_and_many_passes_alike():
+    """Controls with correlated passes: measured on one half, applied to the other, the
+    correlation covers those with 150-400 passes and those with 650-900 alike, each share
+    within the binomial 99.9 % range of 0.95 for its count."""
+    rng = np.random.default_rng(17)
+    err, v, g = _correlated(rng, 2000, 0.004)
+    fit, test = np.arange(2000) < 1000, np.arange(2000) >= 1000
+    k = pass_correlation(err[fit], v[fit], g[fit], v[fit]).value
+    cov = v * (1 + k * g)[:, None, None]
+    m2 = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    for m in (test & (g < 400), test & (g >= 650)):
+        n = int(m.sum())
+        share = float(np.mean(m2[m] <= chi2.ppf(0.95, 2)))
+        assert binom.ppf(0.0005, n, 0.95) / n <= share <= binom.isf(0.0005, n, 0.95) / n, (n, share)
+
+
 def test_the_evaluation_measures_records_and_reads_its_floor(tmp_path):
     """``fleetsim.evaluation.map_floor_file``: a round's signs with 150+ passes are the
     controls (the others, and unpaired signs, left out); the measured floor written for a
     noise name is what later runs of that noise give the solver."""
     from fleetsim.evaluation.fleet_scoring import SignRecord
-    from fleetsim.evaluation.map_floor_file import calibrated_sigma, measured_floor, record_floor
+    from fleetsim.evaluation.map_floor_file import (
+        AppliedFloor,
+        applied_floor,
+        measured_floor,
+        record_floor,
+    )
 
     rng = np.random.default_rng(5)
     k = 120
@@ -143,18 +194,28 @@ def test_the_evaluation_measures_records_and_reads_its_floor(tmp_path):
         n, found, np.hypot(*err_h.T), np.zeros(k, bool), np.zeros(k, np.uint64),
         err_enu=np.column_stack([err_h, err_v]), cov_enu=cov6,
     )  # fmt: skip
-    m = measured_floor(rec, (0.1, 0.1, 0.1))
+    applied = AppliedFloor(0.0, (0.1, 0.1, 0.1), np.zeros((3, 3)), "test")
+    m = measured_floor(rec, applied)
     assert m["horizontal"]["controls"] == 99 and m["vertical"]["controls"] == 99
-    lo, hi = m["horizontal"]["interval_m"]
+    assert m["pass_correlation"]["controls"] == 99
+    lo, hi = m["horizontal"]["interval"]
     assert lo <= m["horizontal"]["sigma_m"] <= hi
     few = SignRecord(
         n, found & (np.arange(k) < 19), rec.err, rec.inside, rec.landmark,
         err_enu=rec.err_enu, cov_enu=cov6,
     )  # fmt: skip
-    assert measured_floor(few, (0.1, 0.1, 0.1)) is None
+    assert measured_floor(few, applied) is None
     path = tmp_path / "floor.json"
-    assert calibrated_sigma("fleet", path) is None
+    zero = np.zeros((3, 3))
+    none = applied_floor("fleet", "isotropic", zero, (0.1, 0.1, 0.1), path)
+    assert (none.kappa, none.sigma_m) == (0.0, (0.1, 0.1, 0.1))
     record_floor("fleet", m, "hdmap eval fleet --seed 10", path)
     h, v = m["horizontal"]["sigma_m"], m["vertical"]["sigma_m"]
-    assert calibrated_sigma("fleet", path) == (h, h, v)
-    assert calibrated_sigma("fleet+gsdc", path) is None
+    iso = applied_floor("fleet", "isotropic", zero, (0.1, 0.1, 0.1), path)
+    assert (iso.kappa, iso.sigma_m) == (0.0, (h, h, v))
+    cor = applied_floor("fleet", "correlation", zero, (0.1, 0.1, 0.1), path)
+    assert (cor.kappa, cor.sigma_m) == (m["pass_correlation"]["kappa"], (0.0, 0.0, 0.0))
+    assert applied_floor("fleet+gsdc", "correlation", zero, (0.1,) * 3, path).kappa == 0.0
+    assert "pass_correlation = " in cor.solver_lines()[0]
+    with pytest.raises(ValueError, match="one of"):
+        applied_floor("fleet", "both", zero, (0.1,) * 3, path)

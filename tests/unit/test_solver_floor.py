@@ -101,3 +101,24 @@ def test_a_landmark_is_confirmed_only_while_its_position_is_known_to_the_limit(t
     np.testing.assert_allclose(vague.cov - base.cov, np.array([wide]), atol=1e-12)
     with pytest.raises(ConfigError, match=r"solver\.confirm_max_sigma_m"):
         SolverConfig(confirm_max_sigma_m=0.0)
+
+
+def test_the_pass_correlation_scales_the_between_pass_covariance(tmp_path: Path):
+    """``pass_correlation`` kappa: the covariance before the per-axis floor is multiplied by
+    ``1 + kappa G`` (G the landmark's passes), the estimate unchanged."""
+    none = SolverConfig(systematic_sigma_m=(0.0, 0.0, 0.0))
+    base = published(tmp_path / "a", none)
+    corr = published(tmp_path / "b", replace(none, pass_correlation=0.05))
+    np.testing.assert_array_equal(corr.lat, base.lat)
+    g = float(base.n_passes[0])
+    assert g == 8
+    np.testing.assert_allclose(corr.cov, base.cov * (1 + 0.05 * g), rtol=1e-9)
+
+
+def test_a_bad_pass_correlation_or_systematic_sigma_is_refused_naming_the_field():
+    with pytest.raises(ConfigError, match=r"solver\.pass_correlation"):
+        SolverConfig(pass_correlation=-0.01)
+    with pytest.raises(ConfigError, match=r"solver\.pass_correlation"):
+        from_mapping(SolverConfig, {"pass_correlation": float("inf")}, "solver")
+    with pytest.raises(ConfigError, match=r"solver\.systematic_sigma_m"):
+        SolverConfig(systematic_sigma_m=(0.1, -0.1, 0.1))
