@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetsim.evaluation.fleet_scoring import SignRecord
-from hdmap.mapping.map_floor import coverage_floor, pass_correlation
+from hdmap.mapping.map_floor import coverage_floor, horizontal_block, pass_correlation
 
 FLOOR_FILE = Path(__file__).resolve().parents[1] / "data" / "map_floor.json"
 """Per noise name: the measured floor in both forms and its provenance."""
@@ -56,10 +56,6 @@ class AppliedFloor:
         return {"kappa": self.kappa, "sigma_m": list(self.sigma_m), "source": self.source}
 
 
-def _en(c6: np.ndarray) -> np.ndarray:
-    return np.stack([np.stack([c6[:, 0], c6[:, 1]], -1), np.stack([c6[:, 1], c6[:, 3]], -1)], -2)
-
-
 def measured_floor(
     rec: SignRecord, applied: AppliedFloor, min_passes: int = CONTROL_MIN_PASSES
 ) -> dict | None:
@@ -75,7 +71,7 @@ def measured_floor(
     c, e, g = rec.cov_enu[m], rec.err_enu[m], rec.n[m].astype(float)
     s0 = np.asarray(applied.sigma_m, float)
     shared = applied.shared_enu_m2[:2, :2]
-    pub_h = _en(c)
+    pub_h = horizontal_block(c)
     between = (pub_h - shared - np.diag(s0[:2] ** 2)) / (1.0 + applied.kappa * g)[:, None, None]
     w, v = np.linalg.eigh(between)
     between = (v * np.maximum(w, 1e-12)[..., None, :]) @ np.swapaxes(v, -1, -2)

@@ -30,6 +30,7 @@ from hdmap.geo.signs import CATALOG, UnknownSignClass
 from hdmap.geo.tiles import neighbours, quadkeys_of
 from hdmap.mapping.map_floor import (
     coverage_floor,
+    horizontal_block,
     pair_controls,
     pass_correlation,
     without_floor,
@@ -116,7 +117,7 @@ def floor_from_map(lms, ctl: np.ndarray, ctl_class: np.ndarray, args, solver: So
     c6 = np.asarray(lms.cov, float)[li]
     g = passes[li].astype(float)
     s0 = np.asarray(solver.systematic_sigma_m, float)
-    pub_h = np.stack([np.stack([c6[:, 0], c6[:, 1]], -1), np.stack([c6[:, 1], c6[:, 3]], -1)], -2)
+    pub_h = horizontal_block(c6)
     shared = solver.shared_floor()[:2, :2]
     design = (1.0 + solver.pass_correlation * g)[:, None, None]
     between = without_floor(pub_h - shared, float(s0[0])) / design

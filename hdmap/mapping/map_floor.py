@@ -83,6 +83,12 @@ class FloorFit:
         }
 
 
+def horizontal_block(cov6: Array) -> Array:
+    """(n, 6) ENU covariances as on the wire (ee en eu nn nu uu) -> (n, 2, 2) East/North."""
+    c = np.asarray(cov6, float).reshape(-1, 6)
+    return np.stack([np.stack([c[:, 0], c[:, 1]], -1), np.stack([c[:, 1], c[:, 3]], -1)], -2)
+
+
 def mahalanobis2(err: Array, cov: Array) -> Array:
     """``e_i^T C_i^-1 e_i`` for (n, k) errors and (n, k, k) covariances."""
     return np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
