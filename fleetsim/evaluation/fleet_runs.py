@@ -196,7 +196,8 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
     if opts.calibrate_floor:
         if measured is None:
             raise SeedRunError(f"seed {seed}: too few signs to measure the map floor")
-        record_floor(cfg.noise().name, measured, result["meta"]["command"] + " --calibrate-floor")
+        command = result["meta"]["command"] + " --calibrate-floor"
+        record_floor(cfg.noise().name, measured, command, cfg.seed)
         print(f"fleet: map floor of {cfg.noise().name} written to {FLOOR_FILE}", file=sys.stderr)
     figures = write_fleet_figures(result, state.world, final, out)
     result["meta"]["figures"] = [f.name for f in figures]

@@ -25,7 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from fleetsim.evaluation.fleet_scoring import SignRecord
-from hdmap.mapping.map_floor import coverage_floor, horizontal_block, pass_correlation
+from hdmap.mapping.map_floor import (
+    coverage_floor,
+    horizontal_block,
+    pass_correlation,
+    quantile_interval,
+)
 
 FLOOR_FILE = Path(__file__).resolve().parents[1] / "data" / "map_floor.json"
 """Per noise name: the measured floor in both forms and its provenance."""
@@ -109,9 +114,29 @@ def applied_floor(noise_name: str, form: str, shared_enu_m2: np.ndarray, default
     return AppliedFloor(0.0, (h, h, v), shared_enu_m2, f"{where}: isotropic")
 
 
-def record_floor(noise_name: str, measured: dict, command: str, path: Path = FLOOR_FILE) -> None:
-    """Write ``measured`` (:func:`measured_floor`) for ``noise_name`` into ``path``, with the
-    command of the run it came from."""
+PARAMETERS = {"horizontal": "sigma_m", "vertical": "sigma_m", "pass_correlation": "kappa"}
+"""The forms a measurement holds and the name of each one's parameter."""
+
+
+def record_floor(
+    noise_name: str, measured: dict, command: str, seed: int, path: Path = FLOOR_FILE
+) -> dict:
+    """Add ``measured`` (:func:`measured_floor`) of ``seed``'s run to ``noise_name``'s
+    entry in ``path`` (replacing an earlier run of that seed) and pool every run's
+    controls: each form's value is the conformal quantile of the union of their least
+    values (:func:`hdmap.mapping.map_floor.quantile_interval`), with its interval. Several
+    held-out seeds give a floor less tied to one town's and one fleet's draw. Returns the
+    entry."""
     data = json.loads(path.read_text()) if path.exists() else {}
-    data[noise_name] = {**measured, "command": command}
+    runs = data.get(noise_name, {}).get("runs", {})
+    runs[str(seed)] = {**measured, "command": command}
+    entry: dict = {"seeds": sorted(int(k) for k in runs), "runs": runs}
+    for form, param in PARAMETERS.items():
+        least = np.concatenate([np.asarray(r[form]["least"], float) for r in runs.values()])
+        level, conf = measured[form]["level"], measured[form]["confidence"]
+        value, lo, hi = quantile_interval(least, level, conf)
+        entry[form] = {param: value, "interval": [lo, hi], "controls": int(least.size),
+                       "level": level, "confidence": conf}  # fmt: skip
+    data[noise_name] = entry
     path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    return entry

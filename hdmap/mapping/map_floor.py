@@ -70,11 +70,15 @@ class FloorFit:
     """Share of the controls inside their regions as published."""
     inside_after: float
     """The same with the measured floor in place of the published one."""
+    least: tuple[float, ...] = ()
+    """Per control, the least value that takes it inside (what several sets of controls
+    pool: :func:`quantile_interval` of their union)."""
 
     def as_dict(self) -> dict:
         return {
             self.parameter: self.value,
             "interval": list(self.interval),
+            "least": list(self.least),
             "controls": self.controls,
             "level": self.level,
             "confidence": self.confidence,
@@ -156,7 +160,8 @@ def _fit(
     confidence: float,
     to_value=lambda t: t,
 ) -> FloorFit:
-    t, lo, hi = quantile_interval(least_scales(err, own, shape, level), level, confidence)
+    least = least_scales(err, own, shape, level)
+    t, lo, hi = quantile_interval(least, level, confidence)
     q = chi2.ppf(level, err.shape[1])
     return FloorFit(
         parameter=parameter,
@@ -167,6 +172,7 @@ def _fit(
         confidence=confidence,
         inside_before=float(np.mean(mahalanobis2(err, published) <= q)),
         inside_after=float(np.mean(mahalanobis2(err, own + t * shape) <= q * (1 + 1e-9))),
+        least=tuple(float(x) for x in to_value(least)),
     )
 
 

@@ -209,7 +209,8 @@ def test_the_evaluation_measures_records_and_reads_its_floor(tmp_path):
     zero = np.zeros((3, 3))
     none = applied_floor("fleet", "isotropic", zero, (0.1, 0.1, 0.1), path)
     assert (none.kappa, none.sigma_m) == (0.0, (0.1, 0.1, 0.1))
-    record_floor("fleet", m, "hdmap eval fleet --seed 10", path)
+    entry = record_floor("fleet", m, "hdmap eval fleet --seed 10", 10, path)
+    assert entry["seeds"] == [10] and entry["horizontal"]["sigma_m"] == m["horizontal"]["sigma_m"]
     h, v = m["horizontal"]["sigma_m"], m["vertical"]["sigma_m"]
     iso = applied_floor("fleet", "isotropic", zero, (0.1, 0.1, 0.1), path)
     assert (iso.kappa, iso.sigma_m) == (0.0, (h, h, v))
@@ -219,3 +220,19 @@ def test_the_evaluation_measures_records_and_reads_its_floor(tmp_path):
     assert "pass_correlation = " in cor.solver_lines()[0]
     with pytest.raises(ValueError, match="one of"):
         applied_floor("fleet", "both", zero, (0.1,) * 3, path)
+    # a second held-out seed pools its controls with the first's; the same seed again
+    # replaces its own run
+    err2, cov2 = _controls(np.random.default_rng(6), k, 0.3, base=0.1)
+    cov6_2 = cov6.copy()
+    cov6_2[:, [0, 1, 3]] = cov2[:, [0, 0, 1], [0, 1, 1]]
+    rec2 = SignRecord(
+        n, found, np.hypot(*err2.T), np.zeros(k, bool), np.zeros(k, np.uint64),
+        err_enu=np.column_stack([err2, err_v]), cov_enu=cov6_2,
+    )  # fmt: skip
+    m2 = measured_floor(rec2, applied)
+    both = record_floor("fleet", m2, "hdmap eval fleet --seed 11", 11, path)
+    union = m["horizontal"]["least"] + m2["horizontal"]["least"]
+    assert both["seeds"] == [10, 11] and both["horizontal"]["controls"] == 198
+    assert both["horizontal"]["sigma_m"] == quantile_interval(np.array(union), 0.95)[0]
+    again = record_floor("fleet", m2, "hdmap eval fleet --seed 11", 11, path)
+    assert again["horizontal"] == both["horizontal"]
