@@ -355,4 +355,8 @@ def test_calibrate_map_measures_the_floor_of_a_live_map(quick, tmp_path):
     assert art["published_sigma_m"] == d["map_floor"]["applied"]["sigma_m"]
     assert art["published_pass_correlation"] == d["map_floor"]["applied"]["kappa"]
     assert art["horizontal"]["inside_after"] >= 0.95
-    assert "[solver]\nsystematic_sigma_m = [" in proc.stdout
+    k = art["pass_correlation"]
+    assert k["inside_after"] >= 0.95
+    assert f"pass_correlation = {k['kappa']:.4g}\n" in proc.stdout
+    s = ", ".join(f"{x:.4g}" for x in art["systematic_sigma_m"])
+    assert f"pass_correlation = 0\nsystematic_sigma_m = [{s}]" in proc.stdout
