@@ -25,12 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from fleetsim.evaluation.fleet_scoring import SignRecord
-from hdmap.mapping.map_floor import (
-    coverage_floor,
-    horizontal_block,
-    pass_correlation,
-    quantile_interval,
-)
+from hdmap.mapping.map_floor import MIN_CONTROLS, measure_forms, quantile_interval
 
 FLOOR_FILE = Path(__file__).resolve().parents[1] / "data" / "map_floor.json"
 """Per noise name: the measured floor in both forms and its provenance."""
@@ -65,39 +60,29 @@ def measured_floor(
     rec: SignRecord, applied: AppliedFloor, min_passes: int = CONTROL_MIN_PASSES
 ) -> dict | None:
     """The floor a round's map needs, from its paired signs with ``min_passes`` passes or
-    more: per-axis sigma horizontally (2D regions, ``horizontal``) and vertically (1D,
-    ``vertical``), and the horizontal pass correlation (``pass_correlation``), each with
-    the applied floor taken out first; None with fewer than 20 such signs."""
+    more (:func:`hdmap.mapping.map_floor.measure_forms`): per-axis sigma horizontally (2D
+    regions, ``horizontal``) and vertically (1D, ``vertical``), and the horizontal pass
+    correlation (``pass_correlation``), each with the applied floor taken out first; None
+    with fewer than ``MIN_CONTROLS`` such signs."""
     if rec.cov_enu is None or rec.err_enu is None:
         return None
     m = rec.found & (rec.n >= min_passes) & np.all(np.isfinite(rec.cov_enu), axis=1)
-    if int(m.sum()) < 20:
+    if int(m.sum()) < MIN_CONTROLS:
         return None
-    c, e, g = rec.cov_enu[m], rec.err_enu[m], rec.n[m].astype(float)
-    s0 = np.asarray(applied.sigma_m, float)
-    shared = applied.shared_enu_m2[:2, :2]
-    pub_h = horizontal_block(c)
-    between = (pub_h - shared - np.diag(s0[:2] ** 2)) / (1.0 + applied.kappa * g)[:, None, None]
-    w, v = np.linalg.eigh(between)
-    between = (v * np.maximum(w, 1e-12)[..., None, :]) @ np.swapaxes(v, -1, -2)
-    # each form alone (the solver gets one of them): its fit starts from neither
-    h = coverage_floor(e[:, :2], between + shared, published=pub_h)
-    su = applied.shared_enu_m2[2, 2]
-    v_between = np.maximum(c[:, 5] - su - s0[2] ** 2, 1e-12) / (1.0 + applied.kappa * g)
-    vert = coverage_floor(
-        e[:, 2:3], (v_between + su).reshape(-1, 1, 1), published=c[:, 5].reshape(-1, 1, 1)
-    )
-    k = pass_correlation(e[:, :2], between, g, pub_h, other=shared)
-    return {
-        "min_passes": min_passes,
-        "horizontal": h.as_dict(),
-        "vertical": vert.as_dict(),
-        "pass_correlation": k.as_dict(),
-    }
+    fits = measure_forms(
+        rec.err_enu[m], rec.cov_enu[m], rec.n[m], applied.kappa, applied.sigma_m,
+        applied.shared_enu_m2,
+    )  # fmt: skip
+    return {"min_passes": min_passes, **{form: f.as_dict() for form, f in fits.items()}}
 
 
-def applied_floor(noise_name: str, form: str, shared_enu_m2: np.ndarray, default_sigma_m,
-                  path: Path = FLOOR_FILE) -> AppliedFloor:  # fmt: skip
+def applied_floor(
+    noise_name: str,
+    form: str,
+    shared_enu_m2: np.ndarray,
+    default_sigma_m: tuple[float, float, float],
+    path: Path = FLOOR_FILE,
+) -> AppliedFloor:
     """What the evaluation gives the solver for ``form`` (:data:`FORMS`): the measured
     correlation (no per-axis sigma), the measured per-axis sigma (no correlation), or,
     with ``none`` or nothing measured for ``noise_name``, the solver's defaults."""

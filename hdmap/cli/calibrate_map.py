@@ -28,13 +28,7 @@ from hdmap.cli.common import add_bus_arguments, bus_from_args
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.signs import CATALOG, UnknownSignClass
 from hdmap.geo.tiles import neighbours, quadkeys_of
-from hdmap.mapping.map_floor import (
-    coverage_floor,
-    horizontal_block,
-    pair_controls,
-    pass_correlation,
-    without_floor,
-)
+from hdmap.mapping.map_floor import MIN_CONTROLS, measure_forms, pair_controls
 from hdmap.runtime.bus import open_session
 from hdmap.runtime.config import ConfigError, from_mapping, load_toml
 from services.solver.service import SolverConfig
@@ -108,22 +102,16 @@ def floor_from_map(lms, ctl: np.ndarray, ctl_class: np.ndarray, args, solver: So
         l_xyz, lms.sign_class.astype(np.int64), passes, c_xyz, ctl_class, args.match_m,
         args.min_passes,
     )  # fmt: skip
-    if ci.size < 20:
+    if ci.size < MIN_CONTROLS:
         raise ValueError(
             f"{ci.size} control(s) paired with a landmark of {args.min_passes}+ passes "
-            f"within {args.match_m} m: at least 20 are needed"
+            f"within {args.match_m} m: at least {MIN_CONTROLS} are needed"
         )
-    err = l_xyz[li] - c_xyz[ci]
-    c6 = np.asarray(lms.cov, float)[li]
-    g = passes[li].astype(float)
-    s0 = np.asarray(solver.systematic_sigma_m, float)
-    pub_h = horizontal_block(c6)
-    shared = solver.shared_floor()[:2, :2]
-    design = (1.0 + solver.pass_correlation * g)[:, None, None]
-    between = without_floor(pub_h - shared, float(s0[0])) / design
-    h = coverage_floor(err[:, :2], between + shared, published=pub_h)  # no correlation
-    v = coverage_floor(err[:, 2:3], c6[:, 5].reshape(-1, 1, 1), base_sigma_m=float(s0[2]))
-    k = pass_correlation(err[:, :2], between, g, pub_h, other=shared)
+    fits = measure_forms(
+        l_xyz[li] - c_xyz[ci], np.asarray(lms.cov, float)[li], passes[li],
+        solver.pass_correlation, solver.systematic_sigma_m, solver.shared_floor(),
+    )  # fmt: skip
+    h, v, k = fits["horizontal"], fits["vertical"], fits["pass_correlation"]
     return {
         "controls": len(ctl),
         "paired": int(ci.size),

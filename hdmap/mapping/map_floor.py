@@ -7,8 +7,10 @@ landmark shares stays: a neighbour's rays the matcher gave it, the bias of the p
 weights (a nonlinear function of each pass's own noisy sums), geometry every car repeats
 (the same lanes, the same curves). Past a few hundred passes that is most of the error, and
 a covariance without it claims a 95 % region that holds 84-89 % of the signs (issue #18).
-It is added to the published covariance as ``s^2 I`` per axis
-(``SolverConfig.systematic_sigma_m``) and measured here, not typed in.
+It reaches the published covariance as ``s^2 I`` per axis
+(``SolverConfig.systematic_sigma_m``) or as a pass correlation
+(``SolverConfig.pass_correlation``, :func:`pass_correlation`), and is measured here (both
+forms from the same controls: :func:`measure_forms`), not typed in.
 
 Given ``n`` control landmarks (a landmark paired with a surveyed sign), their errors
 ``e_i`` (``k`` axes: East and North, or Up) and the covariances ``C_i`` they were
@@ -51,6 +53,10 @@ from numpy.typing import NDArray
 from scipy.stats import binom, chi2
 
 Array = NDArray[np.float64]
+
+MIN_CONTROLS = 20
+"""Fewest paired controls a floor is measured from: with fewer, the conformal rank of a
+0.95 quantile is the largest value (``ceil(0.95 (n + 1)) >= n`` for ``n <= 19``)."""
 
 
 @dataclass(frozen=True)
@@ -225,6 +231,43 @@ def pass_correlation(
     own = between + (0.0 if other is None else np.asarray(other, float))
     shape = np.asarray(passes, float)[:, None, None] * between
     return _fit("kappa", err, np.asarray(published, float), own, shape, level, confidence)
+
+
+def measure_forms(
+    err: Array,
+    cov6: Array,
+    passes: NDArray[np.int64],
+    kappa0: float,
+    sigma0_m: Array,
+    shared_m2: Array,
+    level: float = 0.95,
+    confidence: float = 0.95,
+) -> dict[str, FloorFit]:
+    """Both forms of the floor from controls whose covariances (``cov6``, (n, 6) ENU as on
+    the wire) were published with a pass correlation ``kappa0``, a per-axis sigma
+    ``sigma0_m`` (E, N, U; East and North equal) and a shared GNSS floor ``shared_m2``
+    (3, 3): each published floor taken out first, each form measured alone (the solver is
+    given one of them), the shared floor kept. ``horizontal`` and ``vertical``: the
+    per-axis sigma (2D and 1D regions); ``pass_correlation``: kappa, horizontal."""
+    err, g = np.asarray(err, float), np.asarray(passes, float)
+    cov6 = np.asarray(cov6, float).reshape(-1, 6)
+    s0, shared = np.asarray(sigma0_m, float), np.asarray(shared_m2, float)
+    design = 1.0 + kappa0 * g
+    pub_h = horizontal_block(cov6)
+    between = without_floor(pub_h - shared[:2, :2], float(s0[0])) / design[:, None, None]
+    v_between = np.maximum(cov6[:, 5] - shared[2, 2] - s0[2] ** 2, 1e-12) / design
+    v_own = (v_between + shared[2, 2]).reshape(-1, 1, 1)
+    return {
+        "horizontal": coverage_floor(
+            err[:, :2], between + shared[:2, :2], level, confidence=confidence, published=pub_h
+        ),
+        "vertical": coverage_floor(
+            err[:, 2:3], v_own, level, confidence=confidence, published=cov6[:, 5].reshape(-1, 1, 1)
+        ),
+        "pass_correlation": pass_correlation(
+            err[:, :2], between, g, pub_h, shared[:2, :2], level, confidence
+        ),
+    }
 
 
 def pair_controls(
