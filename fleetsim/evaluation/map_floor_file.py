@@ -18,7 +18,9 @@ its own map would need (``fleet.json`` ``map_floor.measured``), in-sample, as a 
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -111,7 +113,15 @@ def record_floor(
     controls: each form's value is the conformal quantile of the union of their least
     values (:func:`hdmap.mapping.map_floor.quantile_interval`), with its interval. Several
     held-out seeds give a floor less tied to one town's and one fleet's draw. Returns the
-    entry."""
+    entry. Runs of several seeds at once (``--seeds 11,12 --jobs 2 --calibrate-floor``)
+    record one at a time: the read, pool and write hold an exclusive lock on
+    ``path.lock``, and the file is replaced whole (never read half-written)."""
+    with open(path.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return _record_locked(noise_name, measured, command, seed, path)
+
+
+def _record_locked(noise_name: str, measured: dict, command: str, seed: int, path: Path) -> dict:
     data = json.loads(path.read_text()) if path.exists() else {}
     runs = data.get(noise_name, {}).get("runs", {})
     runs[str(seed)] = {**measured, "command": command}
@@ -123,5 +133,7 @@ def record_floor(
         entry[form] = {param: value, "interval": [lo, hi], "controls": int(least.size),
                        "level": level, "confidence": conf}  # fmt: skip
     data[noise_name] = entry
-    path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, path)
     return entry

@@ -10,6 +10,10 @@ Bounds on counts over seeds are binomial quantiles at 0.1 %.
 
 from __future__ import annotations
 
+import json
+import multiprocessing
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.stats import binom, chi2
@@ -236,3 +240,33 @@ def test_the_evaluation_measures_records_and_reads_its_floor(tmp_path):
     assert both["horizontal"]["sigma_m"] == quantile_interval(np.array(union), 0.95)[0]
     again = record_floor("fleet", m2, "hdmap eval fleet --seed 11", 11, path)
     assert again["horizontal"] == both["horizontal"]
+
+
+def _record_seeds(path: str, seeds: list[int], measured: dict) -> None:
+    from fleetsim.evaluation.map_floor_file import record_floor
+
+    for s in seeds:
+        record_floor("fleet", measured, f"hdmap eval fleet --seed {s}", s, Path(path))
+
+
+def test_seeds_recorded_at_once_are_all_kept(tmp_path: Path) -> None:
+    """``--seeds 11,12 --jobs 2 --calibrate-floor`` records from two processes: each
+    record reads, pools and rewrites the file, so without the lock one process's seed
+    can be lost (read before the other's write). Two processes, 15 seeds each."""
+    least = np.linspace(0.05, 0.5, 40).tolist()
+    form = {"least": least, "level": 0.95, "confidence": 0.95}
+    measured = {"horizontal": form, "vertical": form, "pass_correlation": form}
+    path = tmp_path / "floor.json"
+    ctx = multiprocessing.get_context("fork")
+    procs = [
+        ctx.Process(target=_record_seeds, args=(str(path), list(range(k, 30, 2)), measured))
+        for k in (0, 1)
+    ]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=60)
+        assert p.exitcode == 0
+    data = json.loads(path.read_text())
+    assert data["fleet"]["seeds"] == list(range(30))
+    assert data["fleet"]["horizontal"]["controls"] == 30 * 40
