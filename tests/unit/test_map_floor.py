@@ -262,11 +262,17 @@ def test_seeds_recorded_at_once_are_all_kept(tmp_path: Path) -> None:
         ctx.Process(target=_record_seeds, args=(str(path), list(range(k, 30, 2)), measured))
         for k in (0, 1)
     ]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(timeout=60)
-        assert p.exitcode == 0
+    try:
+        for p in procs:
+            p.start()
+        for p in procs:
+            p.join(timeout=60)
+            assert p.exitcode == 0
+    finally:  # stopped also when one failed or hung
+        for p in procs:
+            if p.is_alive():
+                p.kill()
+                p.join(timeout=10)
     data = json.loads(path.read_text())
     assert data["fleet"]["seeds"] == list(range(30))
     assert data["fleet"]["horizontal"]["controls"] == 30 * 40
