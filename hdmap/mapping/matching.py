@@ -129,17 +129,6 @@ class MatchingConfig:
     group_chi2: float = 16.27
     """Largest chi-square (3 dof; 16.27 = 99.9 %) of a group's triangulation against its
     landmark."""
-    group_drop_tracked: bool = True
-    """Tracked rays the group check takes back are dropped (counted ``track_discarded``),
-    not pooled: their track chose that landmark as a whole, and pooled they start a young
-    landmark that is merged back, sometimes into another sign's.
-
-    Pitfall: the check is not calibrated for tracks. A track's box ranges share the
-    panel's size and its bearings the pass's heading, which the triangulation takes as
-    independent: at 1,200 passes (fleet evaluation, seed 0) it took back 9.7 % of the
-    tracks linked to their own sign's landmark and 17.6 % of those linked to another's.
-    Pooled, those rays made 13,101 landmarks for 233 signs, 12,061 merged back, 693 of the
-    merges joining two signs (docs/experiments/2026-12-group-check-tracks.md)."""
     group_min_rays: int = 2
     """Smallest group that is checked (one ray does not triangulate)."""
     sightings: SightingConfig = field(default_factory=SightingConfig)

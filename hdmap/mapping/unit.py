@@ -24,7 +24,7 @@ from hdmap.mapping.association import Association, LocalRays, associate, valid_t
 from hdmap.mapping.initiation import triangulate_groups
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import link, refresh, to_local
-from hdmap.mapping.matching import Matching, MatchingConfig
+from hdmap.mapping.matching import Matching
 from hdmap.mapping.merge import facings_of, merge_touched
 from hdmap.mapping.pending import enforce_budget, initiate
 from hdmap.mapping.probation import settle
@@ -67,16 +67,17 @@ def _associate(
     applied: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rays to candidate landmarks: the landmark index of each ray (-1: none) and the rays
-    to drop (of a track that went to a landmark without them, or whose group the group
-    check took back). The vehicle's trust record takes the pass's gate result and offset,
-    and may settle."""
+    to drop (of a track that went to a landmark without them). The vehicle's trust record
+    takes the pass's gate result and offset, and may settle."""
     x = frame.from_ecef(np.array([c.x for c in cands]))
     cov = np.array([c.cov for c in cands])
     cls = np.array([c.cls for c in cands], np.int64)
     res: Association = associate(rays, x, cov, cls, m.config.gate, facings_of(m, cands))
     matched = group_check(m, rays, res, x, cov)
-    drop = discarded(res, matched, rays.tracks, m.config)
-    m.tally("track_discarded", int(drop.sum()))
+    drop = np.zeros(len(rays), bool)
+    if res.unlinked is not None and m.config.track_drop_unlinked:
+        drop = res.unlinked & (matched < 0)
+        m.tally("track_discarded", int(drop.sum()))
     n_hit = int((matched >= 0).sum())
     trust.add_gate(int(np.isin(rays.sign_class, cls).sum()), n_hit)
     if n_hit >= m.config.gate.min_offset_rays:
@@ -89,27 +90,6 @@ def _associate(
         out = np.array([c.id in gone for c in cands])
         matched = np.where((matched >= 0) & out[np.maximum(matched, 0)], -1, matched)
     return matched, drop
-
-
-def discarded(
-    res: Association, matched: np.ndarray, tracks: np.ndarray, cfg: MatchingConfig
-) -> np.ndarray:
-    """The rays a unit drops rather than pools: a track's rays outside the gate of the
-    landmark it went to (``track_drop_unlinked``) and tracked rays the group check took
-    back (``group_drop_tracked``). Untracked rays taken back wait in the pool.
-
-    >>> res = Association(np.array([0, 0, 1, -1]), np.zeros(4), np.zeros(3), np.eye(3),
-    ...                   unlinked=np.array([False, False, False, True]))
-    >>> discarded(res, np.array([-1, -1, 1, -1]), np.array([5, 0, 6, 6]),
-    ...           MatchingConfig()).tolist()
-    [True, False, False, True]
-    """
-    drop = np.zeros(matched.shape, bool)
-    if res.unlinked is not None and cfg.track_drop_unlinked:
-        drop = res.unlinked & (matched < 0)
-    if cfg.group_drop_tracked:
-        drop |= (res.landmark >= 0) & (matched < 0) & (tracks > 0)
-    return drop
 
 
 def match_unit(
