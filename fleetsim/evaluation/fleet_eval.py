@@ -383,7 +383,25 @@ def run_fleet_eval(
     }
     if result["targets_at_50_passes"]["evaluated"]:
         result["targets_at_50_passes"].update(assoc_shares(state, linked))
+    write_truth(state, run_dir / "truth.npz")
     return result, state, lms[-1]
+
+
+def write_truth(state: EvalState, path: Path) -> None:
+    """The run's truth per uploaded observation, for replays of its logs against it
+    (``services.matcher.replay``): ``vehicle``, ``obs_id`` (the pair names an observation
+    in the ingest log) and ``sign_id`` (the true sign's id; -1 a false positive)."""
+    ids = state.world.signs.id
+    vehicle = [np.full(t.obs_id.size, t.vehicle) for t in state.truth]
+    rows = np.concatenate([t.value for t in state.truth]) if state.truth else np.zeros(0, int)
+    np.savez_compressed(
+        path,
+        vehicle=np.concatenate(vehicle) if vehicle else np.zeros(0, str),
+        obs_id=np.concatenate([t.obs_id for t in state.truth]).astype(np.uint64)
+        if state.truth
+        else np.zeros(0, np.uint64),
+        sign_id=np.where(rows >= 0, ids[np.maximum(rows, 0)], -1).astype(np.int64),
+    )
 
 
 def _remember(state: EvalState, driver: FleetDriver, p) -> None:

@@ -117,6 +117,17 @@ def test_quick_run_sign_table_agrees_with_the_final_round(quick):
     assert linked == d["observations"]["of_true_signs"]
 
 
+def test_quick_run_writes_the_truth_of_every_uploaded_observation(quick):
+    out, d, _ = quick
+    t = np.load(out / "run" / "truth.npz")
+    assert t["obs_id"].size == t["vehicle"].size == d["observations"]["uploaded"]
+    assert int((t["sign_id"] >= 0).sum()) == d["observations"]["of_true_signs"]
+    key = np.char.add(t["vehicle"].astype(str), np.char.mod("/%d", t["obs_id"]))
+    assert np.unique(key).size == key.size  # (vehicle, obs_id) names one observation
+    signs = {s["sign"] for s in d["signs"]}
+    assert set(np.unique(t["sign_id"][t["sign_id"] >= 0]).tolist()) <= signs
+
+
 def test_quick_run_counts_add_up_and_the_map_is_sane(quick):
     _, d, _ = quick
     s = d["services"]
