@@ -391,16 +391,13 @@ def write_truth(state: EvalState, path: Path) -> None:
     """The run's truth per uploaded observation, for replays of its logs against it
     (``services.matcher.replay``): ``vehicle``, ``obs_id`` (the pair names an observation
     in the ingest log) and ``sign_id`` (the true sign's id; -1 a false positive)."""
-    ids = state.world.signs.id
-    vehicle = [np.full(t.obs_id.size, t.vehicle) for t in state.truth]
-    rows = np.concatenate([t.value for t in state.truth]) if state.truth else np.zeros(0, int)
+    parts = state.truth or [ObsKeys("", np.zeros(0, np.uint64), np.zeros(0, np.int64))]
+    rows = np.concatenate([t.value for t in parts])
     np.savez_compressed(
         path,
-        vehicle=np.concatenate(vehicle) if vehicle else np.zeros(0, str),
-        obs_id=np.concatenate([t.obs_id for t in state.truth]).astype(np.uint64)
-        if state.truth
-        else np.zeros(0, np.uint64),
-        sign_id=np.where(rows >= 0, ids[np.maximum(rows, 0)], -1).astype(np.int64),
+        vehicle=np.concatenate([np.full(t.obs_id.size, t.vehicle) for t in parts]),
+        obs_id=np.concatenate([t.obs_id for t in parts]).astype(np.uint64),
+        sign_id=np.where(rows >= 0, state.world.signs.id[np.maximum(rows, 0)], -1).astype(np.int64),
     )
 
 

@@ -27,13 +27,15 @@ shared by all rays of the pass, so one sign the pass sees well fixes it for all.
 Detections of one image never share a landmark: each image's assignment is a
 small linear assignment problem (:func:`hdmap.mapping.assignment.min_cost_assignment`) on chi2.
 
-Pitfall (capture, open): a unit that sees only one of two same-class signs 5-10 m apart
-gates it, under the wide origin covariance, to whichever of their landmarks exists, and the
-offset then moves the pass by up to 10 m to fit it; nothing weighs "an unmapped sign here"
-against a large offset, and a track's rays each count as evidence in the hypotheses' score
-(:func:`_fit_score`). The second sign never keeps a landmark: its young ones merge into the
-first (the fleet evaluation's seed 0 signs 99 and 167, 10.6 m apart, one landmark 1.5 m from
-99 holding 815 of 167's rays; docs/experiments/2026-12-track-refinement.md).
+Pitfall (signs on one line of sight, open): two same-class signs one behind the other
+(the fleet evaluation's seed 0 signs 99 and 167, 10.6 m apart) end as one landmark at the
+nearer sign holding the farther one's rays. The farther sign is only seen from 40-65 m;
+under an offset the unit's other landmarks fix to about 0.1 m, its rays and box ranges
+(about 20 % sigma) fit either landmark, per ray and per track alike, and its young
+landmarks merge into the nearer one (docs/experiments/2026-12-group-check-tracks.md).
+Nothing here weighs "a new sign behind" against a link; a test on one track, the track's
+own triangulation against "an unmapped sign here", did not separate right links from
+wrong ones.
 
 >>> import numpy as np
 >>> angles(np.array([[1.0, 1.0, 0.0]]))[0].round(4).tolist()
