@@ -82,11 +82,18 @@ def in_view(
     [True, False, False, False]
     """
     k = len(x)
+    out = np.zeros(k, bool)
     if k == 0 or len(origin) == 0:
-        return np.zeros(k, bool)
+        return out
+    lo, hi = cfg.range_m
+    # only landmarks within ``hi`` of the origins' bounding box can be in range (exact)
+    box_lo, box_hi = origin[:, :2].min(axis=0) - hi, origin[:, :2].max(axis=0) + hi
+    near = np.flatnonzero(np.all((x[:, :2] >= box_lo) & (x[:, :2] <= box_hi), axis=1))
+    if near.size == 0:
+        return out
+    x, facing_az, facing_known = x[near], facing_az[near], facing_known[near]
     v = x[None, :, :2] - origin[:, None, :2]  # (n, k, 2) camera -> landmark
     dist = np.linalg.norm(v, axis=2)
-    lo, hi = cfg.range_m
     ok = (dist >= lo) & (dist <= hi)
     dh = direction[:, :2] / np.maximum(
         np.linalg.norm(direction[:, :2], axis=1, keepdims=True), 1e-12
@@ -97,7 +104,8 @@ def in_view(
     cam_az = np.arctan2(-v[..., 0], -v[..., 1])
     off = np.abs((cam_az - facing_az[None, :] + np.pi) % (2 * np.pi) - np.pi)
     ok &= ~facing_known[None, :] | (off <= math.radians(cfg.max_view_deg))
-    return ok.any(axis=0)
+    out[near] = ok.any(axis=0)
+    return out
 
 
 def share_upper_bound(seen: int, n: int, confidence: float) -> float:

@@ -143,9 +143,12 @@ def count_sightings(
     cfg = m.config.sightings
     seen = np.zeros(len(cands), bool)
     seen[matched[matched >= 0]] = True
-    x = frame.from_ecef(np.array([c.x for c in cands]))
-    fac = facings_of(m, cands)
-    view = seen | in_view(rays.origin, rays.direction, x, fac.azimuth, fac.known, cfg)
+    view = seen.copy()
+    rest = np.flatnonzero(~seen)  # a landmark the unit linked rays to is in view
+    if rest.size:
+        x = frame.from_ecef(np.array([cands[k].x for k in rest]))
+        fac = facings_of(m, [cands[k] for k in rest])
+        view[rest] = in_view(rays.origin, rays.direction, x, fac.azimuth, fac.known, cfg)
     gone: set[int] = set()
     for k in np.flatnonzero(view):
         lm = cands[k]
