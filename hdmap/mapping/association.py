@@ -187,11 +187,16 @@ class _Pairs:
     direction: Array
     x: Array
     cov: Array
+    measured: Array
+    """(k, 2) the rays' measured azimuth and elevation."""
 
     @staticmethod
     def of(rays: LocalRays, ri: IntArray, x: Array, cov: Array) -> _Pairs:
         """Pairs of rays ``ri`` with landmarks at ``x`` (one per pair) and covariances."""
-        return _Pairs(ri, rays.origin[ri], rays.direction[ri], x, cov)
+        az, el = angles(rays.direction)
+        return _Pairs(
+            ri, rays.origin[ri], rays.direction[ri], x, cov, np.stack([az, el], axis=-1)[ri]
+        )
 
 
 def _pair_stat(
@@ -221,7 +226,7 @@ def _pair_stat(
     k, rk, vk, dk, c = k[good], rk[good], vk[good], dk[good], c[good]
     rng_k, r_est, has_r, s_r = rng_k[good], r_est[good], has_r[good], s_r[good]
     az, el = angles(vk)
-    az_m, el_m = angles(dk)
+    az_m, el_m = p.measured[k, 0], p.measured[k, 1]
     res = np.stack([wrap(az - az_m), el - el_m], axis=-1)
     j = angle_jacobian(vk)
     s = j @ c @ j.transpose(0, 2, 1)
