@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from hdmap.mapping.pair_counts import PairCounts
 from hdmap.mapping.trust import SeenIndex, VehicleTrust
 from schemas.ids import landmark_id, pass_key
 
@@ -40,11 +41,6 @@ class ObsRows(Protocol):
 
     @classmethod
     def concat(cls, parts: list[Any]) -> Any: ...
-
-
-def _pair(a: int, b: int) -> tuple[int, int]:
-    """Key of an unordered pair of landmark ids."""
-    return (a, b) if a < b else (b, a)
 
 
 @dataclass
@@ -190,11 +186,12 @@ class LandmarkTable:
         self._pending_dirty: set[str] = set()
         self._removed_pending: list[tuple[str, int]] = []
         """(vehicle, obs id) of pending rays taken out since the last save."""
-        self.covis: dict[tuple[int, int], int] = {}
-        """Images in which two landmarks of one class were both detected (a < b): then
-        they are two signs, whatever their estimates say."""
-        self._covis_of: dict[int, set[int]] = defaultdict(set)
-        self._covis_dirty: set[tuple[int, int]] = set()
+        self.covis_pairs = PairCounts()
+        """Images in which two landmarks of one class were both detected: then they are two
+        signs, whatever their estimates say."""
+        self.copass = PairCounts()
+        """Upload units that linked rays to both of two landmarks of one class: with no image
+        holding both, one sign (:func:`hdmap.mapping.merge.merge_partner`)."""
         self._deleted: set[int] = set()
         self._indexed: dict[int, str] = {}
         """The tile each landmark is filed under in ``by_tile``."""
@@ -225,46 +222,44 @@ class LandmarkTable:
         self.by_tile[lm.tile].add(lm.id)
         self._dirty.add(lm.id)
 
+    @property
+    def covis(self) -> dict[tuple[int, int], int]:
+        """Co-visibility counts by pair (``a < b``)."""
+        return self.covis_pairs.counts
+
     def add_covis(self, a: int, b: int, n: int = 1) -> None:
         """Landmarks ``a`` and ``b`` were detected together in ``n`` more images."""
-        k = _pair(a, b)
-        self.covis[k] = self.covis.get(k, 0) + n
-        self._covis_of[a].add(b)
-        self._covis_of[b].add(a)
-        self._covis_dirty.add(k)
+        self.covis_pairs.add(a, b, n)
 
     def covis_count(self, a: int, b: int) -> int:
         """Images in which landmarks ``a`` and ``b`` were both detected."""
-        return self.covis.get(_pair(a, b), 0)
+        return self.covis_pairs.get(a, b)
 
     def merge(self, keep: Landmark, drop: Landmark) -> None:
-        """``drop`` becomes part of ``keep``: its view and co-visibility counts move over,
-        its record is deleted (the caller merges the sums rows)."""
+        """``drop`` becomes part of ``keep``: its view, co-visibility and co-pass counts move
+        over, its record is deleted (the caller merges the sums rows)."""
         keep.view = keep.view + drop.view
         keep.in_view, keep.seen = keep.in_view + drop.in_view, keep.seen + drop.seen
-        for other, n in self._unlist(drop).items():
-            if other != keep.id:
-                self.add_covis(keep.id, other, n)
+        for counts in (self.covis_pairs, self.copass):
+            for other, n in counts.pop(drop.id).items():
+                if other != keep.id:
+                    counts.add(keep.id, other, n)
+        self._unlist(drop)
         self.put(keep)
 
     def remove(self, lm: Landmark) -> None:
-        """``lm`` ends without a successor (every ray it had was taken out)."""
+        """``lm`` ends without a successor (every ray it had was taken out): its record and
+        pair counts are deleted."""
+        self.covis_pairs.pop(lm.id)
+        self.copass.pop(lm.id)
         self._unlist(lm)
 
-    def _unlist(self, lm: Landmark) -> dict[int, int]:
-        """Delete ``lm``'s record; returns its co-visibility counts (other id -> images),
-        which are deleted with it."""
-        covis = {}
-        for other in sorted(self._covis_of.pop(lm.id, set())):
-            k = _pair(lm.id, other)
-            covis[other] = self.covis.pop(k)
-            self._covis_dirty.add(k)
-            self._covis_of[other].discard(lm.id)
+    def _unlist(self, lm: Landmark) -> None:
+        """Delete ``lm``'s record."""
         self.landmarks.pop(lm.id)
         self.by_tile[self._indexed.pop(lm.id)].discard(lm.id)
         self._dirty.discard(lm.id)
         self._deleted.add(lm.id)
-        return covis
 
     def near(self, tiles: list[str]) -> list[Landmark]:
         """The landmarks filed under ``tiles``, by id."""
@@ -370,7 +365,8 @@ class LandmarkTable:
 
     def clear_marks(self) -> None:
         """Forget what changed (after a save or a load)."""
-        self._covis_dirty.clear()
+        self.covis_pairs.clear_marks()
+        self.copass.clear_marks()
         self._deleted.clear()
         self._trust_dirty.clear()
         self._trust_gone.clear()

@@ -103,13 +103,19 @@ def link(
 
 
 def note_views(m: Matching, obs: Any, lms: list[Landmark]) -> None:
-    """Viewing directions, and same-class landmarks detected in one image (all rays
-    here are of one vehicle pass)."""
+    """Viewing directions, same-class landmarks linked together (co-passes: all rays here
+    are of one vehicle pass) and detected in one image (co-visibility)."""
     first, view, _n = summed_views(np.array([lm.id for lm in lms], np.uint64), obs.direction)
     for j, k in enumerate(first.tolist()):
         lms[k].view = lms[k].view + view[j]
     if first.size < 2:
         return
+    linked = sorted((lms[k].cls, lms[k].id) for k in first.tolist())
+    for i, (ca, a) in enumerate(linked):
+        for cb, b in linked[i + 1 :]:
+            if ca != cb:
+                break
+            m.state.copass.add(a, b)
     img = obs.image.astype(np.int64)
     u, cnt = np.unique(img, return_counts=True)
     for im in u[cnt > 1].tolist():

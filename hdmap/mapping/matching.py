@@ -153,6 +153,20 @@ class MatchingConfig:
     landmarks 0.1 m apart, at 0.13) and stays below the lowest share of two signs."""
     merge_min_view_cos: float = 0.5
     """Smallest cosine between the two landmarks' mean viewing directions."""
+    merge_copy_units: int = 10
+    """Copies (0: off): two landmarks of one class at most ``merge_copy_max_m`` apart that
+    this many upload units linked rays to both, at least ``merge_copy_share`` of the
+    smaller one's passes, seen from directions at most ``merge_copy_max_deg`` apart, and
+    detected in one image in at most ``merge_copy_max_covis`` of the smaller one's rays,
+    are one sign whatever their estimates say: the passes that see one see the other, and
+    never both at once. Over the four seeds at 1,200 passes every pair of distinct signs
+    within 16 m that is (almost) never in one image faces 78-178 degrees away from the
+    other (corners, back to back); a copy made of a sign's own rays 3-12 m off its
+    landmark faces the same way (docs/experiments/2026-12-unpaired-landmark-kinds.md)."""
+    merge_copy_share: float = 0.3
+    merge_copy_max_m: float = 15.0
+    merge_copy_max_deg: float = 45.0
+    merge_copy_max_covis: float = 0.03
     merge_min_passes: int = 2
     """Both landmarks need this many passes (a one-pass estimate carries its pass's whole
     bias). With onboard tracks, co-visibility tells two signs apart reliably, so two passes

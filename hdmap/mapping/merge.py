@@ -81,7 +81,42 @@ def merge_partner(m: Matching, lm: Landmark) -> Landmark | None:
         if _seen_together(m, lm, o) or not _same_side(m, lm, o):
             continue
         return o
-    return None
+    return _copy_of(m, lm, cands, np.hypot(d[:, 0], d[:, 1]))
+
+
+def _copy_of(m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray) -> Landmark | None:
+    """The candidate ``lm`` is a copy of (or that is a copy of ``lm``), by co-passes and
+    co-visibility rather than by the estimates (``MatchingConfig.merge_copy_units``): the
+    one most units linked together with it."""
+    cfg = m.config
+    if cfg.merge_copy_units <= 0:
+        return None
+    near = np.flatnonzero(dist <= cfg.merge_copy_max_m).tolist()
+    both = [(m.state.copass.get(lm.id, cands[k].id), k) for k in near]
+    both = [(n, k) for n, k in both if n >= cfg.merge_copy_units]
+    if not both:
+        return None
+    rows = [lm.row] + [cands[k].row for _n, k in both]
+    passes, rays = m.sums.n_passes(rows), m.sums.n_obs(rows)
+    f = facings_of(m, [lm] + [cands[k] for _n, k in both])
+    best = None
+    for j, (n, k) in enumerate(both, start=1):
+        o = cands[k]
+        few = int(min(passes[0], passes[j]))
+        if n < cfg.merge_copy_share * few or not (f.known[0] and f.known[j]):
+            continue
+        apart = abs((float(f.azimuth[0] - f.azimuth[j]) + np.pi) % (2 * np.pi) - np.pi)
+        if np.degrees(apart) > cfg.merge_copy_max_deg:
+            continue
+        fewest = max(int(min(rays[0], rays[j])), 1)
+        if m.state.covis_count(lm.id, o.id) > cfg.merge_copy_max_covis * fewest:
+            continue
+        if best is None or n > best[0]:
+            best = (n, o)
+    if best is None:
+        return None
+    m.tally("merged_copies", 1)
+    return best[1]
 
 
 def _seen_together(m: Matching, a: Landmark, b: Landmark) -> bool:

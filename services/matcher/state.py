@@ -50,6 +50,8 @@ CREATE TABLE IF NOT EXISTS sightings (
     id INTEGER PRIMARY KEY, in_view INTEGER NOT NULL, seen INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS copass (
+    a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS pass_budget (
     vehicle TEXT NOT NULL, pass_id INTEGER NOT NULL, evicted INTEGER NOT NULL,
@@ -118,19 +120,20 @@ class MatcherState(LandmarkTable):
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
         c.executemany("DELETE FROM sightings WHERE id=?", gone)
-        pairs = sorted(self._covis_dirty)
-        c.executemany(
-            "DELETE FROM covis WHERE a=? AND b=?",
-            [(id_to_sql(a), id_to_sql(b)) for a, b in pairs if (a, b) not in self.covis],
-        )
-        c.executemany(
-            "INSERT OR REPLACE INTO covis(a, b, n) VALUES (?,?,?)",
-            [
-                (id_to_sql(a), id_to_sql(b), self.covis[(a, b)])
-                for a, b in pairs
-                if (a, b) in self.covis
-            ],
-        )
+        for table, counts in (("covis", self.covis_pairs), ("copass", self.copass)):
+            pairs = sorted(counts.dirty)
+            c.executemany(
+                f"DELETE FROM {table} WHERE a=? AND b=?",
+                [(id_to_sql(a), id_to_sql(b)) for a, b in pairs if (a, b) not in counts.counts],
+            )
+            c.executemany(
+                f"INSERT OR REPLACE INTO {table}(a, b, n) VALUES (?,?,?)",
+                [
+                    (id_to_sql(a), id_to_sql(b), counts.counts[(a, b)])
+                    for a, b in pairs
+                    if (a, b) in counts.counts
+                ],
+            )
         removed = self._removed_pending
         sql_ids = u64_to_i64(np.array([i for _v, i in removed], np.uint64)).tolist()
         c.executemany(
@@ -212,8 +215,8 @@ class MatcherState(LandmarkTable):
         self.by_tile.clear()
         self._indexed.clear()
         self.pending.clear()
-        self.covis.clear()
-        self._covis_of.clear()
+        self.covis_pairs.clear()
+        self.copass.clear()
         self.clear_marks()
         self.passes = {
             pass_key(v, int(pid)): PassBudget(v, int(pid), int(ev), int(f), q, float(at))
@@ -275,8 +278,9 @@ class MatcherState(LandmarkTable):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.in_view, lm.seen = int(n_in), int(n_seen)
-        for a, b, n in c.execute("SELECT a, b, n FROM covis"):
-            self.add_covis(id_from_sql(a), id_from_sql(b), int(n))
+        for table, counts in (("covis", self.covis_pairs), ("copass", self.copass)):
+            for a, b, n in c.execute(f"SELECT a, b, n FROM {table}"):
+                counts.add(id_from_sql(a), id_from_sql(b), int(n))
         prow = c.execute(
             "SELECT tile, vehicle, pass_id, added_at, received_at, rec FROM pending "
             "ORDER BY tile, added_at, vehicle, obs_id"

@@ -116,6 +116,51 @@ def test_landmarks_seen_together_or_from_opposite_sides_stay_apart(tmp_path, kin
     assert not svc.matching.out[a.home].retired
 
 
+def split_passes(svc: MatcherService, covisible: bool = False, from_north_b: bool = False):
+    """Landmarks a and b of the one sign, every pass's near rays linked to a and its far
+    ones to b in one unit (a copy made of a sign's own rays); then b's gating estimate
+    moved 8 m along the road, both with tight covariances (as a biased subset of the
+    passes gives them), so that the estimates alone refuse the merge. ``covisible``: b's rays are in
+    the images of a's; ``from_north_b``: b is seen from the opposite direction."""
+    rng = np.random.default_rng(4)
+    tile = tile_of(svc.opts.zoom)
+    frame = svc.frames(tile)
+    svc.matching.out = defaultdict(_Out)
+    at = frame.to_ecef(np.array([SIGN, SIGN + np.array([0.0, 8.0, 0.0])]))
+    a = create(svc.matching, tile, CLS, at[0], np.eye(3) * 4.0)
+    b = create(svc.matching, tile, CLS, at[1], np.eye(3) * 4.0)
+    for p in range(12):
+        near = sign_rays(frame, p, rng)
+        far = sign_rays(frame, p, rng, from_north=from_north_b, image0=0 if covisible else 500)
+        both = Observations.concat([near, far])
+        link(svc.matching, both, [a] * len(near) + [b] * len(far), "veh-1", p, time.time())
+    refresh(svc.matching, [a.id, b.id])
+    a.cov, b.x, b.cov = np.eye(3) * 0.04, at[1], np.eye(3) * 0.04
+    return a, b
+
+
+@pytest.mark.parametrize("kind", ["copy", "covisible", "facing", "off"])
+def test_a_copy_linked_by_the_same_passes_merges_whatever_its_estimate(tmp_path, kind) -> None:
+    """Co-passes and no co-visibility make b a copy of a though 8 m and 40 sigma apart;
+    seen in a's images, from the other side, or with the copy merge off, it stays apart."""
+    from hdmap.mapping.merge import merge_partner
+
+    svc = matcher(tmp_path)
+    if kind == "off":
+        svc.matching.config = dataclasses.replace(svc.matching.config, merge_copy_units=0)
+    a, b = split_passes(svc, covisible=kind == "covisible", from_north_b=kind == "facing")
+    assert svc.state.copass.get(a.id, b.id) == 12
+    assert svc.state.covis_count(a.id, b.id) == (120 if kind == "covisible" else 0)
+    want = a if kind == "copy" else None
+    assert merge_partner(svc.matching, b) is want
+    merge_touched(svc.matching, [b.id])
+    assert sorted(svc.state.landmarks) == ([a.id] if kind == "copy" else sorted([a.id, b.id]))
+    with svc.transaction([svc]):
+        svc.state.save(svc.sums.pack_rows)
+    again = matcher(tmp_path)
+    assert again.state.copass.counts == svc.state.copass.counts
+
+
 def test_solver_hands_the_sums_over_and_the_map_drops_the_retired(tmp_path: Path) -> None:
     zoom = ServiceOptions().zoom
     tile = tile_of(zoom)
