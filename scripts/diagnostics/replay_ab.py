@@ -1,0 +1,124 @@
+"""A finished fleet evaluation's uploads replayed through a matcher and a solver in-process,
+with matcher settings changed, and the final map scored against the truth: an A/B for
+matcher changes that a live run cannot give (a live run's upload order follows the code's
+speed, so two runs of one code differ by a few landmarks; one log replayed does not).
+
+Usage: python scripts/diagnostics/replay_ab.py RUN_DIR SEED [gnss=gsdc] [KEY=JSON ...]
+``RUN_DIR/seed-SEED`` is one seed's output of ``hdmap eval fleet --out RUN_DIR`` (give
+``gnss=gsdc`` for a ``--gnss gsdc`` run: the truth's world is rebuilt from the seed).
+``KEY=JSON`` sets a ``MatcherConfig`` field (``gate.chi2_gate=12`` for a nested one); the
+solver takes the run's ``services.toml``. Prints the final map's confirmed landmarks with
+50+ passes: how many pair with a sign within 5 m (one to one, confirmed first), the
+unpaired ones (duplicates: within 5 m of a paired sign of their class), and each unpaired
+landmark's nearest same-class sign. With no KEY the map is the live run's (the replay
+invariant of ``services/matcher/replay.py``), up to the solver's batches.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import sys
+import tempfile
+import time
+from dataclasses import fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
+from fleetsim.score import duplicate_mask
+from fleetsim.truth import match_map
+from hdmap.runtime.config import from_mapping, load_toml
+from hdmap.runtime.service import ServiceOptions
+from schemas import STATUS_CONFIRMED, Landmarks, LandmarkUpdates, LogEntry
+from services.matcher.replay import Sink, open_matcher, read_obs_log, replay
+from services.matcher.service import MatcherConfig
+from services.solver.service import SolverConfig, SolverService
+
+
+def matcher_config(overrides: dict[str, object]) -> MatcherConfig:
+    cfg = MatcherConfig()
+    for key, value in overrides.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            cfg = replace(cfg, **{head: replace(getattr(cfg, head), **{rest: value})})
+        else:
+            cfg = replace(cfg, **{head: value})
+    return cfg
+
+
+def log_entries(db: Path, stage: str) -> list[LogEntry]:
+    conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    try:
+        producer = conn.execute("SELECT value FROM meta WHERE key = 'instance'").fetchone()[0]
+        rows = conn.execute("SELECT gseq, tile, seq, body FROM log_out ORDER BY gseq").fetchall()
+    finally:
+        conn.close()
+    return [LogEntry(stage, producer, t, s, g, b) for g, t, s, b in rows]
+
+
+def final_map(entries: list[LogEntry]) -> Landmarks:
+    """The map the solver's update log leaves: each landmark's last upsert, less removals."""
+    rows: dict[int, Landmarks] = {}
+    for e in entries:
+        u = LandmarkUpdates.from_bytes(e.body)
+        for k in range(len(u.landmarks)):
+            rows[int(u.landmarks.id[k])] = u.landmarks.take(np.array([k]))
+        for lid in u.removed.id.tolist():
+            rows.pop(int(lid), None)
+    return Landmarks.concat([rows[k] for k in sorted(rows)]) if rows else Landmarks.empty()
+
+
+def main(root: Path, seed: int, args: list[str]) -> None:
+    gnss = "fleet"
+    overrides: dict[str, object] = {}
+    for kv in args:
+        key, _, value = kv.partition("=")
+        if key == "gnss":
+            gnss = value
+        else:
+            overrides[key] = json.loads(value)
+    run = root / f"seed-{seed}" / "run"
+    known = {f.name for f in fields(SolverConfig)}
+    solver_toml = {k: v for k, v in load_toml(run / "services.toml").get("solver", {}).items()}
+    solver_cfg = from_mapping(SolverConfig, {k: v for k, v in solver_toml.items() if k in known})
+    world = evaluation_world(FleetEvalConfig(out=Path(tempfile.gettempdir()), seed=seed, gnss=gnss))
+    with tempfile.TemporaryDirectory(prefix="replay-ab-") as tmp:
+        t0 = time.process_time()
+        m = open_matcher(Path(tmp) / "matcher", matcher_config(overrides))
+        replay(m, read_obs_log(run / "var" / "ingest-all" / "state.sqlite"), 64)
+        m.db.close()
+        assoc = log_entries(m.db_path, "assoc")
+        s = SolverService(ServiceOptions(data_dir=Path(tmp) / "solver"), solver_cfg)
+        s.pubs = Sink()  # type: ignore[assignment]
+        replay(s, assoc, 64)
+        s.db.close()
+        lm = final_map(log_entries(s.db_path, "update"))
+        cpu = time.process_time() - t0
+    match = match_map(world, lm, 5.0)
+    paired = np.zeros(len(lm), bool)
+    paired[match.landmark] = True
+    dup = duplicate_mask(world, lm, match, 5.0)
+    mature = (np.asarray(lm.status) == STATUS_CONFIRMED) & (np.asarray(lm.n_passes) >= 50)
+    n = int(mature.sum())
+    print(
+        f"seed {seed} {overrides or 'defaults'}: {len(lm)} landmarks; confirmed with 50+ passes "
+        f"{n}, paired {int((mature & paired).sum())}, precision "
+        f"{(mature & paired).sum() / max(n, 1):.3f}, duplicates {int((mature & dup).sum())} "
+        f"({cpu:.0f} s CPU)"
+    )
+    est = world.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)
+    signs = world.signs
+    for j in np.flatnonzero(mature & ~paired).tolist():
+        same = np.flatnonzero(signs.sign_class == lm.sign_class[j])
+        d = np.hypot(*(signs.position[same, :2] - est[j, :2]).T)
+        k = int(np.argmin(d))
+        print(
+            f"  unpaired: {int(lm.n_passes[j])} passes, nearest sign {int(signs.id[same[k]])} "
+            f"at {d[k]:.1f} m{' (duplicate)' if dup[j] else ''}"
+        )
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3:])
