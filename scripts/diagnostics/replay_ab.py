@@ -17,7 +17,6 @@ invariant of ``services/matcher/replay.py``), up to the solver's batches.
 from __future__ import annotations
 
 import json
-import sqlite3
 import sys
 import tempfile
 import time
@@ -32,7 +31,7 @@ from fleetsim.truth import match_map
 from hdmap.runtime.config import from_mapping, load_toml
 from hdmap.runtime.service import ServiceOptions
 from schemas import STATUS_CONFIRMED, Landmarks, LandmarkUpdates, LogEntry
-from services.matcher.replay import Sink, open_matcher, read_obs_log, replay
+from services.matcher.replay import Sink, open_matcher, read_log, read_obs_log, replay
 from services.matcher.service import MatcherConfig
 from services.solver.service import SolverConfig, SolverService
 
@@ -46,16 +45,6 @@ def matcher_config(overrides: dict[str, object]) -> MatcherConfig:
         else:
             cfg = replace(cfg, **{head: value})
     return cfg
-
-
-def log_entries(db: Path, stage: str) -> list[LogEntry]:
-    conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-    try:
-        producer = conn.execute("SELECT value FROM meta WHERE key = 'instance'").fetchone()[0]
-        rows = conn.execute("SELECT gseq, tile, seq, body FROM log_out ORDER BY gseq").fetchall()
-    finally:
-        conn.close()
-    return [LogEntry(stage, producer, t, s, g, b) for g, t, s, b in rows]
 
 
 def final_map(entries: list[LogEntry]) -> Landmarks:
@@ -89,12 +78,12 @@ def main(root: Path, seed: int, args: list[str]) -> None:
         m = open_matcher(Path(tmp) / "matcher", matcher_config(overrides))
         replay(m, read_obs_log(run / "var" / "ingest-all" / "state.sqlite"), 64)
         m.db.close()
-        assoc = log_entries(m.db_path, "assoc")
+        assoc = read_log(m.db_path, "assoc")
         s = SolverService(ServiceOptions(data_dir=Path(tmp) / "solver"), solver_cfg)
         s.pubs = Sink()  # type: ignore[assignment]
         replay(s, assoc, 64)
         s.db.close()
-        lm = final_map(log_entries(s.db_path, "update"))
+        lm = final_map(read_log(s.db_path, "update"))
         cpu = time.process_time() - t0
     match = match_map(world, lm, 5.0)
     paired = np.zeros(len(lm), bool)

@@ -42,13 +42,20 @@ class Sink:
 
 def read_obs_log(db: Path) -> list[LogEntry]:
     """The obs entries of an ingest database (read only), in their original order."""
+    return read_log(db, "obs")
+
+
+def read_log(db: Path, stage: str) -> list[LogEntry]:
+    """The entries a service's database holds in its output log (read only), in their
+    original order, as entries of ``stage`` (a matcher's: ``assoc``; a solver's:
+    ``update``)."""
     conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
     try:
         producer = conn.execute("SELECT value FROM meta WHERE key = 'instance'").fetchone()[0]
         rows = conn.execute("SELECT gseq, tile, seq, body FROM log_out ORDER BY gseq").fetchall()
     finally:
         conn.close()
-    return [LogEntry("obs", producer, tile, seq, gseq, body) for gseq, tile, seq, body in rows]
+    return [LogEntry(stage, producer, tile, seq, gseq, body) for gseq, tile, seq, body in rows]
 
 
 def open_matcher(data_dir: Path, config: MatcherConfig | None = None) -> MatcherService:
