@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap.geo.tiles import frame_map
-from hdmap.mapping.facing import Facing, facing_from_sums, facings_compatible
+from hdmap.mapping.facing import Facing, angle_between, facing_from_sums, facings_compatible
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
 from hdmap.mapping.matching import Matching
@@ -91,32 +91,24 @@ def _copy_of(m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray)
     cfg = m.config
     if cfg.merge_copy_units <= 0:
         return None
-    near = np.flatnonzero(dist <= cfg.merge_copy_max_m).tolist()
-    both = [(m.state.copass.get(lm.id, cands[k].id), k) for k in near]
-    both = [(n, k) for n, k in both if n >= cfg.merge_copy_units]
-    if not both:
+    near = np.flatnonzero(dist <= cfg.merge_copy_max_m)
+    n = np.array([m.state.copass.get(lm.id, cands[k].id) for k in near.tolist()], np.int64)
+    others = [cands[k] for k in near[n >= cfg.merge_copy_units].tolist()]
+    if not others:
         return None
-    rows = [lm.row] + [cands[k].row for _n, k in both]
+    n = n[n >= cfg.merge_copy_units]
+    rows = np.array([lm.row] + [o.row for o in others], np.int64)
     passes, rays = m.sums.n_passes(rows), m.sums.n_obs(rows)
-    f = facings_of(m, [lm] + [cands[k] for _n, k in both])
-    best = None
-    for j, (n, k) in enumerate(both, start=1):
-        o = cands[k]
-        few = int(min(passes[0], passes[j]))
-        if n < cfg.merge_copy_share * few or not (f.known[0] and f.known[j]):
-            continue
-        apart = abs((float(f.azimuth[0] - f.azimuth[j]) + np.pi) % (2 * np.pi) - np.pi)
-        if np.degrees(apart) > cfg.merge_copy_max_deg:
-            continue
-        fewest = max(int(min(rays[0], rays[j])), 1)
-        if m.state.covis_count(lm.id, o.id) > cfg.merge_copy_max_covis * fewest:
-            continue
-        if best is None or n > best[0]:
-            best = (n, o)
-    if best is None:
+    f = facings_of(m, [lm, *others])
+    covis = np.array([m.state.covis_count(lm.id, o.id) for o in others])
+    ok = n >= cfg.merge_copy_share * np.minimum(passes[0], passes[1:])
+    ok &= f.known[0] & f.known[1:]
+    ok &= angle_between(f.azimuth[0], f.azimuth[1:]) <= np.radians(cfg.merge_copy_max_deg)
+    ok &= covis <= cfg.merge_copy_max_covis * np.maximum(np.minimum(rays[0], rays[1:]), 1)
+    if not ok.any():
         return None
     m.tally("merged_copies", 1)
-    return best[1]
+    return others[int(np.argmax(np.where(ok, n, -1)))]  # most co-passes (first on a tie)
 
 
 def _seen_together(m: Matching, a: Landmark, b: Landmark) -> bool:

@@ -20,7 +20,7 @@ import json
 import sys
 import tempfile
 import time
-from dataclasses import fields, replace
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -37,14 +37,16 @@ from services.solver.service import SolverConfig, SolverService
 
 
 def matcher_config(overrides: dict[str, object]) -> MatcherConfig:
-    cfg = MatcherConfig()
+    """``MatcherConfig`` with dotted keys (``gate.chi2_gate``) set, through the services'
+    own typed config loading."""
+    table: dict[str, object] = {}
     for key, value in overrides.items():
-        head, _, rest = key.partition(".")
-        if rest:
-            cfg = replace(cfg, **{head: replace(getattr(cfg, head), **{rest: value})})
-        else:
-            cfg = replace(cfg, **{head: value})
-    return cfg
+        *heads, last = key.split(".")
+        node = table
+        for h in heads:
+            node = node.setdefault(h, {})  # type: ignore[assignment]
+        node[last] = value  # type: ignore[index]
+    return from_mapping(MatcherConfig, table)
 
 
 def final_map(entries: list[LogEntry]) -> Landmarks:

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap.mapping.estimator import LandmarkSums, hotelling_inflation
+from hdmap.mapping.estimator import LandmarkSums
+from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.event_time import advance
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
 from hdmap.mapping.unit import match_unit
@@ -147,9 +148,7 @@ class MatcherService(StageService):
         )
         self.frames = self.matching.frames
         self._reload()
-        # the covariance inflation imports scipy.stats on first use (about 1.2 s): at start,
-        # not inside the first batch
-        hotelling_inflation(np.array([5.0]))
+        preload()  # scipy.stats for the covariance inflation, not in the first batch
         self._counts: dict[str, float] = {}
         self._snapshot_counts()
 

@@ -23,8 +23,9 @@ import numpy as np
 
 from hdmap.geo.geodesy import enu_rotation
 from hdmap.geo.tiles import TileFrames, frame_map, quadkeys_of
-from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays, hotelling_inflation
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.estimator.provisional import usable
+from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.facing import FacingConfig, to_wire
 from hdmap.mapping.quiet import QuietPasses, SweepPeriods, close_quiet, merge_rows, note_open
 from hdmap.runtime.config import ConfigError
@@ -165,9 +166,7 @@ class SolverService(StageService):
         self._quiet = QuietPasses(self.config.close_passes_after_s, clock=self._now)
         self._sweeps = SweepPeriods(self.config.sweep_every_s)
         self._reload()
-        # the covariance inflation imports scipy.stats on first use (about 1.2 s): at start,
-        # not inside the first batch
-        hotelling_inflation(np.array([5.0]))
+        preload()  # scipy.stats for the covariance inflation, not in the first batch
         self._counts: dict[str, float] = {}
         self._snapshot_counts()
 
