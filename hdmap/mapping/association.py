@@ -320,9 +320,14 @@ def assign_tracks(
         r, lm, c = ri[keep], li[keep], cost[keep]
         ut, tinv = np.unique(track[r], return_inverse=True)
         ul, linv = np.unique(lm, return_inverse=True)
-        margin = np.zeros((ut.size, ul.size))
-        np.add.at(margin, (tinv, linv), gate - c)
-        chosen = _greedy_tracks(margin, track_spans(track, rays.image, ut), ul)
+        # summed margins per (track, landmark) that has pairs (sparse: a batch of many
+        # units has many tracks and landmarks, few of them paired)
+        cell, inv = np.unique(tinv * ul.size + linv, return_inverse=True)
+        margin = np.zeros(cell.size)
+        np.add.at(margin, inv, gate - c)
+        chosen = _greedy_tracks(
+            cell // ul.size, cell % ul.size, margin, track_spans(track, rays.image, ut), ul
+        )
         # every ray of an assigned track, against its track's landmark
         pos, hit = _find(ut, track)
         ray_lm = np.where(hit, chosen[pos], -1)
@@ -386,19 +391,24 @@ def _find(ids: IntArray, values: IntArray) -> tuple[IntArray, NDArray[np.bool_]]
     return pos, ids[pos] == values
 
 
-def _greedy_tracks(margin: Array, span: IntArray, landmarks: IntArray) -> IntArray:
-    """Landmark per track (-1 = none), largest margins first; two tracks whose image spans
-    overlap (two signs in view together) never share a landmark, two that follow each
-    other (a track broken by a gap, or the sign passed again) may.
+def _greedy_tracks(
+    ti: IntArray, li: IntArray, margin: Array, span: IntArray, landmarks: IntArray
+) -> IntArray:
+    """Landmark per track (-1 = none) from the summed margins ``margin`` of (track ``ti``,
+    landmark ``li``) cells, largest margins first; two tracks whose image spans overlap
+    (two signs in view together) never share a landmark, two that follow each other (a
+    track broken by a gap, or the sign passed again) may.
 
-    >>> m = np.array([[5.0, 1.0], [4.0, 0.0], [3.0, 0.0]])
-    >>> _greedy_tracks(m, np.array([[0, 9], [5, 12], [20, 30]]), np.array([7, 8])).tolist()
+    >>> ti, li = np.array([0, 0, 1, 2]), np.array([0, 1, 0, 0])
+    >>> m, span = np.array([5.0, 1.0, 4.0, 3.0]), np.array([[0, 9], [5, 12], [20, 30]])
+    >>> _greedy_tracks(ti, li, m, span, np.array([7, 8])).tolist()
     [7, -1, 7]
     """
-    chosen = np.full(margin.shape[0], -1, np.int64)
+    chosen = np.full(span.shape[0], -1, np.int64)
     holders: dict[int, list[int]] = {}
-    ti, li = np.nonzero(margin > 0)
-    for k in np.lexsort((li, ti, -margin[ti, li])).tolist():
+    pos = margin > 0
+    ti, li, margin = ti[pos], li[pos], margin[pos]
+    for k in np.lexsort((li, ti, -margin)).tolist():
         t, j = int(ti[k]), int(li[k])
         if chosen[t] >= 0:
             continue

@@ -64,6 +64,10 @@ class Landmark:
     """Units that had it in view (:mod:`hdmap.mapping.sightings`)."""
     seen: int = 0
     """Of those, the units that linked rays to it."""
+    facing: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    """Gating facing as of the last re-solve of its gating estimate: azimuth, its standard
+    error, the rays' spread (radians) and 1.0 where known (:class:`~hdmap.mapping.facing.
+    Facing`); with ``x`` and ``cov`` what association sees of it (:mod:`hdmap.mapping.tick`)."""
 
 
 @dataclass
@@ -197,6 +201,21 @@ class LandmarkTable:
         """The tile each landmark is filed under in ``by_tile``."""
         self.passes: dict[int, PassBudget] = {}
         """Passes over their pending budget, by :func:`pass_key`."""
+        self.tick_id: int | None = None
+        """The current gating tick (its index in event time, :mod:`hdmap.mapping.tick`)."""
+        self.tick_touched: set[int] = set()
+        """Landmarks linked, started or emptied in the current gating tick: re-solved and
+        offered a merge when it ends (:mod:`hdmap.mapping.tick`)."""
+        self.tick_counted: set[int] = set()
+        """Landmarks a unit of the current tick had in view: their sightings are checked when
+        it ends."""
+        self.tick_born: dict[int, int] = {}
+        """Landmarks started in the current tick, with the :func:`pass_key` of the pass that
+        started them (the only one that sees them before the tick ends)."""
+        self._tick_dirty = False
+        self.unfaced: set[int] = set()
+        """Landmarks loaded without a gating facing (stored before facings were kept): the
+        matcher computes theirs from their sums when it restarts."""
         self._passes_dirty: set[int] = set()
         self._passes_gone: set[tuple[str, int]] = set()
 
@@ -265,6 +284,29 @@ class LandmarkTable:
         """The landmarks filed under ``tiles``, by id."""
         ids = sorted(set().union(*(self.by_tile.get(t, set()) for t in tiles)))
         return [self.landmarks[i] for i in ids]
+
+    # -- the gating tick -------------------------------------------------------------------
+
+    def note_tick(self, touched: set[int], counted: list[int], born: set[int], key: int) -> None:
+        """A unit of the current tick touched, had in view and started these landmarks
+        (started by the pass ``key``)."""
+        self.tick_touched |= touched
+        self.tick_counted.update(counted)
+        for lid in born:
+            self.tick_born[lid] = key
+        self._tick_dirty = True
+
+    def start_tick(self, tick_id: int) -> None:
+        """The current gating tick is now ``tick_id``."""
+        self.tick_id = tick_id
+        self._tick_dirty = True
+
+    def take_tick(self) -> tuple[list[int], list[int]]:
+        """End the tick: its touched and counted landmarks (sorted), forgotten here."""
+        out = sorted(self.tick_touched), sorted(self.tick_counted)
+        self.tick_touched, self.tick_counted, self.tick_born = set(), set(), {}
+        self._tick_dirty = True
+        return out
 
     # -- vehicles -----------------------------------------------------------------------------
 
@@ -375,3 +417,4 @@ class LandmarkTable:
         self._removed_pending = []
         self._passes_dirty.clear()
         self._passes_gone.clear()
+        self._tick_dirty = False

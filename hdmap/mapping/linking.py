@@ -21,7 +21,7 @@ from hdmap.mapping.estimator import Rays
 from hdmap.mapping.estimator.provisional import prior_covariance, usable
 from hdmap.mapping.facing import summed_views
 from hdmap.mapping.landmarks import Landmark
-from hdmap.mapping.matching import Matching
+from hdmap.mapping.matching import Matching, facings_of
 from schemas.ids import hold_key, pass_key
 
 
@@ -141,7 +141,7 @@ def create(m: Matching, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray
 
 
 def refresh(m: Matching, ids: list[int]) -> None:
-    """Re-solve touched landmarks' gating estimates (vectorised over them)."""
+    """Re-solve touched landmarks' gating estimates and facings (vectorised over them)."""
     if not ids:
         return
     lms = [m.state.landmarks[i] for i in ids]
@@ -159,5 +159,17 @@ def refresh(m: Matching, ids: list[int]) -> None:
         lat, lon, _ = GEODESY.to_geodetic(np.array([lms[k].x for k in moved]))
         for k, t in zip(moved, quadkeys_of(lat, lon, m.zoom).tolist(), strict=True):
             lms[k].tile = str(t)
-    for lm in lms:
+    f = facings_of(m, lms)
+    facing = np.column_stack([f.azimuth, f.sigma, f.spread, f.known.astype(float)])
+    for lm, fk in zip(lms, facing, strict=True):
+        lm.facing = fk
         m.state.put(lm)
+
+
+def refresh_due(m: Matching, ids: list[int]) -> None:
+    """Re-solve ``ids`` now with ``tick_s = 0``, else when the gating tick ends
+    (:mod:`hdmap.mapping.tick`)."""
+    if m.config.tick_s > 0:
+        m.state.note_tick(set(ids), [], set(), 0)
+    else:
+        refresh(m, ids)

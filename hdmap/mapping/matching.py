@@ -31,8 +31,9 @@ from hdmap.geo.geodesy import GEODESY
 from hdmap.geo.tiles import TileFrames, neighbours, quadkeys_of
 from hdmap.mapping.association import GateConfig
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
+from hdmap.mapping.facing import Facing, facing_from_sums
 from hdmap.mapping.initiation import InitConfig
-from hdmap.mapping.landmarks import LandmarkTable
+from hdmap.mapping.landmarks import Landmark, LandmarkTable
 from hdmap.mapping.quiet import QuietPasses, SweepPeriods, note_open
 from hdmap.mapping.sightings import SightingConfig
 from hdmap.mapping.trust import FleetOffsets, TrustConfig, VehicleTrust
@@ -108,6 +109,11 @@ class MatchingConfig:
     """Expiry, forgotten budgets and pass closing run when the matcher's clock enters a new
     period of this length (event time; :func:`hdmap.mapping.event_time.advance`): at the
     same entries live and on a replay, and once a minute of data rather than per entry."""
+    tick_s: float = 1.0
+    """Gating tick (event time, :mod:`hdmap.mapping.tick`): the units of one tick are
+    associated with the landmarks as the tick found them; the landmarks they touched are
+    re-solved and merged when the clock enters the next tick. 0: after every unit (one
+    unit, one tick)."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
     matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see
@@ -261,6 +267,13 @@ class Matching:
         """After ``state`` was (re)loaded with ``sums``: open passes are quiet from now on,
         the fleet's offsets and the flagged vehicles follow the trust records."""
         self.sums = sums
+        if self.state.unfaced:
+            lms = [self.state.landmarks[i] for i in sorted(self.state.unfaced)]
+            f = facings_of(self, lms)
+            for k, lm in enumerate(lms):
+                lm.facing = np.array([f.azimuth[k], f.sigma[k], f.spread[k], float(f.known[k])])
+                self.state.put(lm)
+            self.state.unfaced = set()
         self.sweeps.restart(self.now)
         self.quiet.clear()
         note_open(self.quiet, self.sums, self.state)
@@ -339,3 +352,17 @@ class Matching:
         """The tile (at the service's zoom) an ECEF point is in."""
         lat, lon, _ = GEODESY.to_geodetic(x_ecef[None])
         return str(quadkeys_of(lat, lon, self.zoom)[0])
+
+
+def facings_of(m: Matching, lms: list[Landmark]) -> Facing:
+    """The landmarks' facings (:mod:`hdmap.mapping.facing`) from their view sums, their
+    rays in the gating sums and, as independent looks, their passes.
+
+    Pitfall: the view sum keeps the rays of a vehicle whose held passes were taken out of
+    the sums (``TrustChanges`` action 2), so its length can exceed the ray count; the mean
+    resultant length is clipped to 1 (spread 0) and the direction keeps those rays."""
+    rows = np.array([lm.row for lm in lms], np.int64)
+    view = np.array([lm.view for lm in lms], float).reshape(-1, 2)
+    return facing_from_sums(
+        view, m.sums.n_obs(rows), m.sums.n_passes(rows), m.config.gate.facing.min_rays
+    )

@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap.geo.tiles import frame_map
-from hdmap.mapping.facing import Facing, angle_between, facing_from_sums, facings_compatible
+from hdmap.mapping.facing import angle_between, facings_compatible
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
-from hdmap.mapping.matching import Matching
+from hdmap.mapping.matching import Matching, facings_of
 from hdmap.mapping.quiet import merge_rows
 
 
@@ -115,20 +115,6 @@ def _seen_together(m: Matching, a: Landmark, b: Landmark) -> bool:
     """Whether ``a`` and ``b`` were detected in one image too often to be one sign."""
     n = m.sums.n_obs([a.row, b.row])
     return m.state.covis_count(a.id, b.id) > m.config.merge_max_covis * max(n.min(), 1)
-
-
-def facings_of(m: Matching, lms: list[Landmark]) -> Facing:
-    """The landmarks' facings (:mod:`hdmap.mapping.facing`) from their view sums, their
-    rays in the gating sums and, as independent looks, their passes.
-
-    Pitfall: the view sum keeps the rays of a vehicle whose held passes were taken out of
-    the sums (``TrustChanges`` action 2), so its length can exceed the ray count; the mean
-    resultant length is clipped to 1 (spread 0) and the direction keeps those rays."""
-    rows = np.array([lm.row for lm in lms], np.int64)
-    view = np.array([lm.view for lm in lms], float).reshape(-1, 2)
-    return facing_from_sums(
-        view, m.sums.n_obs(rows), m.sums.n_passes(rows), m.config.gate.facing.min_rays
-    )
 
 
 def _same_side(m: Matching, a: Landmark, b: Landmark) -> bool:

@@ -11,7 +11,7 @@ import logging
 import numpy as np
 
 from hdmap.mapping.landmarks import Landmark
-from hdmap.mapping.linking import refresh
+from hdmap.mapping.linking import refresh_due
 from hdmap.mapping.matching import Matching
 from hdmap.mapping.trust import CAUGHT, VehicleTrust
 from schemas.ids import hold_key
@@ -143,5 +143,5 @@ def let_go(
             m.state.remove(lm)  # only the caught vehicle saw it
             m.out[lm.home].ended.append(lm.id)
             m.tally("emptied", 1)
-    refresh(m, sorted(lm.id for lm in lms if lm.id not in gone))
+    refresh_due(m, sorted(lm.id for lm in lms if lm.id not in gone))
     return gone

@@ -10,7 +10,12 @@
    pending pool, where they may start landmarks (:func:`hdmap.mapping.pending.initiate`);
    what is left waiting is held to the pass's and the vehicle's budgets
    (:func:`hdmap.mapping.pending.enforce_budget`);
-5. touched landmarks are re-solved and may merge (:func:`hdmap.mapping.merge.merge_touched`).
+5. the candidates the unit had in view count a sighting; what it touched, had in view and
+   started is noted for the end of the gating tick (:mod:`hdmap.mapping.tick`: sightings
+   checked, gating estimates re-solved, merges), at once with ``tick_s = 0``.
+
+The candidates are the landmarks as the tick found them (:func:`hdmap.mapping.tick.visible`,
+with their gating facings), so the units of one tick see the same map.
 """
 
 from __future__ import annotations
@@ -23,13 +28,14 @@ import numpy as np
 from hdmap.mapping.association import Association, LocalRays, associate, valid_tracks
 from hdmap.mapping.initiation import triangulate_groups
 from hdmap.mapping.landmarks import Landmark
-from hdmap.mapping.linking import link, refresh, to_local
+from hdmap.mapping.linking import link, to_local
 from hdmap.mapping.matching import Matching
-from hdmap.mapping.merge import facings_of, merge_touched
 from hdmap.mapping.pending import enforce_budget, initiate
 from hdmap.mapping.probation import settle
-from hdmap.mapping.sightings import in_view, unseen
+from hdmap.mapping.sightings import in_view
+from hdmap.mapping.tick import end_tick, gating_facings, visible
 from hdmap.mapping.trust import VehicleTrust
+from schemas.ids import pass_key
 
 
 def shift_origins(frame: Any, obs: Any, d_en: np.ndarray) -> Any:
@@ -72,7 +78,7 @@ def _associate(
     x = frame.from_ecef(np.array([c.x for c in cands]))
     cov = np.array([c.cov for c in cands])
     cls = np.array([c.cls for c in cands], np.int64)
-    res: Association = associate(rays, x, cov, cls, m.config.gate, facings_of(m, cands))
+    res: Association = associate(rays, x, cov, cls, m.config.gate, gating_facings(cands))
     matched = group_check(m, rays, res, x, cov)
     drop = np.zeros(len(rays), bool)
     if res.unlinked is not None and m.config.track_drop_unlinked:
@@ -105,7 +111,8 @@ def match_unit(
     obs, applied = _corrected(m, frame, obs, trust)
     rays = to_local(frame, obs)
     area = m.area(tile)
-    cands = m.state.near(area)
+    key = pass_key(vehicle, pass_id)
+    cands = visible(m, area, key)
     matched = np.full(len(rays), -1, np.int64)
     drop = np.zeros(len(rays), bool)
     if cands:
@@ -123,23 +130,25 @@ def match_unit(
     since = np.where(np.isfinite(captured), np.minimum(captured, at), at)
     m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at)
     new_classes = np.unique(obs.sign_class[wait])
-    touched |= initiate(m, tile, area, vehicle, pass_id, new_classes)
+    born = initiate(m, tile, area, vehicle, pass_id, new_classes)
     # after initiation took what it could: an honest upload's rays (all of them waiting,
     # in a tile with no landmark yet) are not evicted before they had their chance
     enforce_budget(m, tile, vehicle, pass_id)
+    counted: list[int] = []
     if cands and m.config.sightings.enabled:
-        touched -= count_sightings(m, frame, rays, cands, matched)
-    refresh(m, sorted(touched))
-    merge_touched(m, sorted(touched))
+        counted = count_sightings(m, frame, rays, cands, matched)
+    m.state.note_tick(touched | born, counted, born, key)
+    if m.config.tick_s <= 0:
+        end_tick(m)
 
 
 def count_sightings(
     m: Matching, frame: Any, rays: LocalRays, cands: list[Landmark], matched: np.ndarray
-) -> set[int]:
+) -> list[int]:
     """Count, for the unit's candidate landmarks, whether it had them in view and whether
-    it linked rays to them; retire those whose share says they are not there
-    (:mod:`hdmap.mapping.sightings`, counted ``retired_unseen``). ``rays`` are in
-    ``frame`` (the unit's tile's). Returns the retired."""
+    it linked rays to them (:mod:`hdmap.mapping.sightings`; those not there are retired
+    when the tick ends). ``rays`` are in ``frame`` (the unit's tile's). Returns the ids
+    counted."""
     cfg = m.config.sightings
     seen = np.zeros(len(cands), bool)
     seen[matched[matched >= 0]] = True
@@ -147,22 +156,18 @@ def count_sightings(
     rest = np.flatnonzero(~seen)  # a landmark the unit linked rays to is in view
     if rest.size:
         x = frame.from_ecef(np.array([cands[k].x for k in rest]))
-        fac = facings_of(m, [cands[k] for k in rest])
+        fac = gating_facings([cands[k] for k in rest])
         view[rest] = in_view(rays.origin, rays.direction, x, fac.azimuth, fac.known, cfg)
-    gone: set[int] = set()
+    counted: list[int] = []
     for k in np.flatnonzero(view):
         lm = cands[k]
-        if m.state.landmarks.get(lm.id) is not lm:  # merged or retired in this unit
+        if m.state.landmarks.get(lm.id) is not lm:  # emptied in this unit
             continue
         lm.in_view += 1
         lm.seen += int(seen[k])
         m.state.put(lm)
-        if unseen(lm.seen, lm.in_view, cfg):
-            m.state.remove(lm)
-            m.out[lm.home].ended.append(lm.id)
-            m.tally("retired_unseen", 1)
-            gone.add(lm.id)
-    return gone
+        counted.append(lm.id)
+    return counted
 
 
 def group_check(

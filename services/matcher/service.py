@@ -4,7 +4,8 @@ Per batch of obs entries (one upload's rays for one tile each, in order; see
 :mod:`hdmap.runtime.stage`): each entry's event time (its capture times, clamped by its
 ingest stamp) moves the matcher's clock
 (:meth:`hdmap.mapping.matching.Matching.entry_time`: monotone, an entry stamped far ahead
-of the wall clock does not move it), the entry is handed to the domain
+of the wall clock does not move it), the entry joins the gating tick of its event time
+(:func:`hdmap.mapping.tick.enter`: the tick before it may end), it is handed to the domain
 (:func:`hdmap.mapping.unit.match_unit`: association, linking, pending pool, initiation,
 probation, merge), and what the clock's advance settles follows
 (:func:`hdmap.mapping.event_time.advance`: vehicles on probation that stopped driving are
@@ -28,6 +29,7 @@ from hdmap.mapping.estimator import LandmarkSums
 from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.event_time import advance
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
+from hdmap.mapping.tick import enter
 from hdmap.mapping.unit import match_unit
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.service import ServiceOptions
@@ -227,6 +229,7 @@ class MatcherService(StageService):
         """One decoded unit through the domain, at its event time on the matcher's clock
         (returned)."""
         at = self.matching.entry_time(g.received_at, np.asarray(g.obs.t, float))
+        enter(self.matching, at)  # the unit's gating tick (the one before it may end)
         match_unit(self.matching, tile, g.vehicle_id, g.pass_id, at, g.obs, g.received_at)
         return at
 

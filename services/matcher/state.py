@@ -46,6 +46,12 @@ CREATE TABLE IF NOT EXISTS trust_status (
     vehicle TEXT PRIMARY KEY, status INTEGER NOT NULL, held_homes TEXT NOT NULL,
     last_seen REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS facings (
+    id INTEGER PRIMARY KEY, az REAL NOT NULL, sigma REAL NOT NULL, spread REAL NOT NULL,
+    known INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS tick (
+    id INTEGER PRIMARY KEY, touched INTEGER NOT NULL, counted INTEGER NOT NULL,
+    born_key INTEGER);
 CREATE TABLE IF NOT EXISTS sightings (
     id INTEGER PRIMARY KEY, in_view INTEGER NOT NULL, seen INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
@@ -113,12 +119,28 @@ class MatcherState(LandmarkTable):
             ],
         )
         c.executemany(
+            "INSERT OR REPLACE INTO facings(id, az, sigma, spread, known) VALUES (?,?,?,?,?)",
+            [
+                (
+                    r[0],
+                    float(lm.facing[0]),
+                    float(lm.facing[1]),
+                    float(lm.facing[2]),
+                    int(lm.facing[3] > 0),
+                )
+                for r, lm in zip(rows, dirty, strict=True)
+            ],
+        )
+        c.executemany(
             "INSERT OR REPLACE INTO sightings(id, in_view, seen) VALUES (?,?,?)",
             [(r[0], lm.in_view, lm.seen) for r, lm in zip(rows, dirty, strict=True) if lm.in_view],
         )
         gone = [(id_to_sql(i),) for i in sorted(self._deleted)]
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
+        c.executemany("DELETE FROM facings WHERE id=?", gone)
+        if self._tick_dirty:
+            self._save_tick()
         c.executemany("DELETE FROM sightings WHERE id=?", gone)
         for table, counts in (("covis", self.covis_pairs), ("copass", self.copass)):
             pairs = sorted(counts.dirty)
@@ -208,6 +230,27 @@ class MatcherState(LandmarkTable):
         )
         self.clear_marks()
 
+    def _save_tick(self) -> None:
+        """Rewrite the current gating tick's marks (a tick's worth of landmarks)."""
+        c = self._conn
+        c.execute("DELETE FROM clock WHERE name='tick'")
+        if self.tick_id is not None:
+            c.execute("INSERT INTO clock(name, t) VALUES ('tick', ?)", (float(self.tick_id),))
+        c.execute("DELETE FROM tick")
+        ids = sorted(self.tick_touched | self.tick_counted | set(self.tick_born))
+        c.executemany(
+            "INSERT INTO tick(id, touched, counted, born_key) VALUES (?,?,?,?)",
+            [
+                (
+                    id_to_sql(i),
+                    int(i in self.tick_touched),
+                    int(i in self.tick_counted),
+                    self.tick_born.get(i),
+                )
+                for i in ids
+            ],
+        )
+
     def load(self, unpack_rows: Callable[[list[bytes]], np.ndarray]) -> None:
         """Rebuild memory from SQLite; ``unpack_rows(blobs) -> rows`` restores the sums."""
         c = self._conn
@@ -274,6 +317,27 @@ class MatcherState(LandmarkTable):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.view = np.array([e, n], float)
+        self.unfaced = set(self.landmarks)
+        for i, az, sigma, spread, known in c.execute(
+            "SELECT id, az, sigma, spread, known FROM facings"
+        ):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.facing = np.array([az, sigma, spread, float(known)])
+                self.unfaced.discard(lm.id)
+        self.tick_touched, self.tick_counted, self.tick_born = set(), set(), {}
+        tick = c.execute("SELECT t FROM clock WHERE name='tick'").fetchone()
+        self.tick_id = None if tick is None else int(tick[0])
+        for i, touched, counted, born in c.execute(
+            "SELECT id, touched, counted, born_key FROM tick"
+        ):
+            lid = id_from_sql(i)
+            if touched:
+                self.tick_touched.add(lid)
+            if counted:
+                self.tick_counted.add(lid)
+            if born is not None:
+                self.tick_born[lid] = int(born)
         for i, n_in, n_seen in c.execute("SELECT id, in_view, seen FROM sightings"):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:

@@ -227,7 +227,8 @@ def test_landmarks_seen_from_streets_at_right_angles_merge_only_at_one_place(
     seen from two streets closer than it (the default 3 m); with any side allowed they
     merge either way (the facing is what decides)."""
     from hdmap.mapping.facing import angle_between
-    from hdmap.mapping.merge import facings_of, merge_partner
+    from hdmap.mapping.matching import facings_of
+    from hdmap.mapping.merge import merge_partner
 
     svc = matcher(tmp_path)
     rng = np.random.default_rng(3)

@@ -140,11 +140,13 @@ def test_a_vehicle_whose_rays_keep_failing_the_gate_weighs_less_in_stats(tmp_pat
     create(m.matching, tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3) * 0.25)
     rng = np.random.default_rng(2)
     t0 = time.time()
-    for p in range(25):  # 250 rays offered
+    for p in range(25):  # 250 rays offered, passes a minute apart (gating ticks apart)
         o = sign_rays(frame, p, rng)
         d = o.direction + rng.normal(0.0, 0.15, o.direction.shape)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        m._unit(tile, ObsGroup("veh-bad", p, p, t0 + p, type(o)(**{**o.__dict__, "direction": d})))
+        at = t0 - 3600.0 + 60.0 * p
+        o = type(o)(**{**o.__dict__, "direction": d, "t": np.full(len(d), at)})
+        m._unit(tile, ObsGroup("veh-bad", p, p, at + 1.0, o))
     t = m.state.trust["veh-bad"]
     assert t.offered >= 200 and t.passed < 0.5 * t.offered
     m._snapshot_counts()

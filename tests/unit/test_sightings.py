@@ -16,6 +16,7 @@ from scipy import stats
 from hdmap.mapping.linking import create, to_local
 from hdmap.mapping.matching import AssocOutput
 from hdmap.mapping.sightings import SightingConfig, share_upper_bound, unseen
+from hdmap.mapping.tick import retire_unseen
 from hdmap.mapping.trust import TrustConfig
 from hdmap.mapping.unit import count_sightings
 from hdmap.runtime.service import ServiceOptions
@@ -66,7 +67,9 @@ def test_a_second_copy_that_passes_never_detect_is_retired(tmp_path: Path) -> No
             m.matching.out = defaultdict(AssocOutput)
         cands = [m.state.landmarks[i] for i in (sign.id, ghost.id) if i in m.state.landmarks]
         rays = to_local(frame, sign_rays(frame, p, rng))
-        gone = count_sightings(m.matching, frame, rays, cands, np.zeros(len(rays), np.int64))
+        counted = count_sightings(m.matching, frame, rays, cands, np.zeros(len(rays), np.int64))
+        assert counted == sorted(c.id for c in cands)  # the pass had both in view
+        gone = retire_unseen(m.matching, counted)  # what the end of its gating tick does
         if gone:
             assert gone == {ghost.id} and p == 31  # the first n with 1 - 0.001^(1/n) < 0.2
     assert sign.id in m.state.landmarks and ghost.id not in m.state.landmarks
@@ -91,5 +94,6 @@ def test_a_copy_seen_by_a_third_of_the_passes_stays(tmp_path: Path) -> None:
     for p in range(1, 201):
         rays = to_local(frame, sign_rays(frame, p, rng))
         matched = np.full(len(rays), 0 if p % 3 == 0 else -1, np.int64)
-        assert not count_sightings(m.matching, frame, rays, [lm], matched)
+        counted = count_sightings(m.matching, frame, rays, [lm], matched)
+        assert not retire_unseen(m.matching, counted)
     assert lm.in_view == 200 and lm.seen == 66
