@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from hdmap.mapping.assignment import min_cost_assignment
 from hdmap.mapping.estimator.gating import angle_jacobian, wrap
 from hdmap.mapping.estimator.model import ray_angles as angles
-from hdmap.mapping.facing import Facing, FacingConfig, ray_compatible, viewing_azimuth
+from hdmap.mapping.facing import FacingConfig
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -174,11 +174,11 @@ def pair_chi2(
     only (about a quarter of a unit's same-class pairs in the fleet evaluation): row by row
     the same arithmetic as over all pairs, so the values are the same to the bit.
     """
-    return _pair_stat(rays, _Pairs.of(rays, ri, x, cov), a_cov, cfg, offset)
+    return pair_stat(rays, Pairs.of(rays, ri, x, cov), a_cov, cfg, offset)
 
 
 @dataclass(frozen=True)
-class _Pairs:
+class Pairs:
     """A unit's (ray, landmark) pairs with what the statistic needs gathered once: the
     unit's offset hypotheses evaluate the same pairs again and again."""
 
@@ -190,17 +190,28 @@ class _Pairs:
     measured: Array
     """(k, 2) the rays' measured azimuth and elevation."""
 
+    def take(self, idx: NDArray) -> Pairs:
+        """The pairs ``idx`` selects (a mask or indices)."""
+        return Pairs(
+            self.ri[idx],
+            self.origin[idx],
+            self.direction[idx],
+            self.x[idx],
+            self.cov[idx],
+            self.measured[idx],
+        )
+
     @staticmethod
-    def of(rays: LocalRays, ri: IntArray, x: Array, cov: Array) -> _Pairs:
+    def of(rays: LocalRays, ri: IntArray, x: Array, cov: Array) -> Pairs:
         """Pairs of rays ``ri`` with landmarks at ``x`` (one per pair) and covariances."""
         az, el = angles(rays.direction)
-        return _Pairs(
+        return Pairs(
             ri, rays.origin[ri], rays.direction[ri], x, cov, np.stack([az, el], axis=-1)[ri]
         )
 
 
-def _pair_stat(
-    rays: LocalRays, p: _Pairs, a_cov: Array, cfg: GateConfig, offset: Array | None
+def pair_stat(
+    rays: LocalRays, p: Pairs, a_cov: Array, cfg: GateConfig, offset: Array | None
 ) -> tuple[Array, NDArray[np.bool_]]:
     """:func:`pair_chi2` of pre-gathered pairs."""
     ri, x, cov = p.ri, p.x, p.cov
@@ -454,140 +465,3 @@ class Association:
     offset_cov: Array
     unlinked: NDArray[np.bool_] | None = None
     """Rays of tracks that went to a landmark without them (see :func:`assign_tracks`)."""
-
-
-def _assign(rays: LocalRays, ri: IntArray, li: IntArray, cost: Array, cfg: GateConfig):
-    if rays.track is None or not (rays.track > 0).any():
-        return assign_per_image(len(rays), rays.image, ri, li, cost, cfg.chi2_gate), None
-    return assign_tracks(rays, ri, li, cost, cfg.chi2_gate, cfg.chi2_gate * cfg.track_link_factor)
-
-
-@dataclass(frozen=True)
-class _Fit:
-    """One offset hypothesis of a unit: per ray its landmark (-1 = none), the tracks' unlinked
-    rays, the pairs' statistics under the offset, and the offset with its covariance."""
-
-    best: IntArray
-    unlinked: NDArray[np.bool_] | None
-    cost: Array
-    offset: Array
-    offset_cov: Array
-
-
-def _gated_cost(
-    rays: LocalRays, pairs: _Pairs, a_cov: Array, cfg: GateConfig, offset: Array | None = None
-) -> Array:
-    return _pair_stat(rays, pairs, a_cov, cfg, offset)[0]  # inf where not plausible
-
-
-def _assigned_at(
-    rays: LocalRays,
-    ri: IntArray,
-    li: IntArray,
-    pairs: _Pairs,
-    cfg: GateConfig,
-    offset: Array,
-    offset_cov: Array,
-) -> _Fit:
-    """The assignment with the origins moved by ``offset`` (their covariance the offset's)."""
-    narrow = origin_cov(rays, 0.0, 0.0) + offset_cov[None]
-    cost = _gated_cost(rays, pairs, narrow, cfg, offset)
-    best, unlinked = _assign(rays, ri, li, cost, cfg)
-    return _Fit(best, unlinked, cost, offset, offset_cov)
-
-
-def _refined(
-    rays: LocalRays, ri: IntArray, li: IntArray, x: Array, pairs: _Pairs, cfg: GateConfig, fit: _Fit
-) -> _Fit:
-    """``cfg.offset_iterations`` times: the offset from the assignment, then the assignment
-    under it (while at least ``min_offset_rays`` rays are assigned). An assignment that
-    comes back unchanged is a fixed point (the same offset again, the same assignment), so
-    the iterations stop there with the same result."""
-    for _ in range(cfg.offset_iterations):
-        if int((fit.best >= 0).sum()) < cfg.min_offset_rays:
-            break
-        o, oc = estimate_offset(rays, fit.best, x, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m)
-        prev, fit = fit, _assigned_at(rays, ri, li, pairs, cfg, o, oc)
-        if np.array_equal(fit.best, prev.best):
-            break
-    return fit
-
-
-def _fit_score(fit: _Fit, ri: IntArray, li: IntArray, cfg: GateConfig) -> float:
-    """How well an offset hypothesis explains the unit: the summed margins ``chi2_gate -
-    chi2`` of the pairs it links, minus the offset's chi-square under the pass-bias prior
-    (both are twice a log-likelihood ratio)."""
-    linked = (fit.best[ri] == li) & np.isfinite(fit.cost)
-    prior = np.array([cfg.pass_bias_sigma_m, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m])
-    return float(np.sum(cfg.chi2_gate - fit.cost[linked])) - float(
-        np.sum((fit.offset / prior) ** 2)
-    )
-
-
-def _alternative_seeds(
-    rays: LocalRays, ri: IntArray, li: IntArray, x: Array, wide_cost: Array, cfg: GateConfig
-) -> list[tuple[Array, Array]]:
-    """Offsets that put the unit's longest track on each of its candidate landmarks (those
-    its rays gate to under the wide origin covariance, most gated rays first; the one the
-    first fit gave it too: all its rays on it move the offset differently)."""
-    track = rays.tracks
-    cand = np.isfinite(wide_cost) & (track[ri] > 0)
-    if cfg.offset_hypotheses <= 0 or not cand.any():
-        return []
-    ids, n_pairs = np.unique(track[ri[cand]], return_counts=True)
-    longest = ids[np.argmax(n_pairs)]
-    lms, n_rays = np.unique(li[cand & (track[ri] == longest)], return_counts=True)
-    lms = lms[np.argsort(-n_rays, kind="stable")][: cfg.offset_hypotheses]
-    seeds = []
-    for lm in lms.tolist():
-        on = np.where(track == longest, lm, -1)
-        seeds.append(estimate_offset(rays, on, x, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m))
-    return seeds
-
-
-def associate(
-    rays: LocalRays,
-    x: Array,
-    cov: Array,
-    cls: IntArray,
-    cfg: GateConfig,
-    facing: Facing | None = None,
-) -> Association:
-    """Associate a unit's rays with landmarks (positions ``x``, covariances, classes and,
-    if given, facings: a pair whose ray is seen from an incompatible direction,
-    :func:`hdmap.mapping.facing.ray_compatible`, is no candidate).
-
-    First every ray against every candidate under the wide origin covariance (the pass's
-    unknown GNSS bias), then under the unit's offset estimated from that assignment
-    (``offset_iterations``); with tracks, also from the offsets that put the longest track
-    on each of its candidates (``offset_hypotheses``), keeping the best-scored
-    (:func:`_fit_score`) if it beats the first by ``offset_hypothesis_margin``."""
-    n, m = len(rays), x.shape[0]
-    none = Association(np.full(n, -1, np.int64), np.full(n, np.inf), np.zeros(3), np.zeros((3, 3)))
-    if n == 0 or m == 0:
-        return none
-    ri, li = np.nonzero(rays.sign_class[:, None] == cls[None, :])
-    if facing is not None and ri.size:
-        seen = ray_compatible(viewing_azimuth(rays.direction[ri]), facing.take(li), cfg.facing)
-        ri, li = ri[seen], li[seen]
-    if ri.size == 0:
-        return none
-    bias_h, bias_v = cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m
-    pairs = _Pairs.of(rays, ri, x[li], cov[li])
-    wide_cost = _gated_cost(rays, pairs, origin_cov(rays, bias_h, bias_v), cfg)
-    best, unlinked = _assign(rays, ri, li, wide_cost, cfg)
-    prior_cov = np.diag([bias_h, bias_h, bias_v]) ** 2
-    fit = _refined(
-        rays, ri, li, x, pairs, cfg, _Fit(best, unlinked, wide_cost, np.zeros(3), prior_cov)
-    )
-    top = _fit_score(fit, ri, li, cfg) + cfg.offset_hypothesis_margin
-    for o, oc in _alternative_seeds(rays, ri, li, x, wide_cost, cfg):
-        alt = _refined(rays, ri, li, x, pairs, cfg, _assigned_at(rays, ri, li, pairs, cfg, o, oc))
-        if (score := _fit_score(alt, ri, li, cfg)) > top:
-            fit, top = alt, score + cfg.offset_hypothesis_margin
-    best, cost, unlinked = fit.best, fit.cost, fit.unlinked
-    offset, offset_cov = fit.offset, fit.offset_cov
-    out_chi2 = np.full(n, np.inf)
-    sel = best[ri] == li
-    out_chi2[ri[sel]] = cost[sel]
-    return Association(best, out_chi2, offset, offset_cov, unlinked)

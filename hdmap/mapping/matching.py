@@ -262,6 +262,9 @@ class Matching:
         self.flagged: dict[str, tuple[float, float]] = {}
         """(weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
         self.out: defaultdict[str, AssocOutput] = new_output()
+        self.tick_serial = 0
+        """Counts the gating ticks begun in this process (:func:`hdmap.mapping.tick.enter`):
+        an association made in one is not used in another."""
 
     def restart(self, sums: LandmarkSums) -> None:
         """After ``state`` was (re)loaded with ``sums``: open passes are quiet from now on,
@@ -316,16 +319,24 @@ class Matching:
         clock, so they expire at the next sweep: they still meet the landmarks there and
         each other in their own unit, not rays of other passes (which is what the TTL
         means in event time)."""
-        now = self.state.event_time
+        ahead = self.is_ahead(received_at)
+        at, self.state.event_time = self.event_time(received_at, capture_t, ahead, self.now)
+        if ahead:
+            self.tally("time_clamped", 1)
+        return at
+
+    @staticmethod
+    def event_time(
+        received_at: float, capture_t: np.ndarray, ahead: bool, now: float
+    ) -> tuple[float, float]:
+        """:meth:`entry_time` without its effects: an entry's event time and the clock after
+        it, from the clock ``now`` before it (``ahead``: its stamp is too far ahead)."""
         t = capture_t[np.isfinite(capture_t)]
         newest = float(t.max()) if t.size else received_at
-        if self.is_ahead(received_at):
-            self.tally("time_clamped", 1)
-            return min(newest, received_at, now)
+        if ahead:
+            return min(newest, received_at, now), now
         at = min(newest, received_at)
-        if at > now:
-            self.state.event_time = at
-        return at
+        return at, max(at, now)
 
     def note_trust(self, vehicle: str, t: VehicleTrust, ref: np.ndarray | None) -> None:
         """Keep (weight, offset chi2) of the vehicles stats show: downweighted or suspect."""

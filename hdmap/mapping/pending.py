@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap.geo.tiles import in_region, quadkeys_of
-from hdmap.mapping.association import associate, origin_cov, pair_chi2
+from hdmap.mapping.association import origin_cov, pair_chi2
+from hdmap.mapping.batch_association import UnitInput, associate_units
 from hdmap.mapping.initiation import propose, seeds_of
 from hdmap.mapping.landmarks import Landmark, PendingTile
 from hdmap.mapping.linking import create, link, to_local
@@ -197,11 +198,12 @@ def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
         )
         take = np.zeros(len(p), bool)
         links: list[tuple[np.ndarray, np.ndarray, str, int, float]] = []
-        for v, pid, js in units:
-            if not live[js].any():
-                continue
+        units = [u for u in units if live[u[2]].any()]
+        results = associate_units(
+            [UnitInput(local.take(js), x, cov, cls) for _v, _pid, js in units], m.config.gate
+        )
+        for (v, pid, js), res in zip(units, results, strict=True):
             sel = cand[js]
-            res = associate(local.take(js), x, cov, cls, m.config.gate)
             hit = res.landmark >= 0
             if hit.any():
                 take[sel[hit]] = True

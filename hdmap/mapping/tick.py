@@ -51,18 +51,25 @@ from hdmap.mapping.merge import merge_touched
 from hdmap.mapping.sightings import unseen
 
 
-def enter(m: Matching, at: float) -> None:
-    """Put the unit of event time ``at`` in its tick: that of the matcher's clock when the
-    unit is at most ``tick_s`` behind it, else that of ``at`` (index ``floor(t / tick_s)``);
-    when the current tick is another, it ends first (:func:`end_tick`). With ``tick_s = 0``
-    the unit ends its own tick (:func:`hdmap.mapping.unit.match_unit`)."""
+def tick_of(m: Matching, at: float, now: float) -> int | None:
+    """The tick of a unit of event time ``at`` when the clock is at ``now``: the clock's when
+    the unit is at most ``tick_s`` behind it, else its own (index ``floor(t / tick_s)``;
+    None with ``tick_s = 0``: every unit its own)."""
     step = m.config.tick_s
     if step <= 0:
-        return
-    k = math.floor((m.now if m.now - at <= step else at) / step)
-    if k != m.state.tick_id:
+        return None
+    return math.floor((now if now - at <= step else at) / step)
+
+
+def enter(m: Matching, at: float) -> None:
+    """Put the unit of event time ``at`` in its tick (:func:`tick_of`, the clock already
+    moved by it); when the current tick is another, it ends first (:func:`end_tick`). With
+    ``tick_s = 0`` the unit ends its own tick (:func:`hdmap.mapping.unit.match_unit`)."""
+    k = tick_of(m, at, m.now)
+    if k is not None and k != m.state.tick_id:
         end_tick(m)
         m.state.start_tick(k)
+        m.tick_serial += 1
 
 
 def visible(m: Matching, area: list[str], key: int) -> list[Landmark]:

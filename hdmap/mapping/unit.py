@@ -1,31 +1,35 @@
 """One unit through the matcher: one vehicle pass's rays for one tile.
 
-1. a suspect vehicle's origins are moved by its mean offset, its track labels checked;
-2. rays into the tile's ENU frame; candidate landmarks of the same classes from the tile
-   and its 8 neighbours (so a sign near a border is one landmark);
-3. :func:`hdmap.mapping.association.associate` (gate, per-pass offset, per-image
-   assignment), then :func:`group_check`; the pass's offset goes into the vehicle's trust
-   record, which may settle its probation (:func:`hdmap.mapping.probation.settle`);
-4. matched rays are linked (:func:`hdmap.mapping.linking.link`); unmatched rays join the
-   pending pool, where they may start landmarks (:func:`hdmap.mapping.pending.initiate`);
-   what is left waiting is held to the pass's and the vehicle's budgets
-   (:func:`hdmap.mapping.pending.enforce_budget`);
-5. the candidates the unit had in view count a sighting; what it touched, had in view and
+1. :func:`prepare_unit`: a suspect vehicle's origins are moved by its mean offset, its
+   track labels checked; rays into the tile's ENU frame; the candidate landmarks of the
+   tile and its 8 neighbours (so a sign near a border is one landmark) as the gating tick
+   found them (:func:`hdmap.mapping.tick.visible`, with their gating facings);
+2. :func:`associate_prepared` (gate, per-pass offset, per-image assignment; the units of
+   one tick together, :mod:`hdmap.mapping.batch_association`), then :func:`group_check`;
+   the pass's offset goes into the vehicle's trust record, which may settle its probation
+   (:func:`hdmap.mapping.probation.settle`);
+3. :func:`match_unit`: matched rays are linked (:func:`hdmap.mapping.linking.link`);
+   unmatched rays join the pending pool, where they may start landmarks
+   (:func:`hdmap.mapping.pending.initiate`); what is left waiting is held to the pass's and
+   the vehicle's budgets (:func:`hdmap.mapping.pending.enforce_budget`);
+4. the candidates the unit had in view count a sighting; what it touched, had in view and
    started is noted for the end of the gating tick (:mod:`hdmap.mapping.tick`: sightings
    checked, gating estimates re-solved, merges), at once with ``tick_s = 0``.
 
-The candidates are the landmarks as the tick found them (:func:`hdmap.mapping.tick.visible`,
-with their gating facings), so the units of one tick see the same map.
+Invariant: a unit's association depends on its rays, the tick's landmark estimates and
+:func:`signature` (its vehicle's correction, its candidates) only; one computed earlier in
+the tick for the same signature is the one it would get now.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from hdmap.mapping.association import Association, LocalRays, associate, valid_tracks
+from hdmap.mapping.association import Association, LocalRays, valid_tracks
+from hdmap.mapping.batch_association import UnitInput, associate_units
 from hdmap.mapping.initiation import triangulate_groups
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import link, to_local
@@ -46,39 +50,102 @@ def shift_origins(frame: Any, obs: Any, d_en: np.ndarray) -> Any:
     return replace(obs, lat=lat, lon=lon, h=h)
 
 
-def _corrected(m: Matching, frame: Any, obs: Any, trust: VehicleTrust) -> tuple[Any, np.ndarray]:
-    """``obs`` with a suspect vehicle's mean offset taken out and its track labels checked;
-    also the offset taken out (East, North; zero if none)."""
-    applied = np.zeros(2)
+def correction(m: Matching, vehicle: str) -> np.ndarray:
+    """The offset taken out of the vehicle's origins (East, North): its mean offset while it
+    is suspect, else zero. Reads its trust record, changes nothing."""
     ref = m.fleet_ref()
-    if trust.suspect(m.config.trust, ref):
-        applied = trust.mean_offset(ref)
+    trust = m.state.trust.get(vehicle)
+    if trust is not None and trust.suspect(m.config.trust, ref):
+        return np.asarray(trust.mean_offset(ref), float)
+    return np.zeros(2)
+
+
+def _corrected(m: Matching, frame: Any, obs: Any, vehicle: str) -> tuple[Any, np.ndarray, int]:
+    """``obs`` with the vehicle's :func:`correction` taken out and its track labels checked;
+    also the correction and the rays whose track was invalid."""
+    applied = correction(m, vehicle)
+    if applied.any():
         obs = shift_origins(frame, obs, applied)
-        m.tally("shift_corrected", len(obs))
+    invalid = 0
     if obs.track.any():  # the vehicle's labels are checked once, as they come in
         track = valid_tracks(obs.track, obs.image).astype(np.uint32)
-        m.tally("track_invalid", int((obs.track != track).sum()))
+        invalid = int((obs.track != track).sum())
         obs = replace(obs, track=track)
-    return obs, applied
+    return obs, applied, invalid
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A unit made ready for association: its rays (corrected, in its tile's frame) and the
+    candidate landmarks it sees (:func:`hdmap.mapping.tick.visible`)."""
+
+    tile: str
+    vehicle: str
+    pass_id: int
+    obs: Any
+    """The corrected observations."""
+    applied: np.ndarray
+    """The suspect vehicle's offset taken out (East, North)."""
+    track_invalid: int
+    rays: LocalRays
+    area: list[str]
+    cands: list[Landmark]
+    input: UnitInput | None
+    """What association takes (None: no candidate)."""
+
+    @property
+    def signature(self) -> tuple[bytes, tuple[int, ...]]:
+        """What the association depends on besides the tick's landmark estimates: the
+        offset taken out and the candidates (:func:`signature`)."""
+        return self.applied.tobytes(), tuple(c.id for c in self.cands)
+
+
+def signature(m: Matching, tile: str, vehicle: str, pass_id: int) -> tuple[bytes, tuple[int, ...]]:
+    """What a unit's association depends on besides its rays and the landmark estimates of
+    its tick (fixed while the tick lasts): the correction of its vehicle's origins and its
+    candidates. A unit prepared earlier in the tick with the same signature is prepared
+    as it would be now, and its association is the one it would get now."""
+    cands = visible(m, m.area(tile), pass_key(vehicle, pass_id))
+    return correction(m, vehicle).tobytes(), tuple(c.id for c in cands)
+
+
+def prepare_unit(m: Matching, tile: str, vehicle: str, pass_id: int, obs: Any) -> Prepared:
+    """The unit of ``vehicle``'s pass ``pass_id`` in ``tile`` with rays ``obs`` (an
+    observation table), ready to associate (reads the state, changes nothing)."""
+    frame = m.frames(tile)
+    obs, applied, invalid = _corrected(m, frame, obs, vehicle)
+    rays = to_local(frame, obs)
+    area = m.area(tile)
+    cands = visible(m, area, pass_key(vehicle, pass_id))
+    unit_input = None
+    if cands:
+        unit_input = UnitInput(
+            rays,
+            frame.from_ecef(np.array([c.x for c in cands])),
+            np.array([c.cov for c in cands]),
+            np.array([c.cls for c in cands], np.int64),
+            gating_facings(cands),
+        )
+    return Prepared(tile, vehicle, pass_id, obs, applied, invalid, rays, area, cands, unit_input)
+
+
+def associate_prepared(m: Matching, units: list[Prepared]) -> list[Association | None]:
+    """The associations of ``units`` (None where a unit has no candidate), computed
+    together (:func:`hdmap.mapping.batch_association.associate_units`: each as alone)."""
+    todo = [u.input for u in units if u.input is not None]
+    done = iter(associate_units(todo, m.config.gate))
+    return [None if u.input is None else next(done) for u in units]
 
 
 def _associate(
-    m: Matching,
-    frame: Any,
-    rays: LocalRays,
-    cands: list[Landmark],
-    vehicle: str,
-    pass_id: int,
-    trust: VehicleTrust,
-    applied: np.ndarray,
+    m: Matching, u: Prepared, res: Association, trust: VehicleTrust
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rays to candidate landmarks: the landmark index of each ray (-1: none) and the rays
-    to drop (of a track that went to a landmark without them). The vehicle's trust record
-    takes the pass's gate result and offset, and may settle."""
-    x = frame.from_ecef(np.array([c.x for c in cands]))
-    cov = np.array([c.cov for c in cands])
-    cls = np.array([c.cls for c in cands], np.int64)
-    res: Association = associate(rays, x, cov, cls, m.config.gate, gating_facings(cands))
+    """The unit's association ``res`` checked (:func:`group_check`): the landmark index of
+    each ray (-1: none) and the rays to drop (of a track that went to a landmark without
+    them). The vehicle's trust record takes the pass's gate result and offset, and may
+    settle."""
+    assert u.input is not None
+    rays, x, cov, cls = u.rays, u.input.x, u.input.cov, u.input.cls
     matched = group_check(m, rays, res, x, cov)
     drop = np.zeros(len(rays), bool)
     if res.unlinked is not None and m.config.track_drop_unlinked:
@@ -87,38 +154,41 @@ def _associate(
     n_hit = int((matched >= 0).sum())
     trust.add_gate(int(np.isin(rays.sign_class, cls).sum()), n_hit)
     if n_hit >= m.config.gate.min_offset_rays:
-        raw = res.offset[:2] + applied  # the vehicle's own offset, before correction
-        trust.add_offset(raw, res.offset_cov, m.config.trust.bias_sigma_m, pass_id)
-    m.fleet.update(vehicle, trust)
-    m.note_trust(vehicle, trust, m.fleet_ref())
-    gone = settle(m, vehicle, trust)
+        raw = res.offset[:2] + u.applied  # the vehicle's own offset, before correction
+        trust.add_offset(raw, res.offset_cov, m.config.trust.bias_sigma_m, u.pass_id)
+    m.fleet.update(u.vehicle, trust)
+    m.note_trust(u.vehicle, trust, m.fleet_ref())
+    gone = settle(m, u.vehicle, trust)
     if gone:  # emptied by the settlement: these rays wait like unmatched ones
-        out = np.array([c.id in gone for c in cands])
+        out = np.array([c.id in gone for c in u.cands])
         matched = np.where((matched >= 0) & out[np.maximum(matched, 0)], -1, matched)
     return matched, drop
 
 
 def match_unit(
-    m: Matching, tile: str, vehicle: str, pass_id: int, at: float, obs: Any, received_at: float
+    m: Matching, u: Prepared, at: float, received_at: float, res: Association | None
 ) -> None:
-    """Associate one unit's rays ``obs`` (an observation table) with the landmarks around
-    ``tile``, link them, pool the rest, start, refresh and merge landmarks. ``at`` is the
-    unit's event time (:meth:`Matching.entry_time`): the vehicle is seen then, and a pooled
-    ray waits from its own capture time (never later than ``at``); ``received_at`` (the
-    ingest stamp) only traces latency."""
-    frame = m.frames(tile)
+    """Link the prepared unit's rays by its association ``res`` (None: computed here; see
+    :func:`associate_prepared`), pool the rest, start landmarks, count sightings and note
+    what it touched for the end of the tick. ``at`` is the unit's event time
+    (:meth:`Matching.entry_time`): the vehicle is seen then, and a pooled ray waits from
+    its own capture time (never later than ``at``); ``received_at`` (the ingest stamp)
+    only traces latency."""
+    tile, vehicle, pass_id, obs, cands = u.tile, u.vehicle, u.pass_id, u.obs, u.cands
     trust = m.state.seen(vehicle, at)
-    obs, applied = _corrected(m, frame, obs, trust)
-    rays = to_local(frame, obs)
-    area = m.area(tile)
-    key = pass_key(vehicle, pass_id)
-    cands = visible(m, area, key)
-    matched = np.full(len(rays), -1, np.int64)
-    drop = np.zeros(len(rays), bool)
-    if cands:
-        matched, drop = _associate(m, frame, rays, cands, vehicle, pass_id, trust, applied)
+    if u.applied.any():
+        m.tally("shift_corrected", len(obs))
+    if u.track_invalid:
+        m.tally("track_invalid", u.track_invalid)
+    matched = np.full(len(u.rays), -1, np.int64)
+    drop = np.zeros(len(u.rays), bool)
+    if u.input is not None:
+        if res is None:
+            (res,) = associate_prepared(m, [u])
+        assert res is not None
+        matched, drop = _associate(m, u, res, trust)
     hit = matched >= 0
-    m.tally("received", len(rays))
+    m.tally("received", len(u.rays))
     m.tally("associated", int(hit.sum()))
     touched: set[int] = set()
     for i in np.flatnonzero(hit):
@@ -130,14 +200,14 @@ def match_unit(
     since = np.where(np.isfinite(captured), np.minimum(captured, at), at)
     m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at)
     new_classes = np.unique(obs.sign_class[wait])
-    born = initiate(m, tile, area, vehicle, pass_id, new_classes)
+    born = initiate(m, tile, u.area, vehicle, pass_id, new_classes)
     # after initiation took what it could: an honest upload's rays (all of them waiting,
     # in a tile with no landmark yet) are not evicted before they had their chance
     enforce_budget(m, tile, vehicle, pass_id)
     counted: list[int] = []
     if cands and m.config.sightings.enabled:
-        counted = count_sightings(m, frame, rays, cands, matched)
-    m.state.note_tick(touched | born, counted, born, key)
+        counted = count_sightings(m, m.frames(tile), u.rays, cands, matched)
+    m.state.note_tick(touched | born, counted, born, pass_key(vehicle, pass_id))
     if m.config.tick_s <= 0:
         end_tick(m)
 

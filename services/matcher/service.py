@@ -21,16 +21,18 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from hdmap.mapping.association import Association
 from hdmap.mapping.estimator import LandmarkSums
 from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.event_time import advance
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
-from hdmap.mapping.tick import enter
-from hdmap.mapping.unit import match_unit
+from hdmap.mapping.tick import enter, tick_of
+from hdmap.mapping.unit import Prepared, associate_prepared, match_unit, prepare_unit, signature
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.service import ServiceOptions
 from hdmap.runtime.stage import StageService
@@ -50,11 +52,19 @@ from services.matcher.state import MatcherState
 
 log = logging.getLogger(__name__)
 
+Associated = tuple[Prepared, Association | None]
+"""A unit prepared for association and its association (None: no candidate)."""
+
 
 @dataclass(frozen=True)
 class MatcherConfig(MatchingConfig):
     """The matcher's configuration (:class:`~hdmap.mapping.matching.MatchingConfig`),
     checked as it is loaded."""
+
+    associate_ahead: int = 32
+    """Most units of one gating tick associated in one call (the unit that starts a run
+    and those after it in the batch the tick will hold): the work of a call grows with
+    its units' pairs. Any size gives the same map (each unit's association is its own)."""
 
     def __post_init__(self) -> None:
         budgets = ("pending_max_per_pass", "pending_max_per_vehicle", "quarantine_after")
@@ -63,6 +73,8 @@ class MatcherConfig(MatchingConfig):
                 raise ConfigError(
                     f"matcher.{name}: must be >= 0 (0: off), got {getattr(self, name)}"
                 )
+        if self.associate_ahead < 1:
+            raise ConfigError(f"matcher.associate_ahead: must be >= 1, got {self.associate_ahead}")
         if 0 < self.pending_max_per_pass < self.init.min_rays:
             raise ConfigError(
                 f"matcher.pending_max_per_pass: below init.min_rays ({self.init.min_rays}), got "
@@ -149,6 +161,9 @@ class MatcherService(StageService):
             self.config, self.state, self.opts.zoom, self.region, self.count, wall_clock
         )
         self.frames = self.matching.frames
+        self._ahead_of: dict[int, tuple[int, Associated]] = {}
+        """Units of the current batch associated ahead, by index: (the tick serial they were
+        associated in, the unit and its association)."""
         self._reload()
         preload()  # scipy.stats for the covariance inflation, not in the first batch
         self._counts: dict[str, float] = {}
@@ -193,6 +208,11 @@ class MatcherService(StageService):
         advance settles (:func:`hdmap.mapping.event_time.advance`: probation, expiry, pass
         closing); after each entry, emit one assoc entry per home tile it touched; save.
 
+        The units that will share a gating tick are associated together when the first of
+        them comes (:meth:`_associate_ahead`); each is then checked to be what it was
+        (:func:`hdmap.mapping.unit.signature`) before its association is used, and is
+        associated alone if not.
+
         Invariant: the assoc log holds the same groups in the same order however the obs
         entries were batched (one per entry and home tile), so the solver, whose clock
         and pass closing follow its groups, builds the same map from uploads sent paced or
@@ -200,38 +220,87 @@ class MatcherService(StageService):
         uploads' rays in one group: the solver's clock jumped to the latest of them before
         the earliest were noted, its passes closed at other entries, and a late ray of a
         pass joined it in one run and started a new cluster in the other."""
-        ahead: list[float] = []
+        decoded: list[tuple[LogEntry, ObsGroup]] = []
         for e in entries:
-            self.matching.out = new_output()
             try:
-                group = ObsGroup.from_bytes(e.body)
+                decoded.append((e, ObsGroup.from_bytes(e.body)))
             except DecodeError as exc:
                 self.reject(f"obs.{exc.field}")
-                continue
-            if self.matching.is_ahead(group.received_at):
-                ahead.append(group.received_at)
-            self._unit(e.tile, group)
+        ahead = [self.matching.is_ahead(g.received_at) for _e, g in decoded]
+        self._ahead_of = {}
+        for i, (e, g) in enumerate(decoded):
+            self.matching.out = new_output()
+            self._unit(e.tile, g, i, lambda i=i: self._associate_ahead(i, decoded, ahead))
             advance(self.matching)
             for home, out in sorted(self.matching.out.items()):
                 self.emit(home, assoc_body(out))
-        if ahead:
+        self._ahead_of = {}
+        late = [g.received_at for (_e, g), a in zip(decoded, ahead, strict=True) if a]
+        if late:
             log.warning(
                 "%d obs entries stamped more than time_tolerance_s ahead of the matcher's "
                 "wall clock (up to %.0f s past its event-time clock); their time not taken",
-                len(ahead),
-                max(ahead) - self.matching.now,
+                len(late),
+                max(late) - self.matching.now,
             )
         self.state.save(self.sums.pack_rows)
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
 
-    def _unit(self, tile: str, g: ObsGroup) -> float:
+    def _unit(
+        self,
+        tile: str,
+        g: ObsGroup,
+        index: int = 0,
+        batch: Callable[[], list[tuple[int, Associated]]] | None = None,
+    ) -> float:
         """One decoded unit through the domain, at its event time on the matcher's clock
-        (returned)."""
-        at = self.matching.entry_time(g.received_at, np.asarray(g.obs.t, float))
-        enter(self.matching, at)  # the unit's gating tick (the one before it may end)
-        match_unit(self.matching, tile, g.vehicle_id, g.pass_id, at, g.obs, g.received_at)
+        (returned). Its association is the one ``batch()`` made for it earlier in its tick
+        if it is still its own (:func:`hdmap.mapping.unit.signature`); else, when nothing
+        was associated ahead, ``batch()`` associates it with the units after it in its
+        tick; else it is associated alone."""
+        m = self.matching
+        at = m.entry_time(g.received_at, np.asarray(g.obs.t, float))
+        enter(m, at)  # the unit's gating tick (the one before it may end)
+        u: Prepared | None = None
+        res: Association | None = None
+        hit = self._ahead_of.pop(index, None)
+        if hit is not None:
+            serial, (p, r) = hit
+            if serial == m.tick_serial and p.signature == signature(
+                m, tile, g.vehicle_id, g.pass_id
+            ):
+                u, res = p, r
+            else:  # its pass started a landmark, its vehicle's correction moved, ...
+                self.count("assoc_redone", 1)
+        elif batch is not None and m.config.tick_s > 0:
+            (_i, (u, res)), *later = batch()
+            self._ahead_of = {k: (m.tick_serial, a) for k, a in later}
+        if u is None:
+            u = prepare_unit(m, tile, g.vehicle_id, g.pass_id, g.obs)
+        match_unit(m, u, at, g.received_at, res)
         return at
+
+    def _associate_ahead(
+        self, i: int, decoded: list[tuple[LogEntry, ObsGroup]], ahead: list[bool]
+    ) -> list[tuple[int, Associated]]:
+        """Unit ``i`` (its clock moved) and the units after it in the batch that its tick
+        will hold (their clock predicted: :meth:`Matching.event_time`; at most
+        ``associate_ahead``), prepared and associated together."""
+        m = self.matching
+        now, tick = m.now, m.state.tick_id
+        run = [i]
+        for k in range(i + 1, min(len(decoded), i + self.config.associate_ahead)):
+            g = decoded[k][1]
+            at, now = m.event_time(g.received_at, np.asarray(g.obs.t, float), ahead[k], now)
+            if tick_of(m, at, now) != tick:
+                break
+            run.append(k)
+        units = [
+            prepare_unit(m, e.tile, g.vehicle_id, g.pass_id, g.obs)
+            for e, g in (decoded[k] for k in run)
+        ]
+        return list(zip(run, zip(units, associate_prepared(m, units), strict=True), strict=True))
 
     # -- timers and stats -----------------------------------------------------------------------
 

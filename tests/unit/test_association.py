@@ -14,11 +14,11 @@ from hdmap.mapping.association import (
     GateConfig,
     LocalRays,
     assign_per_image,
-    associate,
     estimate_offset,
     origin_cov,
     pair_chi2,
 )
+from hdmap.mapping.batch_association import associate
 from tests.support.association import rays_to
 
 

@@ -17,7 +17,8 @@ from scipy.stats import binom
 from scipy.stats import t as student_t
 
 from fleetsim.synthetic import ray_observations
-from hdmap.mapping.association import GateConfig, LocalRays, associate
+from hdmap.mapping.association import GateConfig, LocalRays
+from hdmap.mapping.batch_association import associate
 from hdmap.mapping.facing import (
     Facing,
     FacingConfig,

@@ -23,15 +23,18 @@ T0 = float(int(time.time()) - 3600)  # a tick starts here (1 s ticks)
 OTHER = SIGN + np.array([-8.0, 6.0, 0.0])
 
 
-def entry(m: MatcherService, seq: int, vehicle: str, at: float, both: bool = False) -> LogEntry:
+def entry(
+    m: MatcherService, seq: int, vehicle: str, at: float, both: bool = False, part: int = 0
+) -> LogEntry:
     """One pass (id ``seq``) of ``vehicle`` at the sign (``both``: and at a sign of another
     class 10 m from it, in the same images), its rays captured over the 2 s up to ``at``
-    (event time), stamped by ingest a second later."""
+    (event time), stamped by ingest a second later; ``part`` > 0: a later upload of the
+    pass (other images)."""
     tile = tile_of(m.opts.zoom)
     frame = m.frames(tile)
-    obs = sign_rays(frame, seq, np.random.default_rng(seq))
+    obs = sign_rays(frame, seq, np.random.default_rng(seq + 77 * part), image0=20 * part)
     if both:
-        o2 = sign_rays(frame, seq, np.random.default_rng(seq + 1000), at=OTHER)
+        o2 = sign_rays(frame, seq, np.random.default_rng(seq + 1000), at=OTHER, image0=20 * part)
         o2 = replace(o2, obs_id=o2.obs_id + 500, sign_class=o2.sign_class + 1)
         obs = type(obs).concat([obs, o2])
     obs = replace(obs, t=at - np.linspace(2.0, 0.0, len(obs)))
@@ -39,8 +42,8 @@ def entry(m: MatcherService, seq: int, vehicle: str, at: float, both: bool = Fal
     return LogEntry("obs", "ingest-t", tile, seq, seq, body)
 
 
-def matcher(path: Path, tick_s: float = 1.0) -> MatcherService:
-    return open_matcher(path, MatcherConfig(tick_s=tick_s))
+def matcher(path: Path, tick_s: float = 1.0, ahead: int = 32) -> MatcherService:
+    return open_matcher(path, MatcherConfig(tick_s=tick_s, associate_ahead=ahead))
 
 
 def test_a_new_landmark_is_seen_by_its_own_pass_at_once_and_by_others_next_tick(
@@ -70,18 +73,29 @@ def test_a_new_landmark_is_seen_by_its_own_pass_at_once_and_by_others_next_tick(
 def test_the_map_is_the_same_however_batched_and_across_a_restart_in_a_tick(
     tmp_path: Path,
 ) -> None:
-    """Forty passes of eight vehicles at two signs, 0.3 s apart: ticks of three or four
-    units. Batches of 1, 7 and all, and a restart while a tick is open, give one map."""
+    """Forty passes of eight vehicles at two signs, 0.3 s apart, every fourth pass sending
+    a second upload 0.1 s after its first: ticks of three to six units, a pass's second
+    upload in the tick where its first started the landmarks. Batches of 1, 7 and all,
+    associated one by one or together, and a restart while a tick is open, give one
+    map."""
     m0 = matcher(tmp_path / "gen")
-    entries = [entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k, both=True) for k in range(40)]
+    entries = []
+    for k in range(40):
+        entries.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k, both=True))
+        if k % 4 == 0:
+            entries.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k + 0.1, True, part=1))
     m0.db.close()
+    entries = [replace(e, seq=n + 1, gseq=n + 1) for n, e in enumerate(entries)]  # log order
     digests = set()
-    for batch in (1, 7, 40):
-        svc = matcher(tmp_path / f"b{batch}")
+    redone = 0
+    for batch, ahead in ((1, 32), (7, 32), (len(entries), 32), (len(entries), 1)):
+        svc = matcher(tmp_path / f"b{batch}-{ahead}", ahead=ahead)
         replay(svc, entries, batch)
         digests.add(landmark_digest(svc))
         assert sorted(lm.cls for lm in svc.state.landmarks.values()) == [CLS, CLS + 1]
+        redone += svc.counters.get("assoc_redone", 0)
         svc.db.close()
+    assert redone > 0  # the second uploads saw their pass's new landmarks
     svc = matcher(tmp_path / "restart")
     replay(svc, entries[:13], 5)
     assert svc.state.tick_touched  # a tick is open

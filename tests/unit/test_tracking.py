@@ -26,9 +26,9 @@ from hdmap.mapping.association import (
     LocalRays,
     angles,
     assign_tracks,
-    associate,
     valid_tracks,
 )
+from hdmap.mapping.batch_association import associate
 from hdmap.mapping.matching import AssocOutput as _Out
 from schemas import ObservationBatch, Observations, ObsGroup
 from tests.support.association import rays_to
