@@ -190,17 +190,6 @@ class Pairs:
     measured: Array
     """(k, 2) the rays' measured azimuth and elevation."""
 
-    def take(self, idx: NDArray) -> Pairs:
-        """The pairs ``idx`` selects (a mask or indices)."""
-        return Pairs(
-            self.ri[idx],
-            self.origin[idx],
-            self.direction[idx],
-            self.x[idx],
-            self.cov[idx],
-            self.measured[idx],
-        )
-
     @staticmethod
     def of(rays: LocalRays, ri: IntArray, x: Array, cov: Array) -> Pairs:
         """Pairs of rays ``ri`` with landmarks at ``x`` (one per pair) and covariances."""
@@ -211,51 +200,62 @@ class Pairs:
 
 
 def pair_stat(
-    rays: LocalRays, p: Pairs, a_cov: Array, cfg: GateConfig, offset: Array | None
+    rays: LocalRays,
+    p: Pairs,
+    a_cov: Array,
+    cfg: GateConfig,
+    offset: Array | None,
+    rows: IntArray | None = None,
 ) -> tuple[Array, NDArray[np.bool_]]:
-    """:func:`pair_chi2` of pre-gathered pairs."""
-    ri, x, cov = p.ri, p.x, p.cov
-    a = p.origin + (0.0 if offset is None else offset)
-    d = p.direction
+    """:func:`pair_chi2` of pre-gathered pairs; with ``rows``, of those pairs only (the
+    others: ``inf``, not plausible; ``offset``, if an array, one row per pair of ``rows``)."""
+    src = slice(None) if rows is None else rows
+    ri, x = p.ri[src], p.x[src]
+    a = p.origin[src] + (0.0 if offset is None else offset)
+    d = p.direction[src]
     v = x - a
     rng = np.linalg.norm(v, axis=-1)
     front = np.einsum("kj,kj->k", v, d) > 0
     ok = front & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
     chi2 = np.full(ri.size, np.inf)
     k = np.flatnonzero(ok)
-    if k.size == 0:
+    if k.size:
+        kp = k if rows is None else rows[k]  # into p's rows
+        rk, vk, dk, rng_k = ri[k], v[k], d[k], rng[k]
+        c = p.cov[kp] + a_cov[rk]
+        r_est = rays.range_m[rk]
+        has_r = r_est > 0
+        # landmark distance uncertainty along the ray: origin and landmark position spread
+        along = np.sqrt(np.einsum("ki,kij,kj->k", dk, c, dk))
+        s_r = np.hypot(rays.sigma_range_m[rk], along)
+        good = ~has_r | (np.abs(rng_k - r_est) <= cfg.range_k * s_r)
+        ok[k[~good]] = False
+        k, kp, rk, vk, dk, c = k[good], kp[good], rk[good], vk[good], dk[good], c[good]
+        rng_k, r_est, has_r, s_r = rng_k[good], r_est[good], has_r[good], s_r[good]
+        az, el = angles(vk)
+        az_m, el_m = p.measured[kp, 0], p.measured[kp, 1]
+        res = np.stack([wrap(az - az_m), el - el_m], axis=-1)
+        j = angle_jacobian(vk)
+        s = j @ c @ j.transpose(0, 2, 1)
+        floor2 = cfg.angle_floor_rad**2
+        s[:, 0, 0] += rays.sigma_az[rk] ** 2 + floor2
+        s[:, 1, 1] += rays.sigma_el[rk] ** 2 + floor2
+        det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+        det = np.where(det > 0, det, 1e-30)
+        stat = (
+            res[:, 0] ** 2 * s[:, 1, 1]
+            - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
+            + res[:, 1] ** 2 * s[:, 0, 0]
+        ) / det
+        if cfg.range_in_cost:
+            # the range residual joins the statistic: it separates signs along one ray
+            stat = stat + np.where(has_r, ((rng_k - r_est) / np.where(has_r, s_r, 1.0)) ** 2, 0.0)
+        chi2[k] = stat
+    if rows is None:
         return chi2, ok
-    rk, vk, dk, rng_k = ri[k], v[k], d[k], rng[k]
-    c = cov[k] + a_cov[rk]
-    r_est = rays.range_m[rk]
-    has_r = r_est > 0
-    # landmark distance uncertainty along the ray: origin and landmark position spread
-    along = np.sqrt(np.einsum("ki,kij,kj->k", dk, c, dk))
-    s_r = np.hypot(rays.sigma_range_m[rk], along)
-    good = ~has_r | (np.abs(rng_k - r_est) <= cfg.range_k * s_r)
-    ok[k[~good]] = False
-    k, rk, vk, dk, c = k[good], rk[good], vk[good], dk[good], c[good]
-    rng_k, r_est, has_r, s_r = rng_k[good], r_est[good], has_r[good], s_r[good]
-    az, el = angles(vk)
-    az_m, el_m = p.measured[k, 0], p.measured[k, 1]
-    res = np.stack([wrap(az - az_m), el - el_m], axis=-1)
-    j = angle_jacobian(vk)
-    s = j @ c @ j.transpose(0, 2, 1)
-    floor2 = cfg.angle_floor_rad**2
-    s[:, 0, 0] += rays.sigma_az[rk] ** 2 + floor2
-    s[:, 1, 1] += rays.sigma_el[rk] ** 2 + floor2
-    det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
-    det = np.where(det > 0, det, 1e-30)
-    stat = (
-        res[:, 0] ** 2 * s[:, 1, 1]
-        - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
-        + res[:, 1] ** 2 * s[:, 0, 0]
-    ) / det
-    if cfg.range_in_cost:
-        # the range residual joins the statistic: it separates signs along one ray
-        stat = stat + np.where(has_r, ((rng_k - r_est) / np.where(has_r, s_r, 1.0)) ** 2, 0.0)
-    chi2[k] = stat
-    return chi2, ok
+    full, plausible = np.full(p.ri.size, np.inf), np.zeros(p.ri.size, bool)
+    full[rows], plausible[rows] = chi2, ok
+    return full, plausible
 
 
 def assign_per_image(

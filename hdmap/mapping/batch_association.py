@@ -79,7 +79,7 @@ class _Batch:
     pu: IntArray
     """Unit of each pair."""
     track_unit: IntArray
-    """Unit of each dense track id (index 0: none)."""
+    """Unit of each dense track id (index 0: none; the units' own, not their copies')."""
     n: int
 
     @property
@@ -152,6 +152,49 @@ def _gather(units: list[UnitInput], cfg: GateConfig) -> _Batch:
     )
 
 
+def _ranges(starts: IntArray, ends: IntArray) -> IntArray:
+    """``np.arange(s, e)`` of every (s, e), concatenated."""
+    n = ends - starts
+    return np.repeat(starts - np.r_[0, np.cumsum(n)[:-1]], n) + np.arange(int(n.sum()))
+
+
+def _with_copies(b: _Batch, base: IntArray) -> _Batch:
+    """``b`` followed by a copy of each of its units ``base`` (units ``b.n``, ``b.n + 1``,
+    ...): the same rays, candidates and pairs, with image and track ids of their own."""
+    p0 = np.searchsorted(b.pu, np.arange(b.n + 1))  # each unit's pairs (by unit)
+    nr, nl, npair = (z[base + 1] - z[base] for z in (b.ray0, b.lm0, p0))
+    copy = np.arange(base.size)
+    ray_copy, pair_copy = np.repeat(copy, nr), np.repeat(copy, npair)
+    ray0 = b.ray0[-1] + np.r_[0, np.cumsum(nr)]
+    lm0 = b.lm0[-1] + np.r_[0, np.cumsum(nl)]
+    rr = _ranges(b.ray0[base], b.ray0[base + 1])
+    pr = _ranges(p0[base], p0[base + 1])
+    lr = _ranges(b.lm0[base], b.lm0[base + 1])
+    c = b.rays.take(rr)
+    img = (ray_copy + 1) * (int(b.rays.image.max(initial=0)) + 1)
+    trk = (ray_copy + 1) * (int(b.rays.tracks.max(initial=0)) + 1)
+    c = replace(c, image=c.image + img, track=np.where(c.tracks > 0, c.tracks + trk, 0))
+    src = b.pairs
+    ri = b.ri[pr] - b.ray0[base][pair_copy] + ray0[pair_copy]
+    pairs = Pairs(
+        np.r_[src.ri, ri],
+        *(np.concatenate([f, f[pr]]) for f in (src.origin, src.direction, src.x, src.cov)),
+        np.concatenate([src.measured, src.measured[pr]]),
+    )
+    return _Batch(
+        LocalRays.concat([b.rays, c]),
+        np.r_[b.unit, b.n + ray_copy],
+        np.r_[b.ray0, ray0[1:]],
+        np.r_[b.lm0, lm0[1:]],
+        np.concatenate([b.x, b.x[lr]]),
+        pairs,
+        np.r_[b.li, b.li[pr] - b.lm0[base][pair_copy] + lm0[pair_copy]],
+        np.r_[b.pu, b.n + pair_copy],
+        b.track_unit,
+        b.n + base.size,
+    )
+
+
 def estimate_offsets(
     b: _Batch, assigned: IntArray, active: BoolArray, bias_h: float, bias_v: float
 ) -> tuple[Array, Array]:
@@ -203,11 +246,16 @@ def _assigned_at(b: _Batch, active: BoolArray, o: Array, oc: Array, cfg: GateCon
     covariance ``oc``); rows of the others are -1 / inf."""
     pm = active[b.pu]
     narrow = origin_cov(b.rays, 0.0, 0.0) + oc[b.unit]
-    cost = np.full(b.li.size, np.inf)
-    cost[pm] = pair_stat(b.rays, b.pairs.take(pm), narrow, cfg, o[b.pu[pm]])[0]
-    best, unlinked = assign_tracks(
-        b.rays, b.ri[pm], b.li[pm], cost[pm], cfg.chi2_gate, cfg.chi2_gate * cfg.track_link_factor
-    )
+    link_gate = cfg.chi2_gate * cfg.track_link_factor
+    if pm.all():
+        cost = pair_stat(b.rays, b.pairs, narrow, cfg, o[b.pu])[0]
+        best, unlinked = assign_tracks(b.rays, b.ri, b.li, cost, cfg.chi2_gate, link_gate)
+    else:
+        rows = np.flatnonzero(pm)
+        cost = pair_stat(b.rays, b.pairs, narrow, cfg, o[b.pu[rows]], rows)[0]
+        best, unlinked = assign_tracks(
+            b.rays, b.ri[rows], b.li[rows], cost[rows], cfg.chi2_gate, link_gate
+        )
     return _Fits(best, unlinked, cost, o.copy(), oc.copy())
 
 
@@ -283,7 +331,7 @@ def associate_units(units: list[UnitInput], cfg: GateConfig) -> list[Association
     link_gate = cfg.chi2_gate * cfg.track_link_factor
     best, unlinked = assign_tracks(b.rays, b.ri, b.li, wide_cost, cfg.chi2_gate, link_gate)
     alt_unit, alt_slot, alt_track = _alternative_seeds(b, wide_cost, cfg)
-    v = _gather(units + [units[k] for k in alt_unit.tolist()], cfg) if alt_unit.size else b
+    v = _with_copies(b, alt_unit) if alt_unit.size else b
     n_alt = v.n - b.n
     prior_cov = np.diag([bias_h, bias_h, bias_v]) ** 2
     fits = _Fits(
