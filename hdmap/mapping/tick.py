@@ -17,9 +17,11 @@ touched and offers them a merge.
 Invariant: which units share a gating tick depends only on the entries (their order and
 their event times), never on how they were batched, when they arrived or on a restart
 (the tick's marks are saved with the table), so live processing, a bulk upload a day late
-and a replay give the same map. Within a tick no unit's association depends on another's
-except through its own pass's new landmarks and its own vehicle's trust record: that is
-what lets the units of a tick be associated together.
+and a replay give the same map. Within a tick a unit's association depends on the units
+before it only through its own pass's new landmarks, its own vehicle's trust record (the
+correction of a suspect vehicle's origins) and landmarks a vehicle's settlement emptied:
+what :func:`hdmap.mapping.unit.signature` checks, and what lets the units of a tick be
+associated together.
 
 Live traffic at a high rate puts hundreds of units in one tick (uploads a little out of
 order included); an upload that comes late (a day's drives sent at once) goes by its own

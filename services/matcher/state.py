@@ -1,6 +1,8 @@
-"""The matcher's state in SQLite: landmark identities with gating estimates, the pending
-pool, vehicles' trust records, viewing directions, co-visibility counts and the budget
-records of passes that outgrew their pending budget.
+"""The matcher's state in SQLite: landmark identities with gating estimates and facings,
+the pending pool, vehicles' trust records, viewing directions, co-visibility and co-pass
+counts, the budget records of passes that outgrew their pending budget and the current
+gating tick's marks (:mod:`hdmap.mapping.tick`: a restart in the middle of a tick goes on
+with it).
 
 In memory it is a :class:`~hdmap.mapping.landmarks.LandmarkTable` (landmarks as a dict of
 :class:`~hdmap.mapping.landmarks.Landmark` records by id, the pending pool as one columnar
