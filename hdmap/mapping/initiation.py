@@ -26,12 +26,19 @@ with w_j = 1 / (r_j^2 s_j^2 + s_pos^2) and v_j = 1 / s_r,j^2 (0 without a range)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hdmap.mapping.association import GateConfig, LocalRays, origin_cov, pair_chi2, track_spans
+from hdmap.mapping.association import (
+    GateConfig,
+    LocalRays,
+    Pairs,
+    origin_cov,
+    pair_stat,
+    track_spans,
+)
 
 Array = NDArray[np.float64]
 
@@ -99,8 +106,20 @@ def triangulate_groups(
 ) -> tuple[Array, Array]:
     """:func:`triangulate` of the rays of each group ``0..k-1`` at once: points (k, 3) and
     covariances (k, 3, 3), NaN where a group fixes no point (or has no rays)."""
-    g = np.asarray(groups, np.int64)
-    terms_a, terms_b = normal_terms(rays, ranges)
+    return _solve_groups(*normal_terms(rays, ranges), np.asarray(groups, np.int64), k)
+
+
+def _solve_terms(terms_a: Array, terms_b: Array) -> tuple[Array, Array]:
+    """The point and covariance of one group's normal-equation terms."""
+    x, cov = _solve_groups(terms_a, terms_b, np.zeros(terms_a.shape[0], np.int64), 1)
+    return x[0], cov[0]
+
+
+def _solve_groups(
+    terms_a: Array, terms_b: Array, g: NDArray[np.int64], k: int
+) -> tuple[Array, Array]:
+    """Points and covariances of the groups ``g`` of rays with these terms (summed in row
+    order)."""
     big_a = np.zeros((k, 3, 3))
     b = np.zeros((k, 3))
     np.add.at(big_a, g, terms_a)
@@ -194,6 +213,11 @@ def propose(
     first = np.where(track > 0, span[:, 0], rays.image)
     last = np.where(track > 0, span[:, 1], rays.image)
     white = origin_cov(rays, 0.0, 0.0)
+    # per ray, once: the triangulation's terms and the pairs' ray side (each iteration
+    # below sums the members' terms and gates the free rays against one point: the same
+    # arithmetic as triangulate / pair_chi2 on them, to the bit)
+    terms = normal_terms(rays)
+    ray_side = Pairs.of(rays, np.arange(n), np.zeros((n, 3)), np.zeros((n, 3, 3)))
     out: list[Candidate] = []
     for s in seeds:
         if used[s]:
@@ -206,19 +230,16 @@ def propose(
             pool &= (track == track[s]) | ((track > 0) & (track[s] > 0) & apart)
         for _ in range(3):
             free = np.flatnonzero(pool)
-            chi2, ok = pair_chi2(
-                rays,
-                free,
-                np.broadcast_to(x, (free.size, 3)),
-                np.broadcast_to(cov, (free.size, 3, 3)),
-                white,
-                gate,
+            at = replace(
+                ray_side, x=np.broadcast_to(x, (n, 3)), cov=np.broadcast_to(cov, (n, 3, 3))
             )
+            chi2, ok = pair_stat(rays, at, white, gate, None, free)
+            chi2, ok = chi2[free], ok[free]
             hit = ok & (chi2 <= gate.chi2_gate)
             members = _best_per_image(free[hit], chi2[hit], rays.image)
             if members.size < 2:
                 break
-            x, cov = triangulate(rays.take(members))
+            x, cov = _solve_terms(terms[0][members], terms[1][members])
             if not np.isfinite(cov).all():
                 break
         if members.size < cfg.min_rays or np.unique(rays.image[members]).size < cfg.min_images:

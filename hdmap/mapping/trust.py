@@ -175,6 +175,11 @@ class VehicleTrust:
     Only grows."""
     held_homes: set[str] = field(default_factory=set)
     """Home tiles where this vehicle has held passes (where to send its settlement)."""
+    _memo: tuple[tuple[float, ...], tuple[int, np.ndarray, np.ndarray]] | None = field(
+        default=None, init=False, repr=False, compare=False
+    )
+    """The last :meth:`_folded` and the sums it was computed from (a unit asks for it about
+    ten times: weight, chi-square, suspect, settlement; each is three 2x2 inversions)."""
 
     def add_offset(
         self,
@@ -202,7 +207,20 @@ class VehicleTrust:
             self._fold()
 
     def _folded(self) -> tuple[int, np.ndarray, np.ndarray]:
-        """(n, information, weighted sum) with the current pass included."""
+        """(n, information, weighted sum) with the current pass included (read-only arrays,
+        the same while the sums are)."""
+        cur = self.current
+        key = (self.n, self.i_ee, self.i_en, self.i_nn, self.sx, self.sy, cur.i_ee, cur.i_en)
+        key += (cur.i_nn, cur.sx, cur.sy, self.bias_sigma_m)
+        if self._memo is not None and self._memo[0] == key:
+            return self._memo[1]
+        out = self._fold_sums()
+        for a in out[1:]:
+            a.setflags(write=False)
+        self._memo = (key, out)
+        return out
+
+    def _fold_sums(self) -> tuple[int, np.ndarray, np.ndarray]:
         info = np.array([[self.i_ee, self.i_en], [self.i_en, self.i_nn]])
         s = np.array([self.sx, self.sy])
         p = self.current.info()
