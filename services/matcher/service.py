@@ -271,6 +271,7 @@ class MatcherService(StageService):
                 m, tile, g.vehicle_id, g.pass_id
             ):
                 u, res = p, r
+                self.count("assoc_ahead", 1)
             else:  # its pass started a landmark, its vehicle's correction moved, ...
                 self.count("assoc_redone", 1)
         elif batch is not None and m.config.tick_s > 0:

@@ -11,6 +11,7 @@ timeouts, drain timeout, pytest-timeout).
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
@@ -18,6 +19,7 @@ from fleetsim.loadgen import LoadConfig
 from fleetsim.loadtest import REPORT_KEYS, run_load
 from hdmap.cli import main as hdmap_main
 from hdmap.runtime.bus import open_session
+from services.matcher.replay import landmark_digest, open_matcher, read_obs_log, replay
 
 pytestmark = pytest.mark.integration
 
@@ -78,6 +80,19 @@ def test_loadtest_counts_add_up(stack, tmp_path):
     assert second["run_id"] != first["run_id"]
     # Only this run's work is counted, not the first run's.
     assert second["chain"]["ingest_accepted"] == second["accepted"]
+
+    # The live map is the log's: the obs log replayed in-process, in other batches, gives
+    # the live matcher's landmarks (gating ticks of several units, associated ahead).
+    stack.stop_all()
+    shutil.copytree(stack.data_dir / "matcher-all", tmp_path / "live" / "matcher-all")
+    live = open_matcher(tmp_path / "live")
+    want = landmark_digest(live)
+    live.db.close()
+    svc = open_matcher(tmp_path / "replay")
+    replay(svc, read_obs_log(stack.data_dir / "ingest-all" / "state.sqlite"), 16)
+    assert svc.counters["assoc_ahead"] > 0
+    assert landmark_digest(svc) == want
+    svc.db.close()
 
 
 def test_loadtest_refuses_without_services(router_session):
