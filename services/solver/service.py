@@ -333,8 +333,9 @@ class SolverService(StageService):
                 merge_rows(self._quiet, self.sums, keep, drop, rot, t)
                 keep.view, keep.view_n = keep.view + drop.view, keep.view_n + drop.view_n
                 touched.add(keep.id)
-                src = self._source.pop(drop.id, 0.0)
-                self._source[keep.id] = max(self._source.get(keep.id, 0.0), src)
+                src = self._source.pop(drop.id, None)
+                if src is not None:  # a merge in a later group than the links: none
+                    self._source[keep.id] = max(self._source.get(keep.id, src), src)
                 self.count("merged")
             self.state.delete(drop.id)
             self._retired.append(drop)

@@ -200,6 +200,9 @@ def test_solver_hands_the_sums_over_and_the_map_drops_the_retired(tmp_path: Path
     assert u.removed.id.tolist() == [idb]
     assert u.landmarks.id.tolist() == [ida]
     assert int(u.landmarks.n_obs[0]) == 120 and int(u.landmarks.n_passes[0]) == 12
+    # a merge in a group of its own (the matcher merges when a gating tick ends): the
+    # update's source time is the solver's clock, not 0 (a latency of 56 years)
+    assert u.landmarks.source_time[0] > time.time() - 3600.0
     assert sorted(s.state.landmarks) == [ida]
     # the same rays given to one landmark from the start: the same estimate
     one = solver(tmp_path / "one")
