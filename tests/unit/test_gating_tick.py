@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdmap.mapping.tick import visible
+from hdmap.mapping.tick import tick_of, visible
 from schemas import LogEntry, ObsGroup
 from schemas.ids import pass_key
 from services.matcher.replay import landmark_digest, open_matcher, replay
@@ -116,3 +116,18 @@ def test_facings_are_what_association_saw_after_a_restart(tmp_path: Path) -> Non
     again = matcher(tmp_path)
     for i, f in faced.items():
         np.testing.assert_array_equal(again.state.landmarks[i].facing, f)
+
+
+def test_a_unit_a_little_late_joins_the_clocks_tick_a_late_one_has_its_own(
+    tmp_path: Path,
+) -> None:
+    """Uploads a fraction of a second out of order share the live tick; a day's drive
+    uploaded late goes by its own times (its passes do not pile into one tick)."""
+    m = matcher(tmp_path)
+    now = T0 + 0.9
+    assert tick_of(m.matching, now - 0.5, now) == tick_of(m.matching, now, now) == int(T0)
+    assert tick_of(m.matching, now - 1.0, now) == int(T0)  # at most tick_s behind
+    late = now - 86400.0
+    assert tick_of(m.matching, late, now) == int(late)
+    assert tick_of(m.matching, late + 60.0, now) != tick_of(m.matching, late, now)
+    assert tick_of(matcher(tmp_path / "z", tick_s=0.0).matching, now, now) is None
