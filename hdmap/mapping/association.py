@@ -431,31 +431,6 @@ def _greedy_tracks(
     return chosen
 
 
-def estimate_offset(
-    rays: LocalRays, assigned: IntArray, x: Array, bias_h: float, bias_v: float
-) -> tuple[Array, Array]:
-    """Shared origin offset of a unit from its assigned rays, and its covariance.
-
-    Weighted least squares on perpendicular residuals with a zero-mean prior of
-    the assumed bias size (so an unobservable direction stays at 0).
-    """
-    m = assigned >= 0
-    prior = np.diag([1 / bias_h**2, 1 / bias_h**2, 1 / bias_v**2])
-    if not m.any():
-        return np.zeros(3), np.linalg.inv(prior)
-    d = rays.direction[m]
-    a = rays.origin[m]
-    xl = x[assigned[m]]
-    rng = np.linalg.norm(xl - a, axis=1)
-    sig_ang = np.hypot(rays.sigma_az[m], rays.sigma_el[m]) / np.sqrt(2)
-    w = 1.0 / ((rng * sig_ang) ** 2 + rays.sigma_pos_h[m] ** 2)
-    p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    info = np.einsum("k,kij->ij", w, p) + prior
-    rhs = np.einsum("k,kij,kj->i", w, p, xl - a)
-    cov = np.linalg.inv(info)
-    return cov @ rhs, cov
-
-
 @dataclass(frozen=True)
 class Association:
     landmark: IntArray

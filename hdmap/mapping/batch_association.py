@@ -196,28 +196,46 @@ def _with_copies(b: _Batch, base: IntArray) -> _Batch:
 
 
 def estimate_offsets(
-    b: _Batch, assigned: IntArray, active: BoolArray, bias_h: float, bias_v: float
+    rays: LocalRays,
+    unit: IntArray,
+    n: int,
+    x: Array,
+    assigned: IntArray,
+    active: BoolArray,
+    bias_h: float,
+    bias_v: float,
 ) -> tuple[Array, Array]:
-    """Each active unit's shared origin offset from its assigned rays (``assigned``: slot
-    per ray, -1 none), and its covariance (the others: zero, prior): weighted least
-    squares on perpendicular residuals with a zero-mean prior of the assumed bias size,
-    as :func:`hdmap.mapping.association.estimate_offset`, summed per unit in row order."""
+    """The shared origin offset of each active unit (``unit``: each ray's, of ``n``) from
+    its assigned rays (``assigned``: the row of ``x`` per ray, -1 none), and its covariance
+    (the others: zero, the prior's): weighted least squares on perpendicular residuals with
+    a zero-mean prior of the assumed bias size (so an unobservable direction stays at 0),
+    summed per unit in row order."""
     prior = np.diag([1 / bias_h**2, 1 / bias_h**2, 1 / bias_v**2])
-    m = (assigned >= 0) & active[b.unit]
-    r = b.rays
-    d, a = r.direction[m], r.origin[m]
-    xl = b.x[assigned[m]]
+    m = (assigned >= 0) & active[unit]
+    d, a = rays.direction[m], rays.origin[m]
+    xl = x[assigned[m]]
     rng = np.linalg.norm(xl - a, axis=1)
-    sig_ang = np.hypot(r.sigma_az[m], r.sigma_el[m]) / np.sqrt(2)
-    w = 1.0 / ((rng * sig_ang) ** 2 + r.sigma_pos_h[m] ** 2)
+    sig_ang = np.hypot(rays.sigma_az[m], rays.sigma_el[m]) / np.sqrt(2)
+    w = 1.0 / ((rng * sig_ang) ** 2 + rays.sigma_pos_h[m] ** 2)
     p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    u = b.unit[m]
-    info = np.zeros((b.n, 3, 3))
+    u = unit[m]
+    info = np.zeros((n, 3, 3))
     np.add.at(info, u, w[:, None, None] * p)
-    rhs = np.zeros((b.n, 3))
+    rhs = np.zeros((n, 3))
     np.add.at(rhs, u, w[:, None] * (p @ (xl - a)[:, :, None])[:, :, 0])
     cov = np.linalg.inv(info + prior)
     return (cov @ rhs[:, :, None])[:, :, 0], cov
+
+
+def estimate_offset(
+    rays: LocalRays, assigned: IntArray, x: Array, bias_h: float, bias_v: float
+) -> tuple[Array, Array]:
+    """One unit's shared origin offset from its assigned rays, and its covariance
+    (:func:`estimate_offsets` of one unit)."""
+    o, c = estimate_offsets(
+        rays, np.zeros(len(rays), np.int64), 1, x, assigned, np.ones(1, bool), bias_h, bias_v
+    )
+    return o[0], c[0]
 
 
 @dataclass
@@ -271,7 +289,14 @@ def _refine(b: _Batch, fits: _Fits, active: BoolArray, cfg: GateConfig) -> None:
         if not active.any():
             return
         o, oc = estimate_offsets(
-            b, fits.best, active, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m
+            b.rays,
+            b.unit,
+            b.n,
+            b.x,
+            fits.best,
+            active,
+            cfg.pass_bias_sigma_m,
+            cfg.vertical_bias_sigma_m,
         )
         new = _assigned_at(b, active, o, oc, cfg)
         changed = np.zeros(b.n, bool)
@@ -352,7 +377,7 @@ def associate_units(units: list[UnitInput], cfg: GateConfig) -> list[Association
         on_track = b.rays.track[base_ray] == alt_track[k]
         slot = alt_slot[k] - b.lm0[alt_unit[k]] + v.lm0[virt[k]]
         seed[np.flatnonzero(own)[on_track]] = slot[on_track]
-        o, oc = estimate_offsets(v, seed, alts, bias_h, bias_v)
+        o, oc = estimate_offsets(v.rays, v.unit, v.n, v.x, seed, alts, bias_h, bias_v)
         fits.update(v, alts, _assigned_at(v, alts, o, oc, cfg))
     _refine(v, fits, np.ones(v.n, bool), cfg)
     chosen = np.arange(b.n)

@@ -1,18 +1,19 @@
 """How far the matcher trusts each vehicle: a weight from its history of pass offsets.
 
 Every unit (one pass's observations in one tile) that matches enough landmarks gets an
-offset estimate (:func:`hdmap.mapping.association.estimate_offset`: the shift of its ray origins
-that best fits the map). An honest vehicle's offsets are its passes' independent GNSS
-biases, mean zero with standard deviation ``bias_sigma_m`` per axis; a vehicle with a bad
-calibration, or one shifting its data on purpose, keeps the same sign. Per vehicle, over
-its units ``u`` with horizontal offsets ``o_u`` estimated with covariance ``C_u``, an honest
-vehicle has ``o_u ~ N(0, B + C_u)`` with ``B = bias_sigma^2 I``; with ``W_u = (B + C_u)^-1``,
-``I = sum W_u`` and ``s = sum W_u o_u``, ``chi2 = s^T I^-1 s`` is chi-square with 2 dof.
-Above ``chi2_gate`` the vehicle's weight is ``(chi2_gate / chi2)^4``: its observations'
-reported sigmas are divided by ``sqrt(weight)`` before they are associated and summed, so
-it pulls the map ``weight`` times less; and its ray origins are shifted by its mean offset
-``I^-1 s`` (the systematic part is corrected, not only diluted: what it contributed before
-it was found out stays in the sums at full weight).
+offset estimate (:func:`hdmap.mapping.batch_association.estimate_offset`: the shift of its
+ray origins that best fits the map). An honest vehicle's offsets are its passes'
+independent GNSS biases, mean zero with standard deviation ``bias_sigma_m`` per axis; a
+vehicle with a bad calibration, or one shifting its data on purpose, keeps the same sign.
+Per vehicle, over its units ``u`` with horizontal offsets ``o_u`` estimated with
+covariance ``C_u``, an honest vehicle has ``o_u ~ N(0, B + C_u)`` with ``B = bias_sigma^2
+I``; with ``W_u = (B + C_u)^-1``, ``I = sum W_u`` and ``s = sum W_u o_u``, ``chi2 = s^T
+I^-1 s`` is chi-square with 2 dof. Above ``chi2_gate`` the vehicle's weight is
+``(chi2_gate / chi2)^4``: its observations' reported sigmas are divided by
+``sqrt(weight)`` before they are associated and summed, so it pulls the map ``weight``
+times less; and its ray origins are shifted by its mean offset ``I^-1 s`` (the systematic
+part is corrected, not only diluted: what it contributed before it was found out stays in
+the sums at full weight).
 
 Relative to the fleet: the map is itself pulled by a shifted vehicle (a quarter of the
 passes 5.8 m off pull it 1.5 m), so every honest vehicle's offsets share that pull, and

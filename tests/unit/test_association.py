@@ -14,11 +14,10 @@ from hdmap.mapping.association import (
     GateConfig,
     LocalRays,
     assign_per_image,
-    estimate_offset,
     origin_cov,
     pair_chi2,
 )
-from hdmap.mapping.batch_association import associate
+from hdmap.mapping.batch_association import associate, estimate_offset
 from tests.support.association import rays_to
 
 
