@@ -126,24 +126,12 @@ def _gather(units: list[UnitInput], cfg: GateConfig) -> _Batch:
     cls = np.concatenate([u.cls for u in units]).astype(np.int64)
     kr = (unit << 20) | rays.sign_class
     ri, li = _class_pairs(kr, (lm_unit << 20) | cls)
-    faced = [u.facing is not None for u in units]
-    if any(faced) and ri.size:
-        facing = Facing(
-            *(
-                np.concatenate(
-                    [
-                        getattr(u.facing, f) if u.facing is not None else np.zeros(k)
-                        for u, k in zip(units, nl.tolist(), strict=True)
-                    ]
-                )
-                for f in ("azimuth", "sigma", "spread")
-            ),
-            np.concatenate(
-                [
-                    u.facing.known if u.facing is not None else np.zeros(k, bool)
-                    for u, k in zip(units, nl.tolist(), strict=True)
-                ]
-            ),
+    if any(u.facing is not None for u in units) and ri.size:
+        facing = Facing.concat(
+            [
+                Facing.unknown(k) if u.facing is None else u.facing
+                for u, k in zip(units, nl.tolist(), strict=True)
+            ]
         )
         seen = ray_compatible(viewing_azimuth(rays.direction[ri]), facing.take(li), cfg.facing)
         ri, li = ri[seen], li[seen]
@@ -263,17 +251,14 @@ def _assigned_at(b: _Batch, active: BoolArray, o: Array, oc: Array, cfg: GateCon
     """The assignment of the active units with their origins moved by ``o`` (their
     covariance ``oc``); rows of the others are -1 / inf."""
     pm = active[b.pu]
+    rows = None if pm.all() else np.flatnonzero(pm)  # None: every pair, in place
+    sel = slice(None) if rows is None else rows
     narrow = origin_cov(b.rays, 0.0, 0.0) + oc[b.unit]
+    cost = pair_stat(b.rays, b.pairs, narrow, cfg, o[b.pu[sel]], rows)[0]
     link_gate = cfg.chi2_gate * cfg.track_link_factor
-    if pm.all():
-        cost = pair_stat(b.rays, b.pairs, narrow, cfg, o[b.pu])[0]
-        best, unlinked = assign_tracks(b.rays, b.ri, b.li, cost, cfg.chi2_gate, link_gate)
-    else:
-        rows = np.flatnonzero(pm)
-        cost = pair_stat(b.rays, b.pairs, narrow, cfg, o[b.pu[rows]], rows)[0]
-        best, unlinked = assign_tracks(
-            b.rays, b.ri[rows], b.li[rows], cost[rows], cfg.chi2_gate, link_gate
-        )
+    best, unlinked = assign_tracks(
+        b.rays, b.ri[sel], b.li[sel], cost[sel], cfg.chi2_gate, link_gate
+    )
     return _Fits(best, unlinked, cost, o.copy(), oc.copy())
 
 
@@ -360,8 +345,8 @@ def associate_units(units: list[UnitInput], cfg: GateConfig) -> list[Association
     n_alt = v.n - b.n
     prior_cov = np.diag([bias_h, bias_h, bias_v]) ** 2
     fits = _Fits(
-        np.r_[best, np.full(v.rays.origin.shape[0] - best.size, -1, np.int64)],
-        np.r_[unlinked, np.zeros(v.rays.origin.shape[0] - best.size, bool)],
+        np.r_[best, np.full(len(v.rays) - best.size, -1, np.int64)],
+        np.r_[unlinked, np.zeros(len(v.rays) - best.size, bool)],
         np.r_[wide_cost, np.full(v.li.size - wide_cost.size, np.inf)],
         np.zeros((v.n, 3)),
         np.repeat(prior_cov[None], v.n, axis=0),
@@ -369,13 +354,12 @@ def associate_units(units: list[UnitInput], cfg: GateConfig) -> list[Association
     if n_alt:
         alts = np.r_[np.zeros(b.n, bool), np.ones(n_alt, bool)]
         # the seed: every ray of the unit's longest track on the candidate
-        virt = np.arange(b.n, v.n)
         own = v.unit >= b.n
         k = v.unit[own] - b.n
         base_ray = b.ray0[alt_unit[k]] + np.flatnonzero(own) - v.ray0[v.unit[own]]
-        seed = np.full(v.rays.origin.shape[0], -1, np.int64)
+        seed = np.full(len(v.rays), -1, np.int64)
         on_track = b.rays.track[base_ray] == alt_track[k]
-        slot = alt_slot[k] - b.lm0[alt_unit[k]] + v.lm0[virt[k]]
+        slot = alt_slot[k] - b.lm0[alt_unit[k]] + v.lm0[b.n + k]
         seed[np.flatnonzero(own)[on_track]] = slot[on_track]
         o, oc = estimate_offsets(v.rays, v.unit, v.n, v.x, seed, alts, bias_h, bias_v)
         fits.update(v, alts, _assigned_at(v, alts, o, oc, cfg))
@@ -387,7 +371,7 @@ def associate_units(units: list[UnitInput], cfg: GateConfig) -> list[Association
         for j, u in enumerate(alt_unit.tolist()):
             if score[b.n + j] > top[u]:
                 chosen[u], top[u] = b.n + j, score[b.n + j] + cfg.offset_hypothesis_margin
-    chi2 = np.full(v.rays.origin.shape[0], np.inf)
+    chi2 = np.full(len(v.rays), np.inf)
     sel = fits.best[v.ri] == v.li
     chi2[v.ri[sel]] = fits.cost[sel]
     paired = np.bincount(b.pu, minlength=b.n) > 0

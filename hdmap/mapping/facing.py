@@ -118,6 +118,33 @@ class Facing:
         i = np.asarray(idx)
         return Facing(self.azimuth[i], self.sigma[i], self.spread[i], self.known[i])
 
+    @staticmethod
+    def unknown(k: int) -> Facing:
+        """``k`` landmarks without a facing (every ray compatible)."""
+        z = np.zeros(k)
+        return Facing(z, z, z, np.zeros(k, bool))
+
+    @staticmethod
+    def concat(parts: list[Facing]) -> Facing:
+        """The parts' landmarks in order."""
+        return Facing(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("azimuth", "sigma", "spread")
+            ),
+            np.concatenate([p.known for p in parts]).astype(bool),
+        )
+
+    def rows(self) -> Array:
+        """(k, 4): azimuth, sigma, spread and 1.0 where known (a landmark record's form)."""
+        return np.column_stack([self.azimuth, self.sigma, self.spread, self.known.astype(float)])
+
+    @staticmethod
+    def from_rows(rows: ArrayLike) -> Facing:
+        """The facings of :meth:`rows`."""
+        f = np.asarray(rows, float).reshape(-1, 4)
+        return Facing(f[:, 0], f[:, 1], f[:, 2], f[:, 3] > 0)
+
 
 def view_vectors(direction: ArrayLike) -> Array:
     """(n, 2) horizontal unit vectors (East, North) of ray directions (camera toward sign);

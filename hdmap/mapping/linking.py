@@ -159,9 +159,7 @@ def refresh(m: Matching, ids: list[int]) -> None:
         lat, lon, _ = GEODESY.to_geodetic(np.array([lms[k].x for k in moved]))
         for k, t in zip(moved, quadkeys_of(lat, lon, m.zoom).tolist(), strict=True):
             lms[k].tile = str(t)
-    f = facings_of(m, lms)
-    facing = np.column_stack([f.azimuth, f.sigma, f.spread, f.known.astype(float)])
-    for lm, fk in zip(lms, facing, strict=True):
+    for lm, fk in zip(lms, facings_of(m, lms).rows(), strict=True):
         lm.facing = fk
         m.state.put(lm)
 

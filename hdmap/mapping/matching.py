@@ -272,9 +272,8 @@ class Matching:
         self.sums = sums
         if self.state.unfaced:
             lms = [self.state.landmarks[i] for i in sorted(self.state.unfaced)]
-            f = facings_of(self, lms)
-            for k, lm in enumerate(lms):
-                lm.facing = np.array([f.azimuth[k], f.sigma[k], f.spread[k], float(f.known[k])])
+            for lm, fk in zip(lms, facings_of(self, lms).rows(), strict=True):
+                lm.facing = fk
                 self.state.put(lm)
             self.state.unfaced = set()
         self.sweeps.restart(self.now)

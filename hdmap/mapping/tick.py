@@ -43,8 +43,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from hdmap.mapping.facing import Facing
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
@@ -86,8 +84,7 @@ def visible(m: Matching, area: list[str], key: int) -> list[Landmark]:
 
 def gating_facings(lms: list[Landmark]) -> Facing:
     """The landmarks' facings as association sees them (as of their last re-solve)."""
-    f = np.array([lm.facing for lm in lms], float).reshape(-1, 4)
-    return Facing(f[:, 0], f[:, 1], f[:, 2], f[:, 3] > 0)
+    return Facing.from_rows([lm.facing for lm in lms])
 
 
 def end_tick(m: Matching) -> None:

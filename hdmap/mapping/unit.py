@@ -97,7 +97,7 @@ class Prepared:
     def signature(self) -> tuple[bytes, tuple[int, ...]]:
         """What the association depends on besides the tick's landmark estimates: the
         offset taken out and the candidates (:func:`signature`)."""
-        return self.applied.tobytes(), tuple(c.id for c in self.cands)
+        return _signature(self.applied, self.cands)
 
 
 def signature(m: Matching, tile: str, vehicle: str, pass_id: int) -> tuple[bytes, tuple[int, ...]]:
@@ -105,8 +105,11 @@ def signature(m: Matching, tile: str, vehicle: str, pass_id: int) -> tuple[bytes
     its tick (fixed while the tick lasts): the correction of its vehicle's origins and its
     candidates. A unit prepared earlier in the tick with the same signature is prepared
     as it would be now, and its association is the one it would get now."""
-    cands = visible(m, m.area(tile), pass_key(vehicle, pass_id))
-    return correction(m, vehicle).tobytes(), tuple(c.id for c in cands)
+    return _signature(correction(m, vehicle), visible(m, m.area(tile), pass_key(vehicle, pass_id)))
+
+
+def _signature(applied: np.ndarray, cands: list[Landmark]) -> tuple[bytes, tuple[int, ...]]:
+    return applied.tobytes(), tuple(c.id for c in cands)
 
 
 def prepare_unit(m: Matching, tile: str, vehicle: str, pass_id: int, obs: Any) -> Prepared:
