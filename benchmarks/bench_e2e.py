@@ -61,14 +61,20 @@ def vehicles_for(rate: float) -> int:
     return int(min(200, max(10, rate // 100)))
 
 
-def fleet_admission(workdir: Path) -> dict[str, list[str]]:
+def fleet_admission(workdir: Path, linger_s: float | None = None) -> dict[str, list[str]]:
     """``Stack(extra_service_args=...)`` for an ingest that admits the load generator's
     fleet at once: its vehicles are new in every run (a fresh run tag), and up to 200 of
-    them start together, past ingest's default budget of new vehicles (50 at once)."""
+    them start together, past ingest's default budget of new vehicles (50 at once). With
+    ``linger_s``, the stage services' batches linger that long (``[NAME.batching]``;
+    None: their default)."""
     workdir.mkdir(parents=True, exist_ok=True)
-    cfg = workdir / "ingest-admission.toml"
-    cfg.write_text("[ingest.rate_limit]\nnew_vehicle_burst = 1000.0\n")
-    return {"ingest": ["--config", str(cfg)]}
+    cfg = workdir / "stack.toml"
+    text = "[ingest.rate_limit]\nnew_vehicle_burst = 1000.0\n"
+    if linger_s is not None:
+        for name in ("matcher", "solver", "publisher"):
+            text += f"[{name}.batching]\nlinger_s = {float(linger_s)!r}\n"
+    cfg.write_text(text)
+    return {name: ["--config", str(cfg)] for name in ("ingest", "matcher", "solver", "publisher")}
 
 
 def load_config(rate: float, seconds: float, **kw) -> LoadConfig:
@@ -349,6 +355,11 @@ def main() -> int:
         help="profile this service ('auto': the bottleneck; 'none': skip; default: auto "
         "when the goal is missed, none with --quick)",
     )
+    ap.add_argument(
+        "--linger-s",
+        type=float,
+        help="the stage services' batch linger (s; default: theirs, [NAME.batching] linger_s)",
+    )
     ap.add_argument("--progress", action="store_true", help="live progress lines")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--data-dir", type=Path, help="keep the stack's state and logs here")
@@ -362,12 +373,14 @@ def main() -> int:
         "seconds_per_step": seconds,
         "goal_obs_per_s": GOAL,
         "p99_max_s": P99_MAX_S,
+        "linger_s": args.linger_s,
         "steps": [],
     }
     print(json.dumps(out["machine"]), "load average", out["load_average_start"], flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.data_dir or Path(tmp)
-        with Stack(work / "stack", extra_service_args=fleet_admission(work)) as st:
+        admit = fleet_admission(work, args.linger_s)
+        with Stack(work / "stack", extra_service_args=admit) as st:
             st.start_all()
             payload, n = reference_payload(load_config(rates[0], seconds))
             out["raw_zenoh"] = raw_zenoh(st, payload, n, 2.0 if args.quick else 5.0)

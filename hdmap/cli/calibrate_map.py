@@ -25,12 +25,13 @@ import numpy as np
 import zenoh
 
 from hdmap.cli.common import add_bus_arguments, bus_from_args
+from hdmap.cli.service import service_config
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.signs import CATALOG, UnknownSignClass
 from hdmap.geo.tiles import neighbours, quadkeys_of
 from hdmap.mapping.map_floor import MIN_CONTROLS, measure_forms, pair_controls
 from hdmap.runtime.bus import open_session
-from hdmap.runtime.config import ConfigError, from_mapping, load_toml
+from hdmap.runtime.config import ConfigError, load_toml
 from services.solver.service import SolverConfig
 from vehicle.mapclient import MapClient
 
@@ -88,7 +89,7 @@ def published_floor(config: str | None) -> SolverConfig:
     """The solver config the map was published with (its floors are taken out first)."""
     if config is None:
         return SolverConfig()
-    return from_mapping(SolverConfig, load_toml(config).get("solver", {}), "solver")
+    return service_config("solver", load_toml(config).get("solver", {}))[1]
 
 
 def floor_from_map(lms, ctl: np.ndarray, ctl_class: np.ndarray, args, solver: SolverConfig) -> dict:

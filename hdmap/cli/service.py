@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from hdmap.cli.common import add_bus_arguments, bus_from_args, setup_logging
 from hdmap.geo.tiles import DEFAULT_ZOOM, valid_quadkey
 from hdmap.runtime.config import EXIT_CONFIG, ConfigError, from_mapping, load_toml
-from hdmap.runtime.service import ServiceOptions, run_until_signalled
+from hdmap.runtime.service import Batching, ServiceOptions, run_until_signalled
 
 log = logging.getLogger(__name__)
 
@@ -46,15 +48,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_bus_arguments(p)
 
 
+def service_config(name: str, table: Mapping[str, Any]) -> tuple[Batching, Any]:
+    """A service's ``[NAME]`` table of a services config file as its batching (the
+    ``[NAME.batching]`` subtable: the runtime's, :class:`Batching`) and its own typed
+    config; a bad key or value is a :class:`ConfigError` naming it."""
+    own = dict(table)
+    batching = from_mapping(Batching, own.pop("batching", {}), f"{name}.batching")
+    module, _cls, cfg_name = SERVICES[name]
+    return batching, from_mapping(getattr(importlib.import_module(module), cfg_name), own, name)
+
+
 def build(args: argparse.Namespace):
     for r in args.region:
         if not valid_quadkey(r):
             raise ConfigError(f"--region {r!r}: not a quadkey prefix (digits 0-3)")
-    module, cls_name, cfg_name = SERVICES[args.name]
-    mod = importlib.import_module(module)
+    module, cls_name, _cfg = SERVICES[args.name]
     table = load_toml(args.config).get(args.name, {}) if args.config else {}
-    config = from_mapping(getattr(mod, cfg_name), table, args.name)
+    batching, config = service_config(args.name, table)
     opts = ServiceOptions(
+        batching=batching,
         region=tuple(args.region),
         data_dir=Path(args.data_dir),
         bus=bus_from_args(args),
@@ -62,7 +74,7 @@ def build(args: argparse.Namespace):
         sync=args.sync,
         zoom=args.zoom,
     )
-    return getattr(mod, cls_name)(opts, config)
+    return getattr(importlib.import_module(module), cls_name)(opts, config)
 
 
 def run(args: argparse.Namespace) -> int:

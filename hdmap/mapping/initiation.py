@@ -219,6 +219,7 @@ def propose(
     terms = normal_terms(rays)
     ray_side = Pairs.of(rays, np.arange(n), np.zeros((n, 3)), np.zeros((n, 3, 3)))
     out: list[Candidate] = []
+    need = max(cfg.min_rays, cfg.min_images)
     for s in seeds:
         if used[s]:
             continue
@@ -228,17 +229,21 @@ def propose(
         if cfg.by_track:
             apart = (first > last[s]) | (last < first[s])
             pool &= (track == track[s]) | ((track > 0) & (track[s] > 0) & apart)
+        if np.unique(rays.image[pool]).size < need:
+            continue  # members are one ray per image of the pool: too few images to pass
+        free = np.flatnonzero(pool)
         for _ in range(3):
-            free = np.flatnonzero(pool)
             at = replace(
                 ray_side, x=np.broadcast_to(x, (n, 3)), cov=np.broadcast_to(cov, (n, 3, 3))
             )
             chi2, ok = pair_stat(rays, at, white, gate, None, free)
             chi2, ok = chi2[free], ok[free]
             hit = ok & (chi2 <= gate.chi2_gate)
-            members = _best_per_image(free[hit], chi2[hit], rays.image)
+            before, members = members, _best_per_image(free[hit], chi2[hit], rays.image)
             if members.size < 2:
                 break
+            if np.array_equal(members, before):
+                break  # a fixed point: the same members solve to the same x and cov
             x, cov = _solve_terms(terms[0][members], terms[1][members])
             if not np.isfinite(cov).all():
                 break

@@ -51,6 +51,7 @@ import zenoh
 
 from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
+from hdmap.runtime.config import ConfigError
 from hdmap.runtime.store import (
     EXIT_CORRUPT,
     EXIT_RESTART,
@@ -93,6 +94,33 @@ def stopped_on(service: str, fault: DatabaseCorrupt) -> PermanentFault:
 
 
 @dataclass(frozen=True)
+class Batching:
+    """How the worker cuts its inbox into batches (each batch one ``handle`` call: for a
+    stage service one transaction, one re-solve and one publish). ``[NAME.batching]`` in a
+    services config file (``hdmap service NAME --config FILE``, ``hdmap up --config``).
+
+    What a service computes never depends on these (every stage gives the same state for
+    a log however it is batched); its cost does: a matcher or solver handed one entry at
+    a time spends about twice the CPU per observation of one handed several (per
+    transaction: the commit, the state save, the re-solve and publish of what the batch
+    touched; BENCHMARKS.md, "Batching"). Lingering makes batches of a few entries at
+    moderate load, for a latency of at most ``linger_s`` per stage; under saturation the
+    inbox is never empty and nothing lingers."""
+
+    max_items: int = 256
+    """At most this many items per batch."""
+    linger_s: float | None = None
+    """After a batch's first item, wait up to this long (wall time, seconds) for more;
+    None: the service's own default (:attr:`Service.batch_linger_s`)."""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.max_items, int) and self.max_items >= 1):
+            raise ConfigError("batching.max_items: an integer >= 1")
+        if self.linger_s is not None and not (0.0 <= self.linger_s <= 1.0):
+            raise ConfigError("batching.linger_s: seconds in [0, 1]")
+
+
+@dataclass(frozen=True)
 class ServiceOptions:
     """What every service takes from the command line or its config file."""
 
@@ -107,7 +135,7 @@ class ServiceOptions:
     zoom: int = DEFAULT_ZOOM
     catchup_interval_s: float = 5.0
     inbox_size: int = 4096
-    max_batch_items: int = 256
+    batching: Batching = field(default_factory=Batching)
 
 
 @dataclass
@@ -193,6 +221,8 @@ class Service:
     """Base class: subclasses set ``name`` and implement ``setup``/``handle``/``on_timer``."""
 
     name: ClassVar[str] = "service"
+    batch_linger_s: ClassVar[float] = 0.0
+    """Default of :attr:`Batching.linger_s` for this service (the stage services: 0.05 s)."""
     stops_on_corruption: ClassVar[bool] = True
     """Whether corruption met by a transaction while running stops the service like a
     failed check at open (ingest, which refuses uploads instead, sets it False)."""
@@ -456,11 +486,20 @@ class Service:
             items: list[Item] = []
             try:
                 items.append(self.inbox.get(timeout=timeout))
-                while len(items) < self.opts.max_batch_items:
-                    items.append(self.inbox.get_nowait())
+                until = time.monotonic() + self.linger_s
+                while len(items) < self.opts.batching.max_items:
+                    left = until - time.monotonic()
+                    it = self.inbox.get(timeout=left) if left > 0 else self.inbox.get_nowait()
+                    items.append(it)
             except queue.Empty:
                 pass
             self.step(items)
+
+    @property
+    def linger_s(self) -> float:
+        """How long a batch waits for more items after its first (:class:`Batching`)."""
+        own = self.opts.batching.linger_s
+        return self.batch_linger_s if own is None else own
 
     def step(self, items: list[Item]) -> None:
         """One turn of the worker: handle ``items``, retry what the backoff lets, run the

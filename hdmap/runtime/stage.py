@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 class StageService(Service):
     """Subclasses set ``input_stage``/``upstream`` and, if they produce, ``output_stage``."""
 
+    batch_linger_s = 0.02
     input_stage: str = ""
     upstream: str = ""
     """Name of the service producing ``input_stage`` (its liveliness triggers catch-up)."""

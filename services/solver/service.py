@@ -145,6 +145,32 @@ class _Solved:
     now: float
 
 
+def _unique_pairs(a: np.ndarray, b: np.ndarray) -> list[tuple[int, int]]:
+    """The distinct pairs ``(a[k], b[k])`` as Python ints, in ascending order (``a`` signed,
+    ``b`` unsigned 64-bit ids).
+
+    >>> _unique_pairs(np.array([5, 3, 5]), np.array([2, 9, 2], np.uint64))
+    [(3, 9), (5, 2)]
+    """
+    order = np.lexsort((b, a))
+    sa, sb = a[order], b[order]
+    first = np.ones(sa.size, bool)
+    first[1:] = (sa[1:] != sa[:-1]) | (sb[1:] != sb[:-1])
+    return list(zip(sa[first].tolist(), sb[first].tolist(), strict=True))
+
+
+def _latest(ids: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct ``ids`` (ascending) and the largest of ``at`` (as float) for each.
+
+    >>> [x.tolist() for x in _latest(np.array([7, 2, 7], np.uint64), np.array([1.0, 5.0, 3.0]))]
+    [[2, 7], [5.0, 3.0]]
+    """
+    u, inv = np.unique(ids, return_inverse=True)
+    out = np.full(u.size, -np.inf)
+    np.maximum.at(out, inv.reshape(-1), np.asarray(at, float))
+    return u, out
+
+
 def cov6(c: np.ndarray) -> np.ndarray:
     """(n, 3, 3) -> (n, 6) as (ee, en, eu, nn, nu, uu)."""
     return np.stack(
@@ -244,15 +270,18 @@ class SolverService(StageService):
             touched.add(lid)
             self.count("created")
         ids = g.links.landmark_id.astype(np.uint64)
-        known = np.array([int(i) in self.state.landmarks for i in ids], bool)
+        lms = self.state.landmarks
+        found = [lms.get(i) for i in ids.tolist()]
+        known = np.fromiter((lm is not None for lm in found), bool, len(found))
         if (~known).any():
             self.reject("assoc.unknown_landmark", int((~known).sum()))
         keys_, holds = self._pass_keys(g)
         homes: dict[str, list[int]] = defaultdict(list)
-        for k in np.flatnonzero(known):
-            homes[self.state.landmarks[int(ids[k])].home].append(int(k))
+        for k in np.flatnonzero(known).tolist():
+            homes[found[k].home].append(k)  # type: ignore[union-attr]
         for home, idx in sorted(homes.items()):
             sel = np.array(idx)
+            mine = [found[k] for k in idx]
             obs = g.obs.take(sel)
             frame = self.frames(home)
             rays = Rays(
@@ -266,13 +295,13 @@ class SolverService(StageService):
                 obs.range_m,
                 obs.sigma_range_m,
             )
-            rows = np.array([self.state.landmarks[int(ids[k])].row for k in idx], np.int64)
+            rows = np.array([lm.row for lm in mine], np.int64)
             self.sums.accumulate(rows, keys_[sel], rays, holds[sel])
-            self.state.note_views([self.state.landmarks[int(ids[k])] for k in idx], obs.direction)
-            for k in idx:
-                lid = int(ids[k])
-                touched.add(lid)
-                self._source[lid] = max(self._source.get(lid, 0.0), float(g.links.received_at[k]))
+            self.state.note_views(mine, obs.direction)
+            lid, at = _latest(ids[sel], g.links.received_at[sel])
+            for i, t in zip(lid.tolist(), at.tolist(), strict=True):
+                touched.add(i)
+                self._source[i] = max(self._source.get(i, 0.0), t)
         self.count("observations", int(known.sum()))
         self._note_passes(ids, known, keys_)
         return touched | self._settle(g) | self._retire(g)
@@ -280,8 +309,8 @@ class SolverService(StageService):
     def _note_passes(self, ids: np.ndarray, known: np.ndarray, keys_: np.ndarray) -> None:
         """The passes (cluster keys) this group brings rays of, and on which landmarks."""
         k = np.flatnonzero(known)
-        for key, lid in np.unique(np.rec.fromarrays([keys_[k], ids[k]])).tolist():
-            lm = self.state.landmarks[int(lid)]
+        for key, lid in _unique_pairs(keys_[k], ids[k]):
+            lm = self.state.landmarks[lid]
             self._quiet.note(key, [(lm.id, lm.row)])
 
     @staticmethod
@@ -289,16 +318,21 @@ class SolverService(StageService):
         """Per link, its cluster key (:func:`pass_key`) and hold key (0: not held), hashed
         once per (vehicle, pass, held) rather than per link."""
         held = g.held if g.held.size else np.zeros(len(g.links), bool)
-        passes = np.rec.fromarrays([g.links.vehicle, g.links.pass_id, held])
-        uniq, inv = np.unique(passes, return_inverse=True)
+        v = np.asarray(g.links.vehicle, np.int64) * 2 + held
+        p = np.asarray(g.links.pass_id, np.uint64)
+        order = np.lexsort((p, v))
+        vs, ps = v[order], p[order]
+        first = np.ones(v.size, bool)
+        first[1:] = (vs[1:] != vs[:-1]) | (ps[1:] != ps[:-1])
+        inv = np.empty(v.size, np.int64)
+        inv[order] = np.cumsum(first) - 1
+        uv, up = vs[first].tolist(), ps[first].tolist()
         keys = np.array(
-            [pass_key(g.vehicles[int(v)], int(p), bool(h)) for v, p, h in uniq.tolist()],
+            [pass_key(g.vehicles[u >> 1], q, bool(u & 1)) for u, q in zip(uv, up, strict=True)],
             np.int64,
         )
-        holds = np.array(
-            [hold_key(g.vehicles[int(v)]) if h else 0 for v, _p, h in uniq.tolist()], np.int64
-        )
-        return keys[inv.reshape(-1)], holds[inv.reshape(-1)]
+        holds = np.array([hold_key(g.vehicles[u >> 1]) if u & 1 else 0 for u in uv], np.int64)
+        return keys[inv], holds[inv]
 
     def _settle(self, g: AssocGroup) -> set[int]:
         """Vehicles leaving probation: their held passes count in full or go."""

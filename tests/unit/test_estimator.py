@@ -238,6 +238,27 @@ def test_pack_unpack_reproduces_future_results_exactly():
     assert s.pack_rows([0, 1, 2]) == t.pack_rows(rows_t)
 
 
+@pytest.mark.parametrize("second_order", [False, True])
+def test_a_landmark_solved_alone_equals_it_solved_with_others(second_order):
+    """To the bit: the solver publishes the landmarks a batch touched, so a landmark's
+    published covariance must not depend on which others were solved with it (else the map
+    would follow how the solver's input was batched)."""
+    rng = np.random.default_rng(11)
+    cfg = EstimatorConfig(second_order_variance=second_order)
+    s = LandmarkSums(cfg)
+    s.new_rows(7, np.array([5.0, 0.0, 2.5]) + 10.0 * np.arange(7)[:, None] * [1.0, 0.5, 0.0])
+    for _ in range(3):
+        rows, cl, r, _x = random_batch(rng)
+        s.accumulate(rows, cl, r)
+    together = s.solve(np.arange(7), update_reference=False)
+    assert together.ok.sum() >= 5
+    for k in range(7):
+        alone = s.solve([k], update_reference=False)
+        assert np.array_equal(alone.x[0], together.x[k], equal_nan=True)
+        assert np.array_equal(alone.cov[0], together.cov[k], equal_nan=True)
+        assert np.array_equal(alone.cov_sandwich[0], together.cov_sandwich[k], equal_nan=True)
+
+
 # ---------------------------------------------------------------- covariance and ok
 def landmark_fleet(rng, model: str, landmarks=150, passes=60, rays_per_pass=12):
     """``landmarks`` independent signs, each seen by ``passes`` passes; moderate noise."""

@@ -13,10 +13,12 @@ import numpy as np
 import pytest
 
 from fleetsim.synthetic import make_observations
+from hdmap.cli.service import service_config
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session, query
 from hdmap.runtime.config import ConfigError, from_mapping
 from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S, TokenBucket
+from hdmap.runtime.service import Batching
 from schemas import DecodeError, ObservationBatch, Observations, UploadAck, keys
 from services.ingest.ratelimit import RateLimit, VehicleLimiter
 from services.ingest.service import IngestConfig
@@ -140,7 +142,8 @@ def test_new_vehicles_share_one_budget_and_known_ones_take_nothing() -> None:
 def test_rate_limit_config_defaults_match_the_deploy_file() -> None:
     with open(ROOT / "deploy" / "services.toml", "rb") as f:
         table = tomllib.load(f)["ingest"]
-    assert from_mapping(IngestConfig, table, "ingest") == IngestConfig()
+    batching, cfg = service_config("ingest", table)
+    assert cfg == IngestConfig() and batching == Batching(linger_s=batching.linger_s)
     cfg = from_mapping(IngestConfig, {"rate_limit": {"uploads_per_s": 0}}, "ingest")
     assert cfg.rate_limit.uploads_per_s == 0.0
     for bad in (

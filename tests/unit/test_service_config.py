@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import importlib
 import tomllib
 from pathlib import Path
 
 import pytest
 
+from hdmap.cli.service import SERVICES, service_config
 from hdmap.mapping.estimator import EstimatorConfig
 from hdmap.runtime.config import ConfigError, from_mapping
+from hdmap.runtime.service import Batching
 from services.matcher.service import MatcherConfig
-from services.solver.service import SolverConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -28,8 +30,8 @@ def test_nested_table_keeps_the_fields_own_default() -> None:
 def test_deploy_file_gives_the_solver_the_integrated_meat_and_the_matcher_the_plug_in() -> None:
     with open(ROOT / "deploy" / "services.toml", "rb") as f:
         table = tomllib.load(f)
-    solver = from_mapping(SolverConfig, table["solver"], "solver")
-    matcher = from_mapping(MatcherConfig, table["matcher"], "matcher")
+    solver = service_config("solver", table["solver"])[1]
+    matcher = service_config("matcher", table["matcher"])[1]
     assert solver.estimator.integrated_meat and solver.estimator.min_clusters == 5
     assert not matcher.estimator.integrated_meat
 
@@ -38,3 +40,13 @@ def test_matcher_refuses_to_close_passes_its_pending_pool_may_still_link() -> No
     with pytest.raises(ConfigError, match=r"matcher\.close_passes_after_s: must exceed"):
         from_mapping(MatcherConfig, {"close_passes_after_s": 600.0}, "matcher")
     assert from_mapping(MatcherConfig, {"close_passes_after_s": 0.0}, "matcher")
+
+
+def test_deploy_file_batching_is_each_service_s_default() -> None:
+    with open(ROOT / "deploy" / "services.toml", "rb") as f:
+        table = tomllib.load(f)
+    for name in ("ingest", "matcher", "solver", "publisher"):
+        batching, _cfg = service_config(name, table[name])
+        module, cls, _c = SERVICES[name]
+        own = getattr(importlib.import_module(module), cls).batch_linger_s
+        assert batching == Batching(linger_s=own), name

@@ -9,8 +9,10 @@ from pathlib import Path
 
 import pytest
 
+from hdmap.cli.service import service_config
 from hdmap.runtime.config import ConfigError, from_mapping
 from hdmap.runtime.ratelimit import TokenBucket
+from hdmap.runtime.service import Batching
 from services.publisher.limits import SnapshotLimiter, SnapshotLimits
 from services.publisher.service import PublisherConfig
 from tests.support import Clock
@@ -110,7 +112,8 @@ def test_bucket_refund_never_exceeds_the_capacity() -> None:
 def test_snapshot_limits_config_defaults_match_the_deploy_file() -> None:
     with open(ROOT / "deploy" / "services.toml", "rb") as f:
         table = tomllib.load(f)["publisher"]
-    assert from_mapping(PublisherConfig, table, "publisher") == PublisherConfig()
+    batching, cfg = service_config("publisher", table)
+    assert cfg == PublisherConfig() and batching == Batching(linger_s=batching.linger_s)
     cfg = from_mapping(PublisherConfig, {"snapshots": {"per_client_per_s": 5}}, "publisher")
     assert (
         cfg.snapshots.per_client_per_s == 5.0

@@ -486,15 +486,20 @@ def projector_terms(
 
 
 def predicted_information(
-    rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
+    rays: Rays,
+    origin_rel: Array,
+    x_ref_rel: Array,
+    cfg: EstimatorConfig,
+    wts: tuple[Array, Array, Array, Array] | None = None,
 ) -> Array:
     """Per-ray *predicted* information ``Q_ref`` (n, 6): the weighted projectors of the
     directions from the origins to the reference position, free of the rays' direction
-    noise. Summed, it is a stable estimate of ``E[A]`` used for the conditioning test."""
+    noise. Summed, it is a stable estimate of ``E[A]`` used for the conditioning test.
+    ``wts``: :func:`weights` of these arguments when the caller has them."""
     az, el = ray_angles(x_ref_rel - origin_rel)
     zero = np.zeros_like(az)
     m, h = projector_terms(az, el, zero, zero, False)
-    w_h, w_v, _, _ = weights(rays, origin_rel, x_ref_rel, cfg)
+    w_h, w_v, _, _ = wts or weights(rays, origin_rel, x_ref_rel, cfg)
     return w_v[:, None] * m + (w_h - w_v)[:, None] * h
 
 

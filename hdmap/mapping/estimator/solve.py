@@ -157,7 +157,15 @@ def pass_contraction(s4: Array, v: Array) -> Array:
     >>> pass_contraction(pass_tensor(saa), np.eye(3)[None])[0].diagonal().tolist()
     [4.0, 0.0, 0.0]
     """
-    return np.einsum("tijkl,tjk->til", s4, v)
+    # summed term by term in a fixed order: an einsum's summation order follows how its
+    # iterator lays the loops out, which depends on the stack's length (a landmark solved
+    # alone and in a batch then differs in the last bits, and the solver's publish would
+    # follow how its input was batched)
+    out = np.zeros((s4.shape[0], 3, 3))
+    for j in range(3):
+        for kk in range(3):
+            out += s4[:, :, j, kk, :] * v[:, j, kk, None, None]
+    return out
 
 
 def second_order_term(v: Array, amat: Array, k: Array, s4: Array, g: Array) -> Array:

@@ -65,6 +65,7 @@ from hdmap.mapping.estimator.model import (
     outer6_to_tri,
     predicted_information,
     pull_terms,
+    weights,
 )
 from hdmap.mapping.estimator.open_passes import OpenPasses
 from hdmap.mapping.estimator.packing import PACK_VERSION, decode, encode, layout
@@ -357,10 +358,11 @@ class LandmarkSums:
         origin_rel = np.asarray(rays.origin, float) - self._anchor[r]
         x_ref = self._x_ref[r]
         inv = inverse_of(rays, origin_rel, x_ref, self.config)  # once for the three below
-        alpha, beta = ray_terms(rays, origin_rel, x_ref, self.config, inv)
+        wts = weights(rays, origin_rel, x_ref, self.config)  # once for the two that weigh
+        alpha, beta = ray_terms(rays, origin_rel, x_ref, self.config, inv, wts)
         t5 = scale_terms(rays, origin_rel, self.config, x_ref, inv)
         kn = noise_terms(rays, origin_rel, x_ref, self.config, inv)
-        j6 = predicted_information(rays, origin_rel, self._x_ref[r], self.config)
+        j6 = predicted_information(rays, origin_rel, x_ref, self.config, wts)
         _scatter_add(self._j6, r[~held], j6[~held])
         # the pull sum of an unreported pass bias: only when configured (zeros otherwise)
         pulled = self.config.extra_sigma_pos_m > 0

@@ -216,6 +216,7 @@ def ray_terms(
     x_ref_rel: Array,
     cfg: EstimatorConfig,
     inv: InverseTerms | None = None,
+    wts: tuple[Array, Array, Array, Array] | None = None,
 ) -> tuple[Array, Array]:
     """Per-ray normal-equation terms ``(alpha, beta)``: ``alpha`` (n, 6) is ``Q~_j`` as a
     6-vector and ``beta`` (n, 3) is ``Q~_j a_j`` (origins relative to the anchor).
@@ -226,12 +227,14 @@ def ray_terms(
     (:func:`noise_terms`) taken off, before they mean anything (``LandmarkSums`` does both).
 
     ``sum alpha`` and ``sum beta`` are the landmark's ``A`` and ``b``; ``A x = b`` is the
-    estimate. ``x_ref_rel`` is each ray's landmark reference position (for the weights).
+    estimate. ``x_ref_rel`` is each ray's landmark reference position (for the weights);
+    ``wts``: :func:`~hdmap.mapping.estimator.model.weights` of these arguments when the
+    caller has them.
     """
     az, el = ray_angles(rays.direction)
     s_az, s_el = effective_sigmas(rays, cfg)
     m, h = projector_terms(az, el, s_az, s_el, cfg.compensate)
-    w_h, w_v, g_h, g_v = weights(rays, origin_rel, x_ref_rel, cfg)
+    w_h, w_v, g_h, g_v = wts or weights(rays, origin_rel, x_ref_rel, cfg)
     alpha = w_v[:, None] * m + (w_h - w_v)[:, None] * h
     w_r = range_terms(rays) if cfg.box_range and rays.range_m is not None else None
     if w_r is not None and cfg.range_scale == "inverse":
