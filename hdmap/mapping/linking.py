@@ -88,7 +88,7 @@ def link(
         local = to_local(m.frames(home), sub)
         rows = np.array([lms[k].row for k in idx], np.int64)
         rays = to_rays(local, np.full(len(idx), gating) if gating < 1.0 else None)
-        m.sums.accumulate(rows, np.full(len(idx), key, np.int64), rays, hold[sel])
+        m.unsummed.append((rows, np.full(len(idx), key, np.int64), rays, hold[sel]))
         _, first = np.unique(rows, return_index=True)
         m.quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
         out = m.out[home]

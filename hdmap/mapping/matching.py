@@ -30,7 +30,7 @@ import numpy as np
 from hdmap.geo.geodesy import GEODESY
 from hdmap.geo.tiles import TileFrames, neighbours, quadkeys_of
 from hdmap.mapping.association import GateConfig
-from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums
+from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.facing import Facing, facing_from_sums
 from hdmap.mapping.initiation import InitConfig
 from hdmap.mapping.landmarks import Landmark, LandmarkTable
@@ -254,7 +254,7 @@ class Matching:
         self.clock = clock
         self.frames = TileFrames()
         self._areas: dict[str, list[str]] = {}
-        self.sums = LandmarkSums(config.estimator)
+        self._sums = LandmarkSums(config.estimator)
         self.quiet = QuietPasses(config.close_passes_after_s, clock=lambda: self.now)
         self.sweeps = SweepPeriods(config.sweep_every_s)
         """When the clock last entered a new sweep period (``sweep_every_s``)."""
@@ -262,6 +262,9 @@ class Matching:
         self.flagged: dict[str, tuple[float, float]] = {}
         """(weight, offset chi2) of the vehicles stats show: downweighted or suspect."""
         self.out: defaultdict[str, AssocOutput] = new_output()
+        self.unsummed: list[tuple[Any, Any, Rays, Any]] = []
+        """Links not yet added to the gating sums (rows, pass keys, rays, hold keys):
+        :meth:`flush_links`."""
         self.tick_serial = 0
         """Counts the gating ticks begun in this process (:func:`hdmap.mapping.tick.enter`):
         an association made in one is not used in another."""
@@ -269,7 +272,8 @@ class Matching:
     def restart(self, sums: LandmarkSums) -> None:
         """After ``state`` was (re)loaded with ``sums``: open passes are quiet from now on,
         the fleet's offsets and the flagged vehicles follow the trust records."""
-        self.sums = sums
+        self._sums = sums
+        self.unsummed = []
         if self.state.unfaced:
             lms = [self.state.landmarks[i] for i in sorted(self.state.unfaced)]
             for lm, fk in zip(lms, facings_of(self, lms).rows(), strict=True):
@@ -286,6 +290,31 @@ class Matching:
         ref = self.fleet_ref()
         for v, t in self.state.trust.items():
             self.note_trust(v, t, ref)
+
+    @property
+    def sums(self) -> LandmarkSums:
+        """The gating sums, with every link held so far added (:meth:`flush_links`)."""
+        self.flush_links()
+        return self._sums
+
+    def flush_links(self) -> None:
+        """Add the links held since the last flush to the gating sums, in one call.
+
+        :func:`hdmap.mapping.linking.link` holds a link's rays rather than adding them at
+        once: the sums after a list of rays do not depend on how it is cut into
+        ``accumulate`` calls, so one call for a gating tick's links gives the same sums as
+        one per unit, for one call's fixed cost. Reading :attr:`sums` flushes first (a
+        re-solve, the facings, a merge, a settlement, closing quiet passes, saving the
+        state all do), so nothing sees the sums without the links made before."""
+        if not self.unsummed:
+            return
+        parts, self.unsummed = self.unsummed, []
+        self._sums.accumulate(
+            np.concatenate([p[0] for p in parts]),
+            np.concatenate([p[1] for p in parts]),
+            Rays.concat([p[2] for p in parts]),
+            np.concatenate([p[3] for p in parts]),
+        )
 
     @property
     def now(self) -> float:

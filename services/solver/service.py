@@ -197,6 +197,8 @@ class SolverService(StageService):
         self._snapshot_counts()
 
     def _reload(self) -> None:
+        self._unsummed: list[tuple[np.ndarray, np.ndarray, Rays, np.ndarray]] = []
+        """Links of this batch not yet added to the sums (:meth:`_flush`)."""
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
         self._sweeps.restart(self.state.event_time)
@@ -224,7 +226,24 @@ class SolverService(StageService):
         """After a group: close the passes due if the clock entered a new sweep period
         (counted ``passes_closed``)."""
         if self._sweeps.due(self.state.event_time):
+            self._flush()
             self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
+
+    def _flush(self) -> None:
+        """Add the links held since the last flush to the sums, in one call: the sums
+        after a list of rays do not depend on how it is cut into calls
+        (:meth:`LandmarkSums.accumulate`), so holding them until something reads or
+        changes the sums (a settlement, a merge, a sweep, the batch's re-solve) costs one
+        call per batch instead of one per group and gives the same map."""
+        if not self._unsummed:
+            return
+        parts, self._unsummed = self._unsummed, []
+        self.sums.accumulate(
+            np.concatenate([p[0] for p in parts]),
+            np.concatenate([p[1] for p in parts]),
+            Rays.concat([p[2] for p in parts]),
+            np.concatenate([p[3] for p in parts]),
+        )
 
     def on_commit(self) -> None:
         pass
@@ -237,6 +256,7 @@ class SolverService(StageService):
 
     def apply(self, entries: list[LogEntry]) -> None:
         touched: set[int] = set()
+        self._unsummed = []
         self._source: dict[int, float] = {}
         self._retired: list[SolverLandmark] = []
         for e in entries:
@@ -251,6 +271,7 @@ class SolverService(StageService):
             touched |= self._apply_group(g)
             self._sweep()
         touched -= {lm.id for lm in self._retired}
+        self._flush()
         self._publish(sorted(touched))
         for lid in touched:  # their sums changed, published or not: save them
             self.state.put(self.state.landmarks[lid])
@@ -296,7 +317,7 @@ class SolverService(StageService):
                 obs.sigma_range_m,
             )
             rows = np.array([lm.row for lm in mine], np.int64)
-            self.sums.accumulate(rows, keys_[sel], rays, holds[sel])
+            self._unsummed.append((rows, keys_[sel], rays, holds[sel]))
             self.state.note_views(mine, obs.direction)
             lid, at = _latest(ids[sel], g.links.received_at[sel])
             for i, t in zip(lid.tolist(), at.tolist(), strict=True):
@@ -336,6 +357,8 @@ class SolverService(StageService):
 
     def _settle(self, g: AssocGroup) -> set[int]:
         """Vehicles leaving probation: their held passes count in full or go."""
+        if len(g.trust):
+            self._flush()
         rows: list[int] = []
         for v, action, w in zip(g.trust.vehicle, g.trust.action, g.trust.weight, strict=True):
             key = hold_key(g.vehicles[int(v)])
@@ -352,6 +375,8 @@ class SolverService(StageService):
 
     def _retire(self, g: AssocGroup) -> set[int]:
         """Retirements after the group's links; merged ones hand their sums over."""
+        if g.retired.size:
+            self._flush()
         touched: set[int] = set()
         for k, rid in enumerate(g.retired.tolist()):
             drop = self.state.landmarks.get(int(rid))

@@ -116,7 +116,9 @@ def test_weight_correction_removes_the_origin_dependence_of_the_weights():
 def test_accumulate_mixed_unsorted_equals_per_row_sums_and_grows():
     rng = np.random.default_rng(5)
     rows, clusters, r, _ = random_batch(rng)
-    s = LandmarkSums(EstimatorConfig(pass_sigma_m=(0.0, 0.0, 0.0)), capacity=2)
+    # room for every pass open at once (12 clusters): none is closed mid-call and reopened
+    cfg = EstimatorConfig(pass_sigma_m=(0.0, 0.0, 0.0), max_open_passes=12)
+    s = LandmarkSums(cfg, capacity=2)
     s.new_rows(7, np.array([5.0, 0.0, 2.5]) + 10.0 * np.arange(7)[:, None] * [1.0, 0.5, 0.0])
     s.accumulate(rows, clusters, r)
     s.close_passes()  # passes enter A and b when they close
@@ -236,6 +238,45 @@ def test_pack_unpack_reproduces_future_results_exactly():
         assert np.array_equal(sa.cov, sb.cov, equal_nan=True)
         assert np.array_equal(sa.ok, sb.ok)
     assert s.pack_rows([0, 1, 2]) == t.pack_rows(rows_t)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_accumulate_in_any_split_gives_the_same_state_to_the_bit(seed):
+    """Rays are added one by one in order and a pass is closed when one more opens on a row
+    that has ``max_open_passes`` (its least recently active other): the state after a list
+    of rays does not depend on how the list was cut into calls, so a service may add what
+    it received in one call or per entry and give the same map."""
+    rng = np.random.default_rng(seed)
+    cfg = EstimatorConfig(max_open_passes=4)  # small: closings happen within the calls
+    x0 = np.array([5.0, 0.0, 2.5]) + 10.0 * np.arange(5)[:, None] * [1.0, 0.5, 0.0]
+    parts = [random_batch(rng, n_rows=5, n=120) for _ in range(3)]
+    rows = np.concatenate([p[0] for p in parts])
+    clusters = np.concatenate([p[1] + 20 * k for k, p in enumerate(parts)])
+    rays = Rays.concat([p[2] for p in parts])
+    hold = np.where(clusters % 7 == 3, 99, 0)  # some passes held (a vehicle on probation)
+    states = []
+    for cuts in ([], [1, 2, 50, 51, 200], sorted(rng.choice(np.arange(1, 360), 40, replace=False))):
+        s = LandmarkSums(cfg)
+        s.new_rows(5, x0)
+        for lo, hi in zip([0, *cuts], [*cuts, rows.size], strict=True):
+            s.accumulate(rows[lo:hi], clusters[lo:hi], rays.take(np.arange(lo, hi)), hold[lo:hi])
+        sol = s.solve(np.arange(5), update_reference=False)
+        states.append((s.pack_rows(np.arange(5)), sol.x.tobytes(), sol.cov.tobytes(), s.n_held()))
+    assert states[0][3] > 0 and all(st == states[0] for st in states[1:])
+
+
+def test_opening_a_pass_on_a_full_row_closes_its_least_recently_active_other():
+    rng = np.random.default_rng(4)
+    s = LandmarkSums(EstimatorConfig(max_open_passes=2))
+    s.new_rows(1, np.array([[5.0, 0.0, 2.5]]))
+    _rows, _cl, r, _x = random_batch(rng, n_rows=1, n=5)
+    # passes 1, 2, 1 again (2 is now the least recently active), then 3: 2 closes
+    s.accumulate([0] * 5, [1, 2, 1, 3, 3], r)
+    assert s._open.clusters(0) == [1, 3]
+    assert int(s._n_closed[0]) == 1 and int(s._n_open[0]) == 2
+    # a ray of the closed pass opens it again, as a new cluster; 1 is the least recent now
+    s.accumulate([0], [2], r.take(np.array([0])))
+    assert s._open.clusters(0) == [2, 3] and int(s._n_closed[0]) == 2
 
 
 @pytest.mark.parametrize("second_order", [False, True])

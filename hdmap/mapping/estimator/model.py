@@ -89,6 +89,29 @@ def mat_to_sym(m: ArrayLike) -> Array:
     return a[..., SYM_I, SYM_J]
 
 
+def row_dot(a: Array, b: Array) -> Array:
+    """Per row ``a_k . b_k`` of (n, 3) arrays, summed in a fixed order (x, y, z): unlike an
+    einsum, whose summation order follows how its iterator lays out the loops for the
+    array's length, the same row gives the same bits in a batch of any size (the sums of
+    :class:`~hdmap.mapping.estimator.sums.LandmarkSums` must not depend on how rays were
+    cut into calls).
+
+    >>> row_dot(np.array([[1.0, 2.0, 3.0]]), np.array([[4.0, 5.0, 6.0]])).tolist()
+    [32.0]
+    """
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def row_matvec(m: Array, v: Array) -> Array:
+    """Per row ``M_k v_k`` of (n, 3, 3) and (n, 3) arrays, in a fixed order (see
+    :func:`row_dot`).
+
+    >>> row_matvec(np.eye(3)[None] * 2.0, np.array([[1.0, 2.0, 3.0]])).tolist()
+    [[2.0, 4.0, 6.0]]
+    """
+    return m[:, :, 0] * v[:, 0, None] + m[:, :, 1] * v[:, 1, None] + m[:, :, 2] * v[:, 2, None]
+
+
 def sym_to_mat(s: ArrayLike) -> Array:
     """(..., 6) -> (..., 3, 3) symmetric."""
     a = np.asarray(s, float)

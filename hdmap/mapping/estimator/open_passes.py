@@ -128,37 +128,53 @@ class OpenPasses:
 
     def release(self, slots: IntArray) -> None:
         """Forget open slots (their sums already folded or dropped); free them in order."""
-        for s, row, cl in zip(
-            slots.tolist(),
-            self.row[slots].tolist(),
-            self.cluster[slots].tolist(),
-            strict=True,
-        ):
-            del self.slot[(row, cl)]
-            mine = self.row_slots[row]
-            mine.remove(s)
-            if not mine:
-                del self.row_slots[row]
+        for s in slots.tolist():
+            self.detach(s)
+        self.free_slots(slots)
+
+    def detach(self, s: int) -> None:
+        """Take slot ``s`` out of the open passes (its pass is no longer found by its key
+        and a new ray of it opens another slot) but keep its sums until
+        :meth:`free_slots` (a pass closed in the middle of an ``accumulate`` call is folded
+        after the call's rays are added)."""
+        row, cl = int(self.row[s]), int(self.cluster[s])
+        del self.slot[(row, cl)]
+        mine = self.row_slots[row]
+        mine.remove(s)
+        if not mine:
+            del self.row_slots[row]
+
+    def free_slots(self, slots: IntArray) -> None:
+        """Put detached slots on the free list, in order."""
+        for s in slots.tolist():
             self.row[s] = -1
             self.free.append(s)
 
+    def canonical(self, slots: IntArray) -> IntArray:
+        """``slots`` ordered by (row, cluster). Every list of slots here comes in this
+        order, whatever slots the passes happen to occupy (that follows the order rays
+        came in and the free list): what sums over a row's open passes is then the same
+        after ``pack_rows`` / ``unpack_rows`` and however the rays were cut into calls."""
+        slots = np.asarray(slots, np.int64)
+        return slots[np.lexsort((self.cluster[slots], self.row[slots]))]
+
     def all_slots(self) -> IntArray:
-        """Every open slot, ascending."""
-        return np.flatnonzero(self.row[: self.hi] >= 0)
+        """Every open slot, by (row, cluster)."""
+        return self.canonical(np.flatnonzero(self.row[: self.hi] >= 0))
 
     def of_rows(self, rows: IntArray) -> IntArray:
-        """Open slots of ``rows``, ascending: :meth:`all_slots` filtered to ``rows``, in
-        O(their open passes) instead of O(all open passes)."""
+        """Open slots of ``rows``, by (row, cluster): :meth:`all_slots` filtered to
+        ``rows``, in O(their open passes) instead of O(all open passes)."""
         get = self.row_slots.get
         found = [s for r in np.unique(rows).tolist() for s in get(r, ())]
-        return np.sort(np.array(found, np.int64))
+        return self.canonical(np.array(found, np.int64))
 
     def of_row(self, row: int) -> IntArray:
-        """Open slots of one row, ascending."""
-        return np.sort(np.array(self.row_slots.get(row, ()), np.int64))
+        """Open slots of one row, by cluster."""
+        return self.canonical(np.array(self.row_slots.get(row, ()), np.int64))
 
     def held(self, hold: int) -> IntArray:
-        """Open slots held for the holder ``hold`` (none for 0), ascending."""
+        """Open slots held for the holder ``hold`` (none for 0), by (row, cluster)."""
         slots = self.all_slots()
         return slots[self.hold[slots] == int(hold)] if hold else slots[:0]
 
@@ -195,7 +211,7 @@ class OpenPasses:
                 strict=True,
             )
             found = [self.slot.get((int(r), int(c))) for r, c in keys]
-            slots = np.array(sorted({s for s in found if s is not None}), np.int64)
+            slots = self.canonical(np.array(sorted({s for s in found if s is not None}), np.int64))
         elif rows is not None:
             slots = self.of_rows(np.asarray(rows, np.int64).reshape(-1))
         elif clusters is not None:

@@ -90,6 +90,21 @@ def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
     target[s[starts]] += np.add.reduceat(values[order], starts, axis=0)
 
 
+def _check_holds(o: OpenPasses, r: IntArray, c: IntArray, hk: IntArray) -> None:
+    """Refuse rays of one (landmark, pass) both held and not, within the call or against
+    an open pass (before anything changes)."""
+    order = np.lexsort((c, r))
+    rs, cs, hs = r[order], c[order], hk[order]
+    starts = np.flatnonzero(np.r_[True, (rs[1:] != rs[:-1]) | (cs[1:] != cs[:-1])])
+    if np.any(np.minimum.reduceat(hs, starts) != np.maximum.reduceat(hs, starts)):
+        raise ValueError("rays of one (landmark, pass) both held and not")
+    firsts = zip(rs[starts].tolist(), cs[starts].tolist(), hs[starts].tolist(), strict=True)
+    for row, cl, h in firsts:
+        s = o.slot.get((row, cl))
+        if s is not None and int(o.hold[s]) != h:
+            raise ValueError("rays of one (landmark, pass) both held and not")
+
+
 class LandmarkSums:
     """Incremental estimator state for many landmarks (one row each).
 
@@ -214,6 +229,13 @@ class LandmarkSums:
     def _close_slots(self, slots: IntArray) -> None:
         if slots.size == 0:
             return
+        self._fold_slots(slots)
+        _scatter_add(self._n_open, self._open.row[slots], -np.ones(slots.size, np.int64))
+        self._open.release(slots)
+
+    def _fold_slots(self, slots: IntArray) -> None:
+        """Add open passes' weighted sums to their rows' closed sums (the slots are then
+        released by the caller)."""
         rows = self._open.row[slots]
         ratio = None
         if self._inverse:  # pooled with the closing passes, which then join the pool
@@ -228,8 +250,6 @@ class LandmarkSums:
         _scatter_add(self._sab, rows, a6[:, :, None] * b[:, None, :])
         _scatter_add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
         _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
-        _scatter_add(self._n_open, rows, -np.ones(slots.size, np.int64))
-        self._open.release(slots)
 
     @property
     def _inverse(self) -> bool:
@@ -363,71 +383,117 @@ class LandmarkSums:
         t5 = scale_terms(rays, origin_rel, self.config, x_ref, inv)
         kn = noise_terms(rays, origin_rel, x_ref, self.config, inv)
         j6 = predicted_information(rays, origin_rel, x_ref, self.config, wts)
-        _scatter_add(self._j6, r[~held], j6[~held])
         # the pull sum of an unreported pass bias: only when configured (zeros otherwise)
         pulled = self.config.extra_sigma_pos_m > 0
         pull = pull_terms(rays, origin_rel, self._x_ref[r], self.config) if pulled else None
         if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
             raise ValueError("non-finite ray terms (check directions and sigmas)")
-        _scatter_add(self._n_obs, r, np.ones(n, np.int64))
         wr = rays.weights_or_ones()
-        _scatter_add(self._w1, r, wr)
-        _scatter_add(self._w2, r, wr**2)
         if not self.config.cluster_robust:
             if t5 is not None:
                 raise ValueError("per-pass range scales need pass-level sums (cluster_robust)")
+            np.add.at(self._n_obs, r, 1)
+            np.add.at(self._w1, r, wr)
+            np.add.at(self._w2, r, wr**2)
+            np.add.at(self._j6, r, j6)
             if pull is not None:
-                _scatter_add(self._c1, r, pull)
-            _scatter_add(self._a6, r, alpha)
-            _scatter_add(self._b, r, beta)
-            _scatter_add(self._saa, r, outer6_to_tri(alpha))
-            _scatter_add(self._sab, r, alpha[:, :, None] * beta[:, None, :])
-            _scatter_add(self._sbb, r, mat_to_sym(beta[:, :, None] * beta[:, None, :]))
-            _scatter_add(self._n_closed, r, np.ones(n, np.int64))
+                np.add.at(self._c1, r, pull)
+            np.add.at(self._a6, r, alpha)
+            np.add.at(self._b, r, beta)
+            np.add.at(self._saa, r, outer6_to_tri(alpha))
+            np.add.at(self._sab, r, alpha[:, :, None] * beta[:, None, :])
+            np.add.at(self._sbb, r, mat_to_sym(beta[:, :, None] * beta[:, None, :]))
+            np.add.at(self._n_closed, r, 1)
             return
-        order = np.lexsort((c, r))
-        rs, cs = r[order], c[order]
-        starts = np.flatnonzero(np.r_[True, (rs[1:] != rs[:-1]) | (cs[1:] != cs[:-1])])
-        g_a6 = np.add.reduceat(alpha[order], starts, axis=0)
-        g_b = np.add.reduceat(beta[order], starts, axis=0)
+        _check_holds(self._open, r, c, hk)
+        slots, stamps, closes = self._assign_slots(r, c, hk)
         s_az, s_el = effective_sigmas(rays, self.config)
         var = np.broadcast_to(0.5 * (s_az**2 + s_el**2), (n,))
-        g_s2 = np.add.reduceat(var[order], starts)
-        g_w = np.add.reduceat(wr[order], starts)
-        g_n = np.diff(np.r_[starts, n])
-        g_r, g_c = rs[starts], cs[starts]
-        hs = hk[order]
-        g_h = hs[starts]
-        if held.any() and np.any(
-            np.minimum.reduceat(hs, starts) != np.maximum.reduceat(hs, starts)
-        ):
-            raise ValueError("rays of one (landmark, pass) both held and not")
         o = self._open
-        slots = np.empty(starts.size, np.int64)
-        fresh = np.zeros(starts.size, bool)
-        for i, key in enumerate(zip(g_r.tolist(), g_c.tolist(), strict=True)):
-            s = o.slot.get(key)
-            fresh[i] = s is None
-            slots[i] = self._alloc_slot(key) if s is None else s
-        if np.any(o.hold[slots[~fresh]] != g_h[~fresh]):
-            raise ValueError("rays of one (landmark, pass) both held and not")
-        o.hold[slots] = g_h
-        if held.any():
-            o.j6[slots] += np.add.reduceat(np.where(held[:, None], j6, 0.0)[order], starts, axis=0)
-        o.w2[slots] += np.add.reduceat((wr**2)[order], starts)
-        o.a6[slots] += g_a6
-        o.b[slots] += g_b
-        if t5 is not None:
-            o.t5[slots] += np.add.reduceat(t5[order], starts, axis=0)
-        if kn is not None:
-            o.k[slots] += np.add.reduceat(kn[order], starts, axis=0)
-        if pull is not None:
-            o.c1[slots] += np.add.reduceat(pull[order], starts)
-        o.s2[slots] += g_s2
-        o.w[slots] += g_w
-        o.n[slots] += g_n
-        o.last[slots] = self._n_obs[g_r]
-        self._evict(np.unique(g_r))
+
+        def add(lo: int, hi: int) -> None:
+            """Rays ``lo:hi`` into their rows and slots, one by one in order."""
+            rs, ss, h, w = r[lo:hi], slots[lo:hi], held[lo:hi], wr[lo:hi]
+            np.add.at(self._n_obs, rs, 1)
+            np.add.at(self._w1, rs, w)
+            np.add.at(self._w2, rs, w**2)
+            np.add.at(self._j6, rs[~h], j6[lo:hi][~h])
+            if h.any():
+                np.add.at(o.j6, ss[h], j6[lo:hi][h])
+            np.add.at(o.w2, ss, w**2)
+            np.add.at(o.a6, ss, alpha[lo:hi])
+            np.add.at(o.b, ss, beta[lo:hi])
+            if t5 is not None:
+                np.add.at(o.t5, ss, t5[lo:hi])
+            if kn is not None:
+                np.add.at(o.k, ss, kn[lo:hi])
+            if pull is not None:
+                np.add.at(o.c1, ss, pull[lo:hi])
+            np.add.at(o.s2, ss, var[lo:hi])
+            np.add.at(o.w, ss, w)
+            np.add.at(o.n, ss, 1)
+            np.maximum.at(o.last, ss, stamps[lo:hi])
+
+        if not self._inverse:
+            # a pass's weighting depends on its own sums only: the rays first, then the
+            # passes closed on the way (each holds exactly the rays before its closing)
+            add(0, n)
+            for _at, slot in closes:
+                self._close_detached(slot)
+            return
+        done = 0  # inverse form: a closing pools the row's other open passes as they are
+        for at, slot in closes:
+            add(done, at)
+            done = at
+            self._close_detached(slot)
+        add(done, n)
+
+    def _assign_slots(
+        self, r: IntArray, c: IntArray, hk: IntArray
+    ) -> tuple[IntArray, IntArray, list[tuple[int, int]]]:
+        """Each ray's open pass, ray by ray in order: a ray of a pass not open opens one,
+        and a row with more than ``max_open_passes`` passes not held then closes its least
+        recently active other one (by activity stamp, then cluster id). Returns the slot
+        and the activity stamp (its row's ray count with it) of each ray, and the closings
+        as (position of the ray that caused it, slot), in order; a closed slot is detached
+        here and folded by the caller after the rays before it are added."""
+        o = self._open
+        n = r.size
+        slots = np.empty(n, np.int64)
+        stamps = np.empty(n, np.int64)
+        closes: list[tuple[int, int]] = []
+        count: dict[int, int] = {}
+        recent: dict[int, int] = {}  # slot -> its stamp in this call so far
+        keep = self.config.max_open_passes
+        n_obs = self._n_obs
+        for i, (row, cl, h) in enumerate(zip(r.tolist(), c.tolist(), hk.tolist(), strict=True)):
+            k = count.get(row)
+            k = int(n_obs[row]) + 1 if k is None else k + 1
+            count[row] = k
+            s = o.slot.get((row, cl))
+            if s is None:
+                s = self._alloc_slot((row, cl))
+                o.hold[s] = h
+                if h == 0:
+                    others = [x for x in o.row_slots[row] if x != s and o.hold[x] == 0]
+                    while len(others) >= keep and others:
+                        victim = min(
+                            others, key=lambda x: (recent.get(x, int(o.last[x])), int(o.cluster[x]))
+                        )
+                        others.remove(victim)
+                        o.detach(victim)
+                        self._n_open[row] -= 1
+                        closes.append((i, victim))
+            slots[i] = s
+            stamps[i] = k
+            recent[s] = k
+        return slots, stamps, closes
+
+    def _close_detached(self, slot: int) -> None:
+        """Fold a slot :meth:`_assign_slots` detached and free it."""
+        one = np.array([slot], np.int64)
+        self._fold_slots(one)
+        self._open.free_slots(one)
 
     # ------------------------------------------------------------------ solve
     def solve(self, rows: ArrayLike, update_reference: bool = True) -> Solution:

@@ -27,6 +27,8 @@ from hdmap.mapping.estimator.model import (
     mat_to_sym,
     projector_terms,
     ray_angles,
+    row_dot,
+    row_matvec,
     sym_to_mat,
     weights,
 )
@@ -95,7 +97,7 @@ def inverse_range_terms(
     rel_w2 = np.maximum((sr / rs) ** 2 - cfg.panel_rel_sigma**2, 1e-4)
     s_rho2 = np.where(use, rel_w2 / rs**2, 0.0)
     v = x_ref_rel - origin_rel
-    r_ref2 = np.maximum(np.einsum("ni,ni->n", v, v), cfg.min_range_m**2)
+    r_ref2 = np.maximum(row_dot(v, v), cfg.min_range_m**2)
     s_h2 = np.maximum(np.asarray(rays.sigma_pos_h, float), cfg.min_sigma_pos_m) ** 2
     w = np.where(use, 1.0 / (s_rho2 * r_ref2 + s_h2 / r_ref2), 0.0) * rays.weights_or_ones()
     return InverseTerms(w, np.where(use, 1.0 / rs, 0.0), s_rho2)
@@ -135,9 +137,9 @@ def noise_terms(
     out = np.zeros((len(rays), WIDTH))
     comp = (w * s_rho2)[:, None] * (_I6 - m)
     out[:, COMP.start : COMP.start + 6] = comp
-    out[:, COMP.start + 6 : COMP.stop] = np.einsum("nij,nj->ni", sym_to_mat(comp), origin_rel)
+    out[:, COMP.start + 6 : COMP.stop] = row_matvec(sym_to_mat(comp), origin_rel)
     d = np.asarray(rays.direction, float)
-    dist = np.einsum("ni,ni->n", d, x_ref_rel - origin_rel)
+    dist = row_dot(d, x_ref_rel - origin_rel)
     ok = (s_rho2 > 0) & (dist > cfg.min_range_m)
     wf = np.where(ok, 1.0 / np.where(ok, dist**2 * s_rho2, 1.0), 0.0)
     inv_dist = np.divide(1.0, dist, out=np.zeros_like(dist), where=ok)
@@ -194,7 +196,7 @@ def scale_terms(
     out = np.empty((len(rays), 5))
     out[:, :3] = -c[:, None] * d
     out[:, 3] = ss
-    out[:, 4] = -c * np.einsum("ni,ni->n", d, origin_rel)
+    out[:, 4] = -c * row_dot(d, origin_rel)
     return out
 
 
@@ -243,7 +245,7 @@ def ray_terms(
         w_r = w_i * rho**2
     if w_r is not None:
         alpha = alpha + w_r[:, None] * (_I6 - m)
-    beta = np.einsum("nij,nj->ni", sym_to_mat(alpha), origin_rel)
+    beta = row_matvec(sym_to_mat(alpha), origin_rel)
     if w_r is not None and cfg.range_scale == "nominal":
         r = np.asarray(rays.range_m, float)
         beta = beta + (w_r * np.where(w_r > 0, r, 0.0))[:, None] * np.asarray(rays.direction)
@@ -256,8 +258,6 @@ def ray_terms(
             ],
             axis=1,
         )
-        corr = np.einsum("nij,nj->ni", sym_to_mat(m - h), sig * g_v) + np.einsum(
-            "nij,nj->ni", sym_to_mat(h), sig * g_h
-        )
+        corr = row_matvec(sym_to_mat(m - h), sig * g_v) + row_matvec(sym_to_mat(h), sig * g_h)
         beta = beta - corr
     return alpha, beta
