@@ -359,6 +359,10 @@ class LandmarkSums:
         with the weight its rays have, and is later either re-weighted and let go
         (:meth:`release`) or taken out as if never added (:meth:`drop_held`). A cluster is
         held or not for good: use distinct cluster keys for a pass's held rays.
+
+        Invariant: the state after a list of rays is the same, to the bit, however the list
+        is cut into calls (docs/estimator.md section 5): rays go in one by one in order,
+        and a pass closed on the way (:meth:`_assign_slots`) holds the rays before it.
         """
         r = self._check_rows(rows)
         n = r.size
