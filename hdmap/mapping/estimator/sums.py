@@ -436,7 +436,10 @@ class LandmarkSums:
             np.add.at(o.s2, ss, var[lo:hi])
             np.add.at(o.w, ss, w)
             np.add.at(o.n, ss, 1)
-            np.maximum.at(o.last, ss, stamps[lo:hi])
+            # each slot's stamp is that of its last ray here (a stamp can go down: a
+            # dropped holder's rays leave the row's count)
+            u, at_last = np.unique(ss[::-1], return_index=True)
+            o.last[u] = stamps[lo:hi][::-1][at_last]
 
         if not self._inverse:
             # a pass's weighting depends on its own sums only: the rays first, then the
