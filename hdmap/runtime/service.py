@@ -223,7 +223,7 @@ class Service:
 
     name: ClassVar[str] = "service"
     batch_linger_s: ClassVar[float] = 0.0
-    """Default of :attr:`Batching.linger_s` for this service (the stage services: 0.05 s)."""
+    """Default of :attr:`Batching.linger_s` for this service (the stage services: 0.02 s)."""
     stops_on_corruption: ClassVar[bool] = True
     """Whether corruption met by a transaction while running stops the service like a
     failed check at open (ingest, which refuses uploads instead, sets it False)."""
