@@ -306,15 +306,8 @@ class Matching:
         one per unit, for one call's fixed cost. Reading :attr:`sums` flushes first (a
         re-solve, the facings, a merge, a settlement, closing quiet passes, saving the
         state all do), so nothing sees the sums without the links made before."""
-        if not self.unsummed:
-            return
         parts, self.unsummed = self.unsummed, []
-        self._sums.accumulate(
-            np.concatenate([p[0] for p in parts]),
-            np.concatenate([p[1] for p in parts]),
-            Rays.concat([p[2] for p in parts]),
-            np.concatenate([p[3] for p in parts]),
-        )
+        self._sums.accumulate_parts(parts)
 
     @property
     def now(self) -> float:

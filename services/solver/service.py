@@ -235,15 +235,8 @@ class SolverService(StageService):
         (:meth:`LandmarkSums.accumulate`), so holding them until something reads or
         changes the sums (a settlement, a merge, a sweep, the batch's re-solve) costs one
         call per batch instead of one per group and gives the same map."""
-        if not self._unsummed:
-            return
         parts, self._unsummed = self._unsummed, []
-        self.sums.accumulate(
-            np.concatenate([p[0] for p in parts]),
-            np.concatenate([p[1] for p in parts]),
-            Rays.concat([p[2] for p in parts]),
-            np.concatenate([p[3] for p in parts]),
-        )
+        self.sums.accumulate_parts(parts)
 
     def on_commit(self) -> None:
         pass

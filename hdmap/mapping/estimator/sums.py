@@ -455,6 +455,20 @@ class LandmarkSums:
             self._close_detached(slot)
         add(done, n)
 
+    def accumulate_parts(
+        self, parts: Sequence[tuple[ArrayLike, ArrayLike, Rays, ArrayLike]]
+    ) -> None:
+        """:meth:`accumulate` of ``(rows, clusters, rays, hold)`` parts, in order, in one
+        call (the same state as one call per part: the invariant above)."""
+        if not parts:
+            return
+        self.accumulate(
+            np.concatenate([np.asarray(p[0], np.int64).reshape(-1) for p in parts]),
+            np.concatenate([np.asarray(p[1], np.int64).reshape(-1) for p in parts]),
+            Rays.concat([p[2] for p in parts]),
+            np.concatenate([np.asarray(p[3], np.int64).reshape(-1) for p in parts]),
+        )
+
     def _assign_slots(
         self, r: IntArray, c: IntArray, hk: IntArray
     ) -> tuple[IntArray, IntArray, list[tuple[int, int]]]:
