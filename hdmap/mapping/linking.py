@@ -1,10 +1,12 @@
 """Linking rays to landmarks in the matcher's gating sums, and the landmarks' gating
 estimates.
 
-:func:`link` adds a pass's rays to their landmarks' rows (with the vehicle's weight, held
-apart while it is on probation), notes their viewing directions and co-visibility, and
-records the links in the home tiles' output; :func:`refresh` re-solves the touched
-landmarks' gating estimates; :func:`create` makes a landmark with an empty row.
+:func:`link` queues a pass's rays for their landmarks' rows (with the vehicle's weight,
+held apart while it is on probation; added in one call when the sums are next read,
+:meth:`~hdmap.mapping.matching.Matching.flush_links`), notes their viewing directions and
+co-visibility, and records the links in the home tiles' output; :func:`refresh`
+re-solves the touched landmarks' gating estimates; :func:`create` makes a landmark with an
+empty row.
 """
 
 from __future__ import annotations
@@ -61,8 +63,8 @@ def to_rays(r: LocalRays, weight: np.ndarray | None = None) -> Rays:
 def link(
     m: Matching, obs: Any, lms: list[Landmark], vehicle: str, pass_id: int, received: float
 ) -> None:
-    """Record associations (ray ``k`` of ``obs`` to ``lms[k]``): gating sums now, output
-    per home tile."""
+    """Record associations (ray ``k`` of ``obs`` to ``lms[k]``): queued for the gating
+    sums (:meth:`~hdmap.mapping.matching.Matching.flush_links`), output per home tile."""
     if not len(obs):
         return
     m.tally("linked", len(obs))
