@@ -11,7 +11,6 @@ passes meet in one accumulate call when a batch holds several entries.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,18 +19,7 @@ from hdmap.runtime.service import ServiceOptions
 from schemas import LandmarkUpdates, LogEntry
 from services.matcher.replay import Sink, read_log, replay
 from services.solver.service import SolverService
-from tests.unit.test_gating_tick import T0, entry, matcher
-
-
-def traffic(tmp_path: Path) -> list[LogEntry]:
-    m0 = matcher(tmp_path / "gen")
-    out = []
-    for k in range(40):
-        out.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k, both=True))
-        if k % 4 == 0:
-            out.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k + 0.1, True, part=1))
-    m0.db.close()
-    return [replace(e, seq=n + 1, gseq=n + 1) for n, e in enumerate(out)]
+from tests.unit.test_gating_tick import matcher, traffic
 
 
 def published(sent: list[tuple[str, bytes]]) -> dict[int, tuple]:
@@ -57,7 +45,7 @@ def published(sent: list[tuple[str, bytes]]) -> dict[int, tuple]:
 
 
 def test_matcher_and_solver_state_are_the_same_however_batched(tmp_path: Path) -> None:
-    entries = traffic(tmp_path)
+    entries = traffic(tmp_path / "gen")
     sums, logs = set(), []
     for batch in (1, 7, len(entries)):
         m = matcher(tmp_path / f"m{batch}")

@@ -46,6 +46,19 @@ def matcher(path: Path, tick_s: float = 1.0, ahead: int = 32) -> MatcherService:
     return open_matcher(path, MatcherConfig(tick_s=tick_s, associate_ahead=ahead))
 
 
+def traffic(path: Path) -> list[LogEntry]:
+    """Forty passes of eight vehicles at two signs, 0.3 s apart, every fourth pass sending
+    a second upload 0.1 s after its first, in log order."""
+    m0 = matcher(path)
+    entries = []
+    for k in range(40):
+        entries.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k, both=True))
+        if k % 4 == 0:
+            entries.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k + 0.1, True, part=1))
+    m0.db.close()
+    return [replace(e, seq=n + 1, gseq=n + 1) for n, e in enumerate(entries)]
+
+
 def test_a_new_landmark_is_seen_by_its_own_pass_at_once_and_by_others_next_tick(
     tmp_path: Path,
 ) -> None:
@@ -78,14 +91,7 @@ def test_the_map_is_the_same_however_batched_and_across_a_restart_in_a_tick(
     upload in the tick where its first started the landmarks. Batches of 1, 7 and all,
     associated one by one or together, and a restart while a tick is open, give one
     map."""
-    m0 = matcher(tmp_path / "gen")
-    entries = []
-    for k in range(40):
-        entries.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k, both=True))
-        if k % 4 == 0:
-            entries.append(entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.3 * k + 0.1, True, part=1))
-    m0.db.close()
-    entries = [replace(e, seq=n + 1, gseq=n + 1) for n, e in enumerate(entries)]  # log order
+    entries = traffic(tmp_path / "gen")
     digests = set()
     redone = 0
     for batch, ahead in ((1, 32), (7, 32), (len(entries), 32), (len(entries), 1)):

@@ -31,6 +31,8 @@ Slots are recycled through a free list; the table grows by doubling.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -44,6 +46,28 @@ IntArray = NDArray[np.int64]
 
 _ARRAYS = ("row", "cluster", "last", "n", "a6", "b", "s2", "w", "w2", "hold", "j6", "c1", "t5", "k")
 """The per-slot arrays of :class:`OpenPasses`, grown together."""
+
+
+@dataclass(frozen=True)
+class RayTerms:
+    """What each ray adds to its open pass (rows follow the rays; None: not configured):
+    predicted information ``j6`` (held passes keep it), ``alpha`` / ``beta`` (the raw
+    ``A_p`` / ``b_p`` terms), range scale sums ``t5``, box-noise sums ``kn``, pull, angular
+    variance ``var`` and weight ``w``."""
+
+    j6: Array
+    alpha: Array
+    beta: Array
+    t5: Array | None
+    kn: Array | None
+    pull: Array | None
+    var: Array
+    w: Array
+
+    def rows(self, lo: int, hi: int) -> RayTerms:
+        """The terms of rays ``lo:hi``."""
+        cut = {f.name: getattr(self, f.name) for f in fields(self)}
+        return RayTerms(**{k: None if v is None else v[lo:hi] for k, v in cut.items()})
 
 
 class OpenPasses:
@@ -157,6 +181,86 @@ class OpenPasses:
         after ``pack_rows`` / ``unpack_rows`` and however the rays were cut into calls."""
         slots = np.asarray(slots, np.int64)
         return slots[np.lexsort((self.cluster[slots], self.row[slots]))]
+
+    # ------------------------------------------------------------------ rays in order
+    def check_holds(self, r: IntArray, c: IntArray, hk: IntArray) -> None:
+        """Refuse rays ``(row r, cluster c, holder hk)`` of one pass both held and not,
+        within them or against an open pass (before anything changes)."""
+        order = np.lexsort((c, r))
+        rs, cs, hs = r[order], c[order], hk[order]
+        starts = np.flatnonzero(np.r_[True, (rs[1:] != rs[:-1]) | (cs[1:] != cs[:-1])])
+        if np.any(np.minimum.reduceat(hs, starts) != np.maximum.reduceat(hs, starts)):
+            raise ValueError("rays of one (landmark, pass) both held and not")
+        firsts = zip(rs[starts].tolist(), cs[starts].tolist(), hs[starts].tolist(), strict=True)
+        for row, cl, h in firsts:
+            s = self.slot.get((row, cl))
+            if s is not None and int(self.hold[s]) != h:
+                raise ValueError("rays of one (landmark, pass) both held and not")
+
+    def assign(
+        self, r: IntArray, c: IntArray, hk: IntArray, n_obs: IntArray, n_open: IntArray, keep: int
+    ) -> tuple[IntArray, IntArray, list[tuple[int, int]]]:
+        """Each ray's open pass, ray by ray in order: a ray of a pass not open opens one
+        (``n_open`` of its row + 1), and a row with more than ``keep`` passes not held then
+        closes its least recently active other one (by activity stamp, then cluster id;
+        ``n_open`` - 1). Returns the slot and the activity stamp (its row's ray count,
+        ``n_obs`` before the call, with it) of each ray, and the closings as (position of
+        the ray that caused it, slot), in order; a closed slot is detached here and folded
+        by the caller after the rays before it are added (:meth:`free_slots` then)."""
+        n = r.size
+        slots = np.empty(n, np.int64)
+        stamps = np.empty(n, np.int64)
+        closes: list[tuple[int, int]] = []
+        count: dict[int, int] = {}
+        recent: dict[int, int] = {}  # slot -> its stamp in this call so far
+        for i, (row, cl, h) in enumerate(zip(r.tolist(), c.tolist(), hk.tolist(), strict=True)):
+            k = count.get(row)
+            k = int(n_obs[row]) + 1 if k is None else k + 1
+            count[row] = k
+            s = self.slot.get((row, cl))
+            if s is None:
+                s = self.alloc((row, cl))
+                n_open[row] += 1
+                self.hold[s] = h
+                if h == 0:
+                    others = [x for x in self.row_slots[row] if x != s and self.hold[x] == 0]
+                    while len(others) >= keep and others:
+                        victim = min(
+                            others,
+                            key=lambda x: (recent.get(x, int(self.last[x])), self.cluster[x]),
+                        )
+                        others.remove(victim)
+                        self.detach(victim)
+                        n_open[row] -= 1
+                        closes.append((i, victim))
+            slots[i] = s
+            stamps[i] = k
+            recent[s] = k
+        return slots, stamps, closes
+
+    def add_rays(
+        self, ss: IntArray, held: NDArray[np.bool_], t: RayTerms, stamps: IntArray
+    ) -> None:
+        """Rays' terms ``t`` into their passes ``ss`` (:meth:`assign`), one by one in order
+        (unbuffered ``np.add.at``: the sums do not depend on how rays are cut into calls);
+        each pass's activity stamp becomes that of its last ray here (a stamp can go down:
+        a dropped holder's rays leave the row's count)."""
+        if held.any():
+            np.add.at(self.j6, ss[held], t.j6[held])
+        np.add.at(self.w2, ss, t.w**2)
+        np.add.at(self.a6, ss, t.alpha)
+        np.add.at(self.b, ss, t.beta)
+        if t.t5 is not None:
+            np.add.at(self.t5, ss, t.t5)
+        if t.kn is not None:
+            np.add.at(self.k, ss, t.kn)
+        if t.pull is not None:
+            np.add.at(self.c1, ss, t.pull)
+        np.add.at(self.s2, ss, t.var)
+        np.add.at(self.w, ss, t.w)
+        np.add.at(self.n, ss, 1)
+        u, at_last = np.unique(ss[::-1], return_index=True)
+        self.last[u] = stamps[::-1][at_last]
 
     def all_slots(self) -> IntArray:
         """Every open slot, by (row, cluster)."""

@@ -55,6 +55,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hdmap.mapping.estimator import packing
 from hdmap.mapping.estimator.box_noise import COMP, in_frame, noise_ratio
 from hdmap.mapping.estimator.frame_change import FrameChange
 from hdmap.mapping.estimator.model import (
@@ -67,8 +68,7 @@ from hdmap.mapping.estimator.model import (
     pull_terms,
     weights,
 )
-from hdmap.mapping.estimator.open_passes import OpenPasses
-from hdmap.mapping.estimator.packing import PACK_VERSION, decode, encode, layout
+from hdmap.mapping.estimator.open_passes import OpenPasses, RayTerms
 from hdmap.mapping.estimator.solve import Solution, solve_sums
 from hdmap.mapping.estimator.terms import inverse_of, noise_terms, ray_terms, scale_terms
 
@@ -88,21 +88,6 @@ def _scatter_add(target: np.ndarray, idx: IntArray, values: np.ndarray) -> None:
     s = idx[order]
     starts = np.flatnonzero(np.concatenate(([True], s[1:] != s[:-1])))
     target[s[starts]] += np.add.reduceat(values[order], starts, axis=0)
-
-
-def _check_holds(o: OpenPasses, r: IntArray, c: IntArray, hk: IntArray) -> None:
-    """Refuse rays of one (landmark, pass) both held and not, within the call or against
-    an open pass (before anything changes)."""
-    order = np.lexsort((c, r))
-    rs, cs, hs = r[order], c[order], hk[order]
-    starts = np.flatnonzero(np.r_[True, (rs[1:] != rs[:-1]) | (cs[1:] != cs[:-1])])
-    if np.any(np.minimum.reduceat(hs, starts) != np.maximum.reduceat(hs, starts)):
-        raise ValueError("rays of one (landmark, pass) both held and not")
-    firsts = zip(rs[starts].tolist(), cs[starts].tolist(), hs[starts].tolist(), strict=True)
-    for row, cl, h in firsts:
-        s = o.slot.get((row, cl))
-        if s is not None and int(o.hold[s]) != h:
-            raise ValueError("rays of one (landmark, pass) both held and not")
 
 
 class LandmarkSums:
@@ -147,7 +132,7 @@ class LandmarkSums:
     def open_pass_bytes(self) -> int:
         """Bytes of numeric state per open pass: its packed record with every sum this
         configuration keeps (version 7 in the inverse-range form, else 6; plus the row)."""
-        return layout(PACK_VERSION if self._inverse else 6).open.itemsize
+        return packing.layout(packing.PACK_VERSION if self._inverse else 6).open.itemsize
 
     @property
     def n_open_passes(self) -> int:
@@ -243,13 +228,20 @@ class LandmarkSums:
             ratio = self._pooled_ratio(uniq, slots, pos)[pos]
             _scatter_add(self._q2, rows, np.stack(self._open.residuals(slots), axis=1))
         a6, b, c1 = self._open.weighted(slots, self.config, ratio)
-        _scatter_add(self._c1, rows, c1)
-        _scatter_add(self._a6, rows, a6)
-        _scatter_add(self._b, rows, b)
-        _scatter_add(self._saa, rows, outer6_to_tri(a6))
-        _scatter_add(self._sab, rows, a6[:, :, None] * b[:, None, :])
-        _scatter_add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
-        _scatter_add(self._n_closed, rows, np.ones(slots.size, np.int64))
+        self._add_closed(rows, a6, b, c1, _scatter_add)
+
+    def _add_closed(self, rows: IntArray, a6: Array, b: Array, c1: Array | None, add) -> None:
+        """Closed passes (or, without pass-level sums, rays) with terms ``a6``, ``b`` and
+        pull ``c1`` into their rows' closed sums, summed by ``add``: ``_scatter_add`` or
+        the unbuffered ``np.add.at`` (one by one, in order)."""
+        if c1 is not None:
+            add(self._c1, rows, c1)
+        add(self._a6, rows, a6)
+        add(self._b, rows, b)
+        add(self._saa, rows, outer6_to_tri(a6))
+        add(self._sab, rows, a6[:, :, None] * b[:, None, :])
+        add(self._sbb, rows, mat_to_sym(b[:, :, None] * b[:, None, :]))
+        add(self._n_closed, rows, np.ones(rows.size, np.int64))
 
     @property
     def _inverse(self) -> bool:
@@ -362,7 +354,7 @@ class LandmarkSums:
 
         Invariant: the state after a list of rays is the same, to the bit, however the list
         is cut into calls (docs/estimator.md section 5): rays go in one by one in order,
-        and a pass closed on the way (:meth:`_assign_slots`) holds the rays before it.
+        and a pass closed on the way (:meth:`OpenPasses.assign`) holds the rays before it.
         """
         r = self._check_rows(rows)
         n = r.size
@@ -400,46 +392,25 @@ class LandmarkSums:
             np.add.at(self._w1, r, wr)
             np.add.at(self._w2, r, wr**2)
             np.add.at(self._j6, r, j6)
-            if pull is not None:
-                np.add.at(self._c1, r, pull)
-            np.add.at(self._a6, r, alpha)
-            np.add.at(self._b, r, beta)
-            np.add.at(self._saa, r, outer6_to_tri(alpha))
-            np.add.at(self._sab, r, alpha[:, :, None] * beta[:, None, :])
-            np.add.at(self._sbb, r, mat_to_sym(beta[:, :, None] * beta[:, None, :]))
-            np.add.at(self._n_closed, r, 1)
+            self._add_closed(r, alpha, beta, pull, np.add.at)  # every ray its own "pass"
             return
-        _check_holds(self._open, r, c, hk)
-        slots, stamps, closes = self._assign_slots(r, c, hk)
+        o = self._open
+        o.check_holds(r, c, hk)
+        slots, stamps, closes = o.assign(
+            r, c, hk, self._n_obs, self._n_open, self.config.max_open_passes
+        )
         s_az, s_el = effective_sigmas(rays, self.config)
         var = np.broadcast_to(0.5 * (s_az**2 + s_el**2), (n,))
-        o = self._open
+        terms = RayTerms(j6, alpha, beta, t5, kn, pull, var, wr)
 
         def add(lo: int, hi: int) -> None:
-            """Rays ``lo:hi`` into their rows and slots, one by one in order."""
-            rs, ss, h, w = r[lo:hi], slots[lo:hi], held[lo:hi], wr[lo:hi]
+            """Rays ``lo:hi`` into their rows and passes, one by one in order."""
+            rs, h, w = r[lo:hi], held[lo:hi], wr[lo:hi]
             np.add.at(self._n_obs, rs, 1)
             np.add.at(self._w1, rs, w)
             np.add.at(self._w2, rs, w**2)
             np.add.at(self._j6, rs[~h], j6[lo:hi][~h])
-            if h.any():
-                np.add.at(o.j6, ss[h], j6[lo:hi][h])
-            np.add.at(o.w2, ss, w**2)
-            np.add.at(o.a6, ss, alpha[lo:hi])
-            np.add.at(o.b, ss, beta[lo:hi])
-            if t5 is not None:
-                np.add.at(o.t5, ss, t5[lo:hi])
-            if kn is not None:
-                np.add.at(o.k, ss, kn[lo:hi])
-            if pull is not None:
-                np.add.at(o.c1, ss, pull[lo:hi])
-            np.add.at(o.s2, ss, var[lo:hi])
-            np.add.at(o.w, ss, w)
-            np.add.at(o.n, ss, 1)
-            # each slot's stamp is that of its last ray here (a stamp can go down: a
-            # dropped holder's rays leave the row's count)
-            u, at_last = np.unique(ss[::-1], return_index=True)
-            o.last[u] = stamps[lo:hi][::-1][at_last]
+            o.add_rays(slots[lo:hi], h, terms.rows(lo, hi), stamps[lo:hi])
 
         if not self._inverse:
             # a pass's weighting depends on its own sums only: the rays first, then the
@@ -469,49 +440,8 @@ class LandmarkSums:
             np.concatenate([np.asarray(p[3], np.int64).reshape(-1) for p in parts]),
         )
 
-    def _assign_slots(
-        self, r: IntArray, c: IntArray, hk: IntArray
-    ) -> tuple[IntArray, IntArray, list[tuple[int, int]]]:
-        """Each ray's open pass, ray by ray in order: a ray of a pass not open opens one,
-        and a row with more than ``max_open_passes`` passes not held then closes its least
-        recently active other one (by activity stamp, then cluster id). Returns the slot
-        and the activity stamp (its row's ray count with it) of each ray, and the closings
-        as (position of the ray that caused it, slot), in order; a closed slot is detached
-        here and folded by the caller after the rays before it are added."""
-        o = self._open
-        n = r.size
-        slots = np.empty(n, np.int64)
-        stamps = np.empty(n, np.int64)
-        closes: list[tuple[int, int]] = []
-        count: dict[int, int] = {}
-        recent: dict[int, int] = {}  # slot -> its stamp in this call so far
-        keep = self.config.max_open_passes
-        n_obs = self._n_obs
-        for i, (row, cl, h) in enumerate(zip(r.tolist(), c.tolist(), hk.tolist(), strict=True)):
-            k = count.get(row)
-            k = int(n_obs[row]) + 1 if k is None else k + 1
-            count[row] = k
-            s = o.slot.get((row, cl))
-            if s is None:
-                s = self._alloc_slot((row, cl))
-                o.hold[s] = h
-                if h == 0:
-                    others = [x for x in o.row_slots[row] if x != s and o.hold[x] == 0]
-                    while len(others) >= keep and others:
-                        victim = min(
-                            others, key=lambda x: (recent.get(x, int(o.last[x])), int(o.cluster[x]))
-                        )
-                        others.remove(victim)
-                        o.detach(victim)
-                        self._n_open[row] -= 1
-                        closes.append((i, victim))
-            slots[i] = s
-            stamps[i] = k
-            recent[s] = k
-        return slots, stamps, closes
-
     def _close_detached(self, slot: int) -> None:
-        """Fold a slot :meth:`_assign_slots` detached and free it."""
+        """Fold a slot :meth:`OpenPasses.assign` detached and free it."""
         one = np.array([slot], np.int64)
         self._fold_slots(one)
         self._open.free_slots(one)
@@ -631,29 +561,9 @@ class LandmarkSums:
 
     # ------------------------------------------------------------------ persistence
     def pack_rows(self, rows: ArrayLike) -> list[bytes]:
-        """Serialise rows (closed sums, reference, open passes) to self-contained blobs.
-
-        A row without any pull (``EstimatorConfig.extra_sigma_pos_m`` unset) is written in
-        version 4, without the pull columns: 8 bytes less per row and per open pass, which
-        keeps two rows with 8 open passes in one SQLite page. Byte layout:
-        :mod:`hdmap.mapping.estimator.packing`."""
-        r = self._check_rows(rows)
-        o = self._open
-        out = []
-        for row in r.tolist():
-            mine = o.of_row(row)
-            mine = mine[np.lexsort((o.cluster[mine], o.last[mine]))]
-            pulled = bool(self._c1[row] != 0 or np.any(o.c1[mine] != 0))
-            scaled = bool(np.any(o.t5[mine] != 0))
-            noisy = bool(np.any(self._q2[row] != 0) or np.any(o.k[mine] != 0))
-            lay = layout(PACK_VERSION if noisy else 6 if scaled else 5 if pulled else 4)
-            rec = np.zeros((), lay.row)
-            for f in lay.fields:
-                rec[f] = getattr(self, "_" + f)[row].reshape(rec[f].shape)
-            rec["n_open"] = mine.size
-            op = o.records(mine, lay)
-            out.append(encode(lay, rec, op))
-        return out
+        """Serialise rows (closed sums, reference, open passes) to self-contained blobs
+        (:func:`hdmap.mapping.estimator.packing.pack_rows`)."""
+        return packing.pack_rows(self, self._check_rows(rows))
 
     def unpack_rows(self, blobs: Sequence[bytes], rows: ArrayLike | None = None) -> IntArray:
         """Restore packed rows into new rows (default) or over ``rows`` (their open passes
@@ -665,24 +575,5 @@ class LandmarkSums:
             if r.size != len(blobs):
                 raise ValueError("rows and blobs differ in length")
             self._open.release(self._open.of_rows(r))
-        for row, blob in zip(r.tolist(), blobs, strict=True):
-            lay, rec, op = decode(blob)
-            v = lay.version
-            for f in lay.fields:
-                getattr(self, "_" + f)[row] = np.asarray(rec[f]).reshape(
-                    getattr(self, "_" + f)[row].shape
-                )
-            if v < 3:
-                self._w1[row] = self._w2[row] = float(rec["n_obs"])
-            if v < 5:
-                self._c1[row] = 0.0
-            if v < 7:
-                self._q2[row] = 0.0
-            old = v == 1
-            self._n_open[row] = 0
-            for o in op:
-                self._open.load(self._alloc_slot((row, int(o["cluster"]))), o, v)
-                if old and self.config.cluster_robust:
-                    self._a6[row] -= o["a6"]
-                    self._b[row] -= o["b"]
+        packing.unpack_rows(self, r, blobs)
         return r
