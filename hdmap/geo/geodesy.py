@@ -135,17 +135,29 @@ class EnuFrame:
         return self._geo.to_geodetic(self.to_ecef(enu))
 
     def vectors_from_ecef(self, v_ecef: ArrayLike) -> Array:
-        """Rotate ECEF free vectors into this frame."""
-        return np.asarray(v_ecef, float) @ self.rotation.T
+        """Rotate ECEF free vectors into this frame (row by row: see :func:`_rotate_rows`)."""
+        return _rotate_rows(np.asarray(v_ecef, float), self.rotation)
 
     def vectors_to_ecef(self, v_enu: ArrayLike) -> Array:
-        return np.asarray(v_enu, float) @ self.rotation
+        return _rotate_rows(np.asarray(v_enu, float), self.rotation.T)
 
     def vectors_from_enu_at(
         self, v_enu: ArrayLike, lat_deg: ArrayLike, lon_deg: ArrayLike
     ) -> Array:
         """Directions given in ENU at other origins (lat, lon) -> this frame."""
         return self.vectors_from_ecef(enu_to_ecef_vectors(v_enu, lat_deg, lon_deg))
+
+
+def _rotate_rows(v: Array, r: Array) -> Array:
+    """``v @ r.T`` for vectors ``v`` (..., 3), written out so that each row's result does
+    not depend on how many rows are converted together.
+
+    Pitfall: ``v @ r.T`` goes through BLAS, whose kernels differ with the number of rows,
+    so one direction converted alone and in a batch differed in its last bits; the matcher
+    converts a ray once and reuses its rows (a unit's rays, then the ones it links), which
+    must be the rows a conversion of those alone gives.
+    """
+    return v[..., 0:1] * r[:, 0] + v[..., 1:2] * r[:, 1] + v[..., 2:3] * r[:, 2]
 
 
 def direction_from_angles(az: ArrayLike, el: ArrayLike) -> Array:

@@ -50,7 +50,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hdmap.mapping.assignment import min_cost_assignment
-from hdmap.mapping.estimator.gating import angle_jacobian, wrap
+from hdmap.mapping.estimator.gating import wrap
 from hdmap.mapping.estimator.model import ray_angles as angles
 from hdmap.mapping.facing import FacingConfig
 
@@ -223,30 +223,51 @@ def pair_stat(
         kp = k if rows is None else rows[k]  # into p's rows
         rk, vk, dk, rng_k = ri[k], v[k], d[k], rng[k]
         c = p.cov[kp] + a_cov[rk]
+        # the symmetric C's six terms: the products below are written out (numpy's
+        # batched matmul and einsum over 2x3 and 3x3 blocks cost far more per pair)
+        c00, c01, c02 = c[:, 0, 0], c[:, 0, 1], c[:, 0, 2]
+        c11, c12, c22 = c[:, 1, 1], c[:, 1, 2], c[:, 2, 2]
         r_est = rays.range_m[rk]
         has_r = r_est > 0
         # landmark distance uncertainty along the ray: origin and landmark position spread
-        along = np.sqrt(np.einsum("ki,kij,kj->k", dk, c, dk))
+        d0, d1, d2 = dk[:, 0], dk[:, 1], dk[:, 2]
+        along = np.sqrt(
+            d0 * d0 * c00
+            + d1 * d1 * c11
+            + d2 * d2 * c22
+            + 2.0 * (d0 * d1 * c01 + d0 * d2 * c02 + d1 * d2 * c12)
+        )
         s_r = np.hypot(rays.sigma_range_m[rk], along)
         good = ~has_r | (np.abs(rng_k - r_est) <= cfg.range_k * s_r)
         ok[k[~good]] = False
-        k, kp, rk, vk, dk, c = k[good], kp[good], rk[good], vk[good], dk[good], c[good]
+        k, kp, rk, vk = k[good], kp[good], rk[good], vk[good]
+        c00, c01, c02, c11, c12, c22 = (t[good] for t in (c00, c01, c02, c11, c12, c22))
         rng_k, r_est, has_r, s_r = rng_k[good], r_est[good], has_r[good], s_r[good]
         az, el = angles(vk)
         az_m, el_m = p.measured[kp, 0], p.measured[kp, 1]
-        res = np.stack([wrap(az - az_m), el - el_m], axis=-1)
-        j = angle_jacobian(vk)
-        s = j @ c @ j.transpose(0, 2, 1)
+        r0, r1 = wrap(az - az_m), el - el_m
+        # S = J C J^T + diag(angular noise), J = d(az, el)/dx (gating.angle_jacobian,
+        # whose J02 is 0)
+        e, n, u = vk[:, 0], vk[:, 1], vk[:, 2]
+        rho2 = np.maximum(e * e + n * n, 1e-12)
+        rho = np.sqrt(rho2)
+        r2 = rho2 + u * u
+        j00, j01 = n / rho2, -e / rho2
+        j10, j11, j12 = -u * e / (r2 * rho), -u * n / (r2 * rho), rho / r2
         floor2 = cfg.angle_floor_rad**2
-        s[:, 0, 0] += rays.sigma_az[rk] ** 2 + floor2
-        s[:, 1, 1] += rays.sigma_el[rk] ** 2 + floor2
-        det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+        s00 = j00 * j00 * c00 + 2.0 * j00 * j01 * c01 + j01 * j01 * c11
+        s00 += rays.sigma_az[rk] ** 2 + floor2
+        s01 = j00 * (c00 * j10 + c01 * j11 + c02 * j12) + j01 * (c01 * j10 + c11 * j11 + c12 * j12)
+        s11 = (
+            j10 * j10 * c00
+            + j11 * j11 * c11
+            + j12 * j12 * c22
+            + 2.0 * (j10 * j11 * c01 + j10 * j12 * c02 + j11 * j12 * c12)
+        )
+        s11 += rays.sigma_el[rk] ** 2 + floor2
+        det = s00 * s11 - s01 * s01
         det = np.where(det > 0, det, 1e-30)
-        stat = (
-            res[:, 0] ** 2 * s[:, 1, 1]
-            - 2 * res[:, 0] * res[:, 1] * s[:, 0, 1]
-            + res[:, 1] ** 2 * s[:, 0, 0]
-        ) / det
+        stat = (r0 * r0 * s11 - 2 * r0 * r1 * s01 + r1 * r1 * s00) / det
         if cfg.range_in_cost:
             # the range residual joins the statistic: it separates signs along one ray
             stat = stat + np.where(has_r, ((rng_k - r_est) / np.where(has_r, s_r, 1.0)) ** 2, 0.0)

@@ -85,8 +85,9 @@ class PendingTile:
     """:func:`pass_key` of each ray's (vehicle, pass): vectorised selection of a pass."""
     tried: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     """The ray has been a seed of an initiation attempt (see :func:`hdmap.mapping.pending.
-    initiate`). Every ray is offered as a seed in the unit that pools it, so a pool built
-    from storage is all tried (the default for rows given without it)."""
+    initiate`). Every ray is offered as a seed in the unit that pools it or at the end of
+    its gating tick (:func:`hdmap.mapping.pending.initiate_waiting`); rows given without
+    it: tried (a store passes the untried ones of the current tick)."""
     saved: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     """The ray is in storage (a store writes the others; rows given without it: saved)."""
     per_vehicle: Counter[str] = field(default_factory=Counter)
@@ -186,8 +187,14 @@ class LandmarkTable:
         """The matcher's clock: event time (the observations' own capture times, each
         entry's clamped by its ingest stamp), monotone, saved with the table
         (:meth:`hdmap.mapping.matching.Matching.entry_time`)."""
+        self.gating_version = 0
+        """Goes up whenever what association sees of the landmarks may have changed (one
+        added, removed or moved to another tile, gating estimates re-solved, a reload):
+        arrays built from them are rebuilt (:func:`hdmap.mapping.tick.candidates`)."""
         self._dirty: set[int] = set()
         self._pending_dirty: set[str] = set()
+        self._untried_tiles: set[str] = set()
+        """Tiles whose pools got rays not yet tried as seeds (:meth:`take_untried_tiles`)."""
         self._removed_pending: list[tuple[str, int]] = []
         """(vehicle, obs id) of pending rays taken out since the last save."""
         self.covis_pairs = PairCounts()
@@ -234,6 +241,8 @@ class LandmarkTable:
     def put(self, lm: Landmark) -> None:
         """Store ``lm`` (also after changing it in place: ``by_tile`` follows its tile)."""
         prev = self._indexed.get(lm.id)
+        if prev != lm.tile:  # new, or filed under another tile
+            self.gating_version += 1
         if prev is not None and prev != lm.tile:
             self.by_tile[prev].discard(lm.id)
         self._indexed[lm.id] = lm.tile
@@ -277,6 +286,7 @@ class LandmarkTable:
         """Delete ``lm``'s record."""
         self.landmarks.pop(lm.id)
         self.by_tile[self._indexed.pop(lm.id)].discard(lm.id)
+        self.gating_version += 1
         self._dirty.discard(lm.id)
         self._deleted.add(lm.id)
 
@@ -371,6 +381,21 @@ class LandmarkTable:
         if len(obs):
             self.pending[tile].add(obs, vehicle, pass_id, at, received)
             self._pending_dirty.add(tile)
+            self._untried_tiles.add(tile)
+
+    def mark_tried(self, tile: str, rows: NDArray[np.int64]) -> None:
+        """The rows ``rows`` of ``tile``'s pool have been seeds of an initiation attempt."""
+        p = self.pending[tile]
+        if not p.tried[rows].all():
+            p.tried[rows] = True
+            self._pending_dirty.add(tile)
+
+    def take_untried_tiles(self) -> list[str]:
+        """The tiles (sorted) whose pools got untried rays since the last call (those
+        rays may have been tried since), forgotten here."""
+        out = sorted(self._untried_tiles)
+        self._untried_tiles = set()
+        return out
 
     def drop_pending(self, tile: str, mask_remove: NDArray[np.bool_]) -> None:
         """Take the rows ``mask_remove`` marks out of ``tile``'s pool."""

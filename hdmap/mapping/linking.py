@@ -61,10 +61,18 @@ def to_rays(r: LocalRays, weight: np.ndarray | None = None) -> Rays:
 
 
 def link(
-    m: Matching, obs: Any, lms: list[Landmark], vehicle: str, pass_id: int, received: float
+    m: Matching,
+    obs: Any,
+    lms: list[Landmark],
+    vehicle: str,
+    pass_id: int,
+    received: float,
+    local: tuple[str, LocalRays] | None = None,
 ) -> None:
     """Record associations (ray ``k`` of ``obs`` to ``lms[k]``): queued for the gating
-    sums (:meth:`~hdmap.mapping.matching.Matching.flush_links`), output per home tile."""
+    sums (:meth:`~hdmap.mapping.matching.Matching.flush_links`), output per home tile.
+    ``local``: ``obs`` already in a tile's frame (:func:`to_local`, row for row), used for
+    the landmarks of that home tile (the same conversion, not done twice)."""
     if not len(obs):
         return
     m.tally("linked", len(obs))
@@ -87,9 +95,12 @@ def link(
     for home, idx in sorted(by_home.items()):
         sel = np.array(idx)
         sub = obs.take(sel)
-        local = to_local(m.frames(home), sub)
+        if local is not None and local[0] == home:
+            here = local[1].take(sel)
+        else:
+            here = to_local(m.frames(home), sub)
         rows = np.array([lms[k].row for k in idx], np.int64)
-        rays = to_rays(local, np.full(len(idx), gating) if gating < 1.0 else None)
+        rays = to_rays(here, np.full(len(idx), gating) if gating < 1.0 else None)
         m.unsummed.append((rows, np.full(len(idx), key, np.int64), rays, hold[sel]))
         _, first = np.unique(rows, return_index=True)
         m.quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
@@ -134,7 +145,7 @@ def create(m: Matching, home: str, cls: int, x_ecef: np.ndarray, cov: np.ndarray
     row, and the triangulation's covariance ``cov`` plus the pass-bias prior to gate with."""
     lid = m.state.next_id(home)
     frame = m.frames(home)
-    row = int(m.sums.new_rows(1, frame.from_ecef(x_ecef[None]))[0])
+    row = int(m.new_rows(1, frame.from_ecef(x_ecef[None]))[0])
     bias = m.config.gate.pass_bias_sigma_m
     gate_cov = cov + np.diag([bias**2, bias**2, m.config.gate.vertical_bias_sigma_m**2])
     lm = Landmark(lid, cls, home, m.tile_of(x_ecef), x_ecef, gate_cov, row, m.now)
@@ -146,6 +157,7 @@ def refresh(m: Matching, ids: list[int]) -> None:
     """Re-solve touched landmarks' gating estimates and facings (vectorised over them)."""
     if not ids:
         return
+    m.state.gating_version += 1
     lms = [m.state.landmarks[i] for i in ids]
     sol = m.sums.solve(np.array([lm.row for lm in lms], np.int64), update_reference=False)
     g = m.config.gate
@@ -154,9 +166,13 @@ def refresh(m: Matching, ids: list[int]) -> None:
     if m.config.gate_bias_floor:
         cov = cov + prior_covariance(bias, sol.n_clusters)
     moved = [k for k in range(len(lms)) if good[k]]
+    by_home: dict[str, list[int]] = defaultdict(list)
     for k in moved:
-        lms[k].x = m.frames(lms[k].home).to_ecef(sol.x[k][None])[0]
-        lms[k].cov = cov[k]
+        by_home[lms[k].home].append(k)
+    for home, ks in by_home.items():  # one conversion per frame (element-wise: the same)
+        for k, x in zip(ks, m.frames(home).to_ecef(sol.x[ks]), strict=True):
+            lms[k].x = x
+            lms[k].cov = cov[k]
     if moved:
         lat, lon, _ = GEODESY.to_geodetic(np.array([lms[k].x for k in moved]))
         for k, t in zip(moved, quadkeys_of(lat, lon, m.zoom).tolist(), strict=True):

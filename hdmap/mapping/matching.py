@@ -111,9 +111,10 @@ class MatchingConfig:
     same entries live and on a replay, and once a minute of data rather than per entry."""
     tick_s: float = 1.0
     """Gating tick (event time, :mod:`hdmap.mapping.tick`): the units of one tick are
-    associated with the landmarks as the tick found them; the landmarks they touched are
-    re-solved and merged when the clock enters the next tick. 0: after every unit (one
-    unit, one tick)."""
+    associated with the landmarks as the tick found them; the rays they leave waiting are
+    tried as seeds of new landmarks, and the landmarks they touched are re-solved and
+    merged, when the clock enters the next tick. 0: after every unit (one unit, one
+    tick)."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
     matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see
@@ -265,6 +266,9 @@ class Matching:
         self.unsummed: list[tuple[Any, Any, Rays, Any]] = []
         """Links not yet added to the gating sums (rows, pass keys, rays, hold keys):
         :meth:`flush_links`."""
+        self.candidate_arrays: dict[str, tuple[int, Any]] = {}
+        """Per tile, the landmarks its units see as arrays, with the landmarks'
+        ``gating_version`` they were built at (:func:`hdmap.mapping.tick.candidates`)."""
         self.tick_serial = 0
         """Counts the gating ticks begun in this process (:func:`hdmap.mapping.tick.enter`):
         an association made in one is not used in another."""
@@ -296,6 +300,11 @@ class Matching:
         """The gating sums, with every link held so far added (:meth:`flush_links`)."""
         self.flush_links()
         return self._sums
+
+    def new_rows(self, k: int, x0: np.ndarray) -> np.ndarray:
+        """Rows for ``k`` new landmarks at ``x0`` in the gating sums, without flushing: a new
+        row touches none of the held links' rows (they are added after it as they came)."""
+        return self._sums.new_rows(k, x0)
 
     def flush_links(self) -> None:
         """Add the links held since the last flush to the gating sums, in one call.

@@ -1,7 +1,8 @@
 """Landmarks from the pending pool: rays no landmark took wait per tile; a pass's waiting
 rays may start candidate landmarks (:func:`initiate`, with
-:func:`hdmap.mapping.initiation.propose`), new landmarks are offered the waiting rays of
-other passes (:func:`adopt`), and rays that waited too long go (:func:`expire`).
+:func:`hdmap.mapping.initiation.propose`; at the end of their gating tick,
+:func:`initiate_waiting`), new landmarks are offered the waiting rays of other passes
+(:func:`adopt`), and rays that waited too long go (:func:`expire`).
 
 Budgets (``MatchingConfig.pending_max_per_pass``, ``pending_max_per_vehicle``,
 ``quarantine_after``; :func:`enforce_budget`): what one upload costs here is bounded by
@@ -33,14 +34,14 @@ def _oldest(p: PendingTile, rows: np.ndarray, n: int) -> np.ndarray:
     return rows[np.argsort(p.added_at[rows], kind="stable")[:n]]
 
 
-def enforce_budget(m: Matching, tile: str, vehicle: str, pass_id: int) -> int:
+def enforce_budget(m: Matching, tile: str, vehicle: str, pass_id: int, touch: bool = True) -> int:
     """After a unit of (``vehicle``, ``pass_id``) pooled its rays in ``tile`` and had its
     initiation attempt (:func:`initiate`): evict the oldest waiting rays of the pass over
     ``pending_max_per_pass`` and of the vehicle over ``pending_max_per_vehicle`` from the
     tile's pool (counted ``pending_evicted``, and by budget ``pending_evicted.pass``,
     ``pending_evicted.vehicle``). A pass that loses rays
     gets a budget record (:class:`~hdmap.mapping.landmarks.PassBudget`), which its later
-    uploads keep alive. Returns the rays evicted."""
+    uploads keep alive (``touch``: this is one of them). Returns the rays evicted."""
     cfg = m.config
     key = pass_key(vehicle, pass_id)
     p = m.state.pending.get(tile)
@@ -62,9 +63,15 @@ def enforce_budget(m: Matching, tile: str, vehicle: str, pass_id: int) -> int:
     if n:
         m.state.drop_pending(tile, drop)
         m.tally("pending_evicted", n)
-    if key in m.state.passes:
-        m.state.budget_of(vehicle, pass_id).last_at = m.now
+    if touch:
+        touch_budget(m, vehicle, pass_id)
     return n
+
+
+def touch_budget(m: Matching, vehicle: str, pass_id: int) -> None:
+    """An upload of the pass keeps its budget record (if it has one) alive."""
+    if pass_key(vehicle, pass_id) in m.state.passes:
+        m.state.budget_of(vehicle, pass_id).last_at = m.now
 
 
 def initiate(
@@ -77,10 +84,11 @@ def initiate(
     Seeds (``MatchingConfig.init_reseed_max``): above that many waiting rays of a class,
     candidates grow only from the rays not tried as seeds yet, over all of the pass's
     waiting rays (at most that many: every one seeds again). Every ray is tried in the unit
-    that pools it (its class is among ``classes``), so these are the rays this unit pooled,
-    and the work is (the upload's rays) x (the pass's: at most 9 tiles' budgets and the
-    upload, :func:`enforce_budget` runs after this). Invariant:
-    every ray of the pool has been a seed against the pool as it was then, and made
+    that pools it or at its tick's end (its class is among ``classes``), so these are the
+    rays pooled since, and the work is (those rays) x (the pass's: at most 9 tiles' budgets
+    and what it pooled in the tick, :func:`enforce_budget` runs after this; a pass over its
+    budget is tried at its upload, :func:`over_budget`). Invariant:
+    every tried ray of the pool has been a seed against the pool as it was then, and made
     nothing. Since then the pass's pool changed only by (a) rays added: a candidate that
     needs one of them contains one, and growing from any member of a cluster finds the
     cluster (up to the greedy's order, which decides which seed's position the first gate
@@ -97,29 +105,33 @@ def initiate(
     if classes.size == 0:
         return set()
     key = pass_key(vehicle, pass_id)
-    budget = m.state.passes.get(key)
-    if budget is not None and budget.quarantined:
-        m.tally("init_skipped_quarantined", 1)
-        return set()
-    frame = m.frames(tile)
     where: list[tuple[str, np.ndarray]] = []  # (tile, rows of its pending pool)
     for t in area:
         p = m.state.pending.get(t)
         if p is not None and (mine := np.flatnonzero(p.key == key)).size:
             where.append((t, mine))
+    budget = m.state.passes.get(key)
+    if budget is not None and budget.quarantined:
+        m.tally("init_skipped_quarantined", 1)
+        for t, i in where:
+            m.state.mark_tried(t, i)  # no attempt is due for them at the tick's end
+        return set()
     if not where:
         return set()
+    frame = m.frames(tile)
     pools = [(m.state.pending[t], i) for t, i in where]
     obs = type(pools[0][0].obs).concat([p.obs.take(i) for p, i in pools])
     received = max(float(p.received_at[i].max()) for p, i in pools)
     fresh = np.concatenate([~p.tried[i] for p, i in pools])
-    for p, i in pools:
-        p.tried[i] = True  # every one of them is a seed now, or was before
+    for t, i in where:
+        m.state.mark_tried(t, i)  # every one of them is a seed now, or was before
     rays = to_local(frame, obs)
     created: set[int] = set()
     attempted = False
     used = np.zeros(len(rays), bool)
-    for cls in np.intersect1d(np.unique(rays.sign_class), classes):
+    have, count = np.unique(rays.sign_class, return_counts=True)
+    enough = have[count >= m.config.init.min_rays]  # fewer rays: propose makes nothing
+    for cls in np.intersect1d(enough, classes):
         idx = np.flatnonzero(rays.sign_class == cls)
         sub = rays.take(idx)
         cap = m.config.init_reseed_max
@@ -139,7 +151,8 @@ def initiate(
             lm = create(m, home_tile, int(cls), frame.to_ecef(cand.x[None])[0], cand.cov)
             out = m.out[lm.home]
             out.created.append((lm.id, int(cls), float(lat[0]), float(lon[0]), float(h[0])))
-            link(m, obs.take(members), [lm] * len(members), vehicle, pass_id, received)
+            here = (tile, rays.take(members))
+            link(m, obs.take(members), [lm] * len(members), vehicle, pass_id, received, here)
             used[members] = True
             created.add(lm.id)
     drop_used(m, where, used)
@@ -149,6 +162,53 @@ def initiate(
         m.tally("created", len(created))
         adopt(m, area, [m.state.landmarks[i] for i in sorted(created)])
     return created
+
+
+def over_budget(m: Matching, tile: str, vehicle: str, pass_id: int) -> bool:
+    """Whether the pass's waiting rays in ``tile`` or the vehicle's exceed their budgets
+    (``pending_max_per_pass``, ``pending_max_per_vehicle``): what :func:`enforce_budget`
+    would evict from."""
+    cfg = m.config
+    p = m.state.pending.get(tile)
+    if p is None:
+        return False
+    if cfg.pending_max_per_vehicle > 0 and p.per_vehicle[vehicle] > cfg.pending_max_per_vehicle:
+        return True
+    key = pass_key(vehicle, pass_id)
+    return cfg.pending_max_per_pass > 0 and int((p.key == key).sum()) > cfg.pending_max_per_pass
+
+
+def initiate_waiting(m: Matching) -> set[int]:
+    """At the end of a gating tick: :func:`initiate` for every pass with rays pooled in
+    the tick and not yet tried as seeds, by tile (in order) and pass (by :func:`pass_key`),
+    each over its tile's area with the classes of its untried rays in it; then its budgets
+    (:func:`enforce_budget`). Returns the new landmarks' ids.
+
+    Deferred to the tick's end so that a pass's rays of all the tick's uploads are tried
+    together (one attempt a pass and tile, not one an upload); the order depends on the
+    pool only, so live, bulk and replayed runs try the same rays in the same order."""
+    born: set[int] = set()
+    for tile in m.state.take_untried_tiles():
+        p = m.state.pending.get(tile)
+        while p is not None and not p.tried.all():
+            row = int(np.flatnonzero(~p.tried)[np.argmin(p.key[~p.tried])])
+            key, vehicle, pass_id = int(p.key[row]), p.vehicle[row], int(p.pass_id[row])
+            area = m.area(tile)
+            classes = np.unique(
+                np.concatenate(
+                    [
+                        q.obs.sign_class[~q.tried & (q.key == key)]
+                        for q in (m.state.pending.get(t) for t in area)
+                        if q is not None
+                    ]
+                )
+            )  # initiate marks all of the pass's rays around the tile tried
+            born |= initiate(m, tile, area, vehicle, pass_id, classes)
+            enforce_budget(m, tile, vehicle, pass_id, touch=False)
+            p = m.state.pending.get(tile)
+            if p is not None and (p.key == key).any() and not p.tried[p.key == key].all():
+                m.state.mark_tried(tile, np.flatnonzero(p.key == key))  # no class was new
+    return born
 
 
 def _note_attempt(m: Matching, vehicle: str, pass_id: int, made: bool) -> None:
@@ -197,7 +257,7 @@ def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
             for f, js in zip(first.tolist(), members, strict=True)
         )
         take = np.zeros(len(p), bool)
-        links: list[tuple[np.ndarray, np.ndarray, str, int, float]] = []
+        links: list[tuple[np.ndarray, np.ndarray, np.ndarray, str, int, float]] = []
         units = [u for u in units if live[u[2]].any()]
         results = associate_units(
             [UnitInput(local.take(js), x, cov, cls) for _v, _pid, js in units], m.config.gate
@@ -208,9 +268,9 @@ def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
             if hit.any():
                 take[sel[hit]] = True
                 rec = float(p.received_at[sel[hit]].max())
-                links.append((sel[hit], res.landmark[hit], v, pid, rec))
-        for sel, lmi, v, pid, rec in links:
-            link(m, p.obs.take(sel), [new[k] for k in lmi], v, pid, rec)
+                links.append((sel[hit], js[hit], res.landmark[hit], v, pid, rec))
+        for sel, js, lmi, v, pid, rec in links:
+            link(m, p.obs.take(sel), [new[k] for k in lmi], v, pid, rec, (t, local.take(js)))
             m.tally("adopted", len(sel))
         m.state.drop_pending(t, take)
 

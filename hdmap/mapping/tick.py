@@ -1,5 +1,5 @@
 """Gating ticks: what a unit's association sees, and when the landmarks it touched are
-re-solved.
+re-solved and its waiting rays start landmarks.
 
 Event time is cut into ticks of ``MatchingConfig.tick_s`` seconds. A unit belongs to the
 tick of the matcher's clock (:meth:`hdmap.mapping.matching.Matching.entry_time`) when its
@@ -7,48 +7,60 @@ own event time is at most ``tick_s`` behind the clock, else to the tick of its o
 time (:func:`enter`); a run of consecutive units of one tick is a *gating tick*. Every
 unit of it is associated with the landmarks as they stood when it began: the set of
 landmarks, their gating estimates (position, covariance) and facings
-(``Landmark.facing``), plus the landmarks its own pass started in it. What the units do
-meanwhile accumulates: links go into the gating sums, views and sightings are counted, new
-landmarks adopt pending rays. When a unit of another tick comes, :func:`enter` ends the
-tick before that unit is matched: :func:`end_tick` checks the sightings of the landmarks
-it had in view (retiring those not there), re-solves the gating estimates of those it
-touched and offers them a merge.
+(``Landmark.facing``). What the units do meanwhile accumulates: links go into the gating
+sums, views and sightings are counted, the rays no landmark took wait in the pending pool.
+When a unit of another tick comes, :func:`enter` ends the tick before that unit is
+matched: :func:`end_tick` tries the tick's waiting rays as seeds of new landmarks, pass by
+pass (:func:`hdmap.mapping.pending.initiate_waiting`; a new landmark is offered the
+waiting rays of the other passes), checks the sightings of the landmarks the tick had in
+view (retiring those not there), re-solves the gating estimates of those it touched or
+started and offers them a merge.
 
 Invariant: which units share a gating tick depends only on the entries (their order and
 their event times), never on how they were batched, when they arrived or on a restart
-(the tick's marks are saved with the table), so live processing, a bulk upload a day late
-and a replay give the same map. Within a tick a unit's association depends on the units
-before it only through its own pass's new landmarks, its own vehicle's trust record (the
-correction of a suspect vehicle's origins) and landmarks a vehicle's settlement emptied:
-what :func:`hdmap.mapping.unit.signature` checks, and what lets the units of a tick be
-associated together.
+(the tick's marks and its untried rays are saved with the table), so live processing, a
+bulk upload a day late and a replay give the same map. Within a tick a unit's
+association depends on the units before it only through its own vehicle's trust record
+(the correction of a suspect vehicle's origins), landmarks a vehicle's settlement emptied
+and landmarks started early by a pass over its pending budget
+(:func:`hdmap.mapping.pending.over_budget`: the only births inside a tick, seen by that
+pass alone until the tick ends): what :func:`hdmap.mapping.unit.signature` checks, and
+what lets the units of a tick be associated together.
 
 Live traffic at a high rate puts hundreds of units in one tick (uploads a little out of
 order included); an upload that comes late (a day's drives sent at once) goes by its own
 event times, so its units do not pile into the live tick (they would not see each other's
 new landmarks): where late and live entries interleave, ticks are short, down to one unit.
 
-``tick_s = 0``: every unit is its own tick, ended at the end of the unit (sightings,
-re-solve and merge after each unit, with a vehicle's settlement re-solving at once): the
-matcher before ticks, to the bit.
+``tick_s = 0``: every unit is its own tick, ended at the end of the unit (initiation,
+sightings, re-solve and merge after each unit, with a vehicle's settlement re-solving at
+once): the matcher before ticks, to the bit.
 
-Pitfalls: a landmark started by one pass is not a candidate for another pass's rays until
-the tick ends (the other pass's rays wait in the pool, and may start a second landmark of
-the sign, merged once both have ``merge_min_passes``); the last tick's merges and
-re-solves wait for the first entry of another tick (no timer ends a tick: it would make
-the map depend on when entries arrived).
+Pitfalls: a sign first seen in a tick gets its landmark when the tick ends, from the
+first of the tick's passes (by pass key) whose rays make one; the others' rays are
+adopted, or start landmarks of their own (merged once both have ``merge_min_passes``)
+where adoption's gate refuses them. The last tick's initiation, merges and re-solves wait
+for the first entry of another tick (no timer ends a tick: it would make the map depend
+on when entries arrived).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
 
 from hdmap.mapping.facing import Facing
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
 from hdmap.mapping.matching import Matching
 from hdmap.mapping.merge import merge_touched
+from hdmap.mapping.pending import initiate_waiting
 from hdmap.mapping.sightings import unseen
+
+Array = NDArray[np.float64]
 
 
 def tick_of(m: Matching, at: float, now: float) -> int | None:
@@ -72,14 +84,53 @@ def enter(m: Matching, at: float) -> None:
         m.tick_serial += 1
 
 
-def visible(m: Matching, area: list[str], key: int) -> list[Landmark]:
-    """The landmarks filed under ``area`` (by id) that a unit of pass ``key`` sees: those
-    there when the tick began and those the pass started in it."""
+@dataclass(frozen=True)
+class Candidates:
+    """Landmarks a unit sees and what association takes of them, as arrays in the unit's
+    tile frame: gating positions, covariances, classes and facings (row ``k``: ``lms[k]``)."""
+
+    lms: list[Landmark]
+    x: Array
+    cov: Array
+    cls: NDArray[np.int64]
+    facing: Facing
+
+    def take(self, rows: NDArray[np.int64]) -> Candidates:
+        return Candidates(
+            [self.lms[k] for k in rows.tolist()],
+            self.x[rows],
+            self.cov[rows],
+            self.cls[rows],
+            self.facing.take(rows),
+        )
+
+
+def candidates(m: Matching, tile: str, key: int) -> Candidates:
+    """The landmarks filed under ``tile``'s area (by id) that a unit of pass ``key`` sees
+    (those there when the tick began and those the pass started in it, over its budget),
+    as arrays in the tile's frame. A tile's arrays are built once and kept while the landmarks'
+    ``gating_version`` stays (within a gating tick, until a landmark is started, removed
+    or re-solved); a conversion's rows do not depend on the rows converted with them, so
+    kept rows are the ones building them anew gives."""
+    hit = m.candidate_arrays.get(tile)
+    if hit is None or hit[0] != m.state.gating_version:
+        lms = m.state.near(m.area(tile))
+        x = np.array([lm.x for lm in lms]).reshape(-1, 3)
+        built = Candidates(
+            lms,
+            m.frames(tile).from_ecef(x).reshape(-1, 3),
+            np.array([lm.cov for lm in lms]).reshape(-1, 3, 3),
+            np.array([lm.cls for lm in lms], np.int64),
+            gating_facings(lms),
+        )
+        hit = m.candidate_arrays[tile] = (m.state.gating_version, built)
+    c: Candidates = hit[1]
     born = m.state.tick_born
-    lms = m.state.near(area)
-    if not born:
-        return lms
-    return [lm for lm in lms if born.get(lm.id, key) == key]
+    if born:
+        keep = [k for k, lm in enumerate(c.lms) if born.get(lm.id, key) == key]
+        if len(keep) < len(c.lms):
+            return c.take(np.array(keep, np.int64))
+    return c
 
 
 def gating_facings(lms: list[Landmark]) -> Facing:
@@ -88,9 +139,13 @@ def gating_facings(lms: list[Landmark]) -> Facing:
 
 
 def end_tick(m: Matching) -> None:
-    """The tick is over: retire the landmarks it had in view that its passes do not detect
-    (:mod:`hdmap.mapping.sightings`, counted ``retired_unseen``), re-solve the gating
-    estimates of those it touched and offer them a merge."""
+    """The tick is over: its waiting rays start landmarks
+    (:func:`hdmap.mapping.pending.initiate_waiting`), the landmarks it had in view that its
+    passes do not detect retire (:mod:`hdmap.mapping.sightings`, counted
+    ``retired_unseen``), those it touched or started have their gating estimates re-solved
+    and are offered a merge."""
+    born = initiate_waiting(m)
+    m.state.tick_touched |= born
     touched, counted = m.state.take_tick()
     gone = retire_unseen(m, counted) if m.config.sightings.enabled else set()
     ids = [i for i in touched if i not in gone and i in m.state.landmarks]

@@ -3,18 +3,20 @@
 1. :func:`prepare_unit`: a suspect vehicle's origins are moved by its mean offset, its
    track labels checked; rays into the tile's ENU frame; the candidate landmarks of the
    tile and its 8 neighbours (so a sign near a border is one landmark) as the gating tick
-   found them (:func:`hdmap.mapping.tick.visible`, with their gating facings);
+   found them (:func:`hdmap.mapping.tick.candidates`, with their gating facings);
 2. :func:`associate_prepared` (gate, per-pass offset, per-image assignment; the units of
    one tick together, :mod:`hdmap.mapping.batch_association`), then :func:`group_check`;
    the pass's offset goes into the vehicle's trust record, which may settle its probation
    (:func:`hdmap.mapping.probation.settle`);
 3. :func:`match_unit`: matched rays are linked (:func:`hdmap.mapping.linking.link`);
-   unmatched rays join the pending pool, where they may start landmarks
-   (:func:`hdmap.mapping.pending.initiate`); what is left waiting is held to the pass's and
-   the vehicle's budgets (:func:`hdmap.mapping.pending.enforce_budget`);
+   unmatched rays join the pending pool, where they are tried as seeds of new landmarks
+   with the tick's other rays of the pass when the tick ends
+   (:func:`hdmap.mapping.pending.initiate_waiting`), or at once when the pass or the
+   vehicle is over its pending budget (:func:`hdmap.mapping.pending.initiate`, then
+   :func:`hdmap.mapping.pending.enforce_budget`: what a pass pools stays bounded);
 4. the candidates the unit had in view count a sighting; what it touched, had in view and
-   started is noted for the end of the gating tick (:mod:`hdmap.mapping.tick`: sightings
-   checked, gating estimates re-solved, merges), at once with ``tick_s = 0``.
+   started is noted for the end of the gating tick (:mod:`hdmap.mapping.tick`: initiation,
+   sightings checked, gating estimates re-solved, merges), at once with ``tick_s = 0``.
 
 Invariant: a unit's association depends on its rays, the tick's landmark estimates and
 :func:`signature` (its vehicle's correction, its candidates) only; one computed earlier in
@@ -34,10 +36,10 @@ from hdmap.mapping.initiation import triangulate_groups
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import link, to_local
 from hdmap.mapping.matching import Matching
-from hdmap.mapping.pending import enforce_budget, initiate
+from hdmap.mapping.pending import enforce_budget, initiate, over_budget, touch_budget
 from hdmap.mapping.probation import settle
 from hdmap.mapping.sightings import in_view
-from hdmap.mapping.tick import end_tick, gating_facings, visible
+from hdmap.mapping.tick import candidates, end_tick, gating_facings
 from hdmap.mapping.trust import VehicleTrust
 from schemas.ids import pass_key
 
@@ -77,7 +79,7 @@ def _corrected(m: Matching, frame: Any, obs: Any, vehicle: str) -> tuple[Any, np
 @dataclass(frozen=True)
 class Prepared:
     """A unit made ready for association: its rays (corrected, in its tile's frame) and the
-    candidate landmarks it sees (:func:`hdmap.mapping.tick.visible`)."""
+    candidate landmarks it sees (:func:`hdmap.mapping.tick.candidates`)."""
 
     tile: str
     vehicle: str
@@ -105,7 +107,7 @@ def signature(m: Matching, tile: str, vehicle: str, pass_id: int) -> tuple[bytes
     its tick (fixed while the tick lasts): the correction of its vehicle's origins and its
     candidates. A unit prepared earlier in the tick with the same signature is prepared
     as it would be now, and its association is the one it would get now."""
-    return _signature(correction(m, vehicle), visible(m, m.area(tile), pass_key(vehicle, pass_id)))
+    return _signature(correction(m, vehicle), candidates(m, tile, pass_key(vehicle, pass_id)).lms)
 
 
 def _signature(applied: np.ndarray, cands: list[Landmark]) -> tuple[bytes, tuple[int, ...]]:
@@ -119,17 +121,9 @@ def prepare_unit(m: Matching, tile: str, vehicle: str, pass_id: int, obs: Any) -
     obs, applied, invalid = _corrected(m, frame, obs, vehicle)
     rays = to_local(frame, obs)
     area = m.area(tile)
-    cands = visible(m, area, pass_key(vehicle, pass_id))
-    unit_input = None
-    if cands:
-        unit_input = UnitInput(
-            rays,
-            frame.from_ecef(np.array([c.x for c in cands])),
-            np.array([c.cov for c in cands]),
-            np.array([c.cls for c in cands], np.int64),
-            gating_facings(cands),
-        )
-    return Prepared(tile, vehicle, pass_id, obs, applied, invalid, rays, area, cands, unit_input)
+    c = candidates(m, tile, pass_key(vehicle, pass_id))
+    unit_input = UnitInput(rays, c.x, c.cov, c.cls, c.facing) if c.lms else None
+    return Prepared(tile, vehicle, pass_id, obs, applied, invalid, rays, area, c.lms, unit_input)
 
 
 def associate_prepared(m: Matching, units: list[Prepared]) -> list[Association | None]:
@@ -196,17 +190,23 @@ def match_unit(
     touched: set[int] = set()
     for i in np.flatnonzero(hit):
         touched.add(cands[matched[i]].id)
-    link(m, obs.take(hit), [cands[k] for k in matched[hit]], vehicle, pass_id, received_at)
+    linked = [cands[k] for k in matched[hit]]
+    link(m, obs.take(hit), linked, vehicle, pass_id, received_at, (tile, u.rays.take(hit)))
     wait = ~hit & ~drop
     waiting = obs.take(wait)
     captured = np.asarray(waiting.t, float)
     since = np.where(np.isfinite(captured), np.minimum(captured, at), at)
     m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at)
-    new_classes = np.unique(obs.sign_class[wait])
-    born = initiate(m, tile, u.area, vehicle, pass_id, new_classes)
-    # after initiation took what it could: an honest upload's rays (all of them waiting,
-    # in a tile with no landmark yet) are not evicted before they had their chance
-    enforce_budget(m, tile, vehicle, pass_id)
+    born: set[int] = set()
+    if m.config.tick_s <= 0 or over_budget(m, tile, vehicle, pass_id):
+        new_classes = np.unique(obs.sign_class[wait])
+        born = initiate(m, tile, u.area, vehicle, pass_id, new_classes)
+        # after initiation took what it could: an honest upload's rays (all of them
+        # waiting, in a tile with no landmark yet) are not evicted before they had their
+        # chance
+        enforce_budget(m, tile, vehicle, pass_id)
+    else:  # tried with the tick's other uploads of the pass when the tick ends
+        touch_budget(m, vehicle, pass_id)
     counted: list[int] = []
     if cands and m.config.sightings.enabled:
         counted = count_sightings(m, m.frames(tile), u.rays, cands, matched)

@@ -51,6 +51,8 @@ CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REA
 CREATE TABLE IF NOT EXISTS facings (
     id INTEGER PRIMARY KEY, az REAL NOT NULL, sigma REAL NOT NULL, spread REAL NOT NULL,
     known INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS untried (
+    vehicle TEXT NOT NULL, obs_id INTEGER NOT NULL, PRIMARY KEY (vehicle, obs_id)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS tick (
     id INTEGER PRIMARY KEY, touched INTEGER NOT NULL, counted INTEGER NOT NULL,
     born_key INTEGER);
@@ -219,6 +221,8 @@ class MatcherState(LandmarkTable):
                 ],
             )
             p.saved[:] = True
+        if self._pending_dirty:
+            self._save_untried()
         c.executemany(
             "DELETE FROM pass_budget WHERE vehicle=? AND pass_id=?", sorted(self._passes_gone)
         )
@@ -231,6 +235,19 @@ class MatcherState(LandmarkTable):
             ],
         )
         self.clear_marks()
+
+    def _save_untried(self) -> None:
+        """Rewrite the pending rays not yet tried as seeds (those pooled in the current
+        gating tick, :func:`hdmap.mapping.pending.initiate_waiting`)."""
+        c = self._conn
+        c.execute("DELETE FROM untried")
+        for p in self.pending.values():
+            rows = np.flatnonzero(~p.tried)
+            ids = u64_to_i64(p.obs.obs_id[rows]).tolist()
+            c.executemany(
+                "INSERT INTO untried(vehicle, obs_id) VALUES (?,?)",
+                [(p.vehicle[r], i) for r, i in zip(rows.tolist(), ids, strict=True)],
+            )
 
     def _save_tick(self) -> None:
         """Rewrite the current gating tick's marks (a tick's worth of landmarks)."""
@@ -256,10 +273,12 @@ class MatcherState(LandmarkTable):
     def load(self, unpack_rows: Callable[[list[bytes]], np.ndarray]) -> None:
         """Rebuild memory from SQLite; ``unpack_rows(blobs) -> rows`` restores the sums."""
         c = self._conn
+        self.gating_version += 1
         self.landmarks.clear()
         self.by_tile.clear()
         self._indexed.clear()
         self.pending.clear()
+        self._untried_tiles = set()
         self.covis_pairs.clear()
         self.copass.clear()
         self.clear_marks()
@@ -363,4 +382,13 @@ class MatcherState(LandmarkTable):
                 np.array([i[2] for i in items], float),
                 np.array([i[3] for i in items], float),
             )
+        untried = set(c.execute("SELECT vehicle, obs_id FROM untried").fetchall())
+        if untried:
+            for t, p in self.pending.items():
+                ids = u64_to_i64(p.obs.obs_id).tolist()
+                p.tried = np.array(
+                    [(v, i) not in untried for v, i in zip(p.vehicle, ids, strict=True)], bool
+                )
+                if not p.tried.all():
+                    self._untried_tiles.add(t)
         self.clear_marks()

@@ -1,8 +1,9 @@
 """Gating ticks (hdmap/mapping/tick.py): the units of one tick are associated with the
-landmarks as the tick found them (plus their own pass's new ones), what they touched is
-re-solved when the next tick begins, and the map depends only on the entries, not on how
-they were batched or on a restart in the middle of a tick. In-process matcher on real
-SQLite (scene of tests/support/services.py: passes along a road, 10 rays each)."""
+landmarks as the tick found them, the rays they leave waiting start landmarks and what
+they touched is re-solved when the next tick begins, and the map depends only on the
+entries, not on how they were batched or on a restart in the middle of a tick.
+In-process matcher on real SQLite (scene of tests/support/services.py: passes along a
+road, 10 rays each)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdmap.mapping.tick import tick_of, visible
+from hdmap.mapping.tick import candidates, tick_of
 from schemas import LogEntry, ObsGroup
 from schemas.ids import pass_key
 from services.matcher.replay import landmark_digest, open_matcher, replay
@@ -59,28 +60,27 @@ def traffic(path: Path) -> list[LogEntry]:
     return [replace(e, seq=n + 1, gseq=n + 1) for n, e in enumerate(entries)]
 
 
-def test_a_new_landmark_is_seen_by_its_own_pass_at_once_and_by_others_next_tick(
+def test_a_landmark_is_born_when_its_tick_ends_and_takes_the_tick_s_rays_of_other_passes(
     tmp_path: Path,
 ) -> None:
+    """Two passes of two vehicles at one sign in one tick: nothing is started while the tick
+    lasts (their rays wait, untried); when a unit of the next tick comes, the first pass
+    (by pass key) starts the landmark, the other's rays are adopted, the landmark is
+    re-solved, and the new unit's rays link to it."""
     m = matcher(tmp_path)
-    area = m.matching.area(tile_of(m.opts.zoom))
     m._apply_in_transaction([entry(m, 1, "veh-a", T0)])
-    (lid,) = m.state.landmarks
-    assert m.state.tick_born == {lid: pass_key("veh-a", 1)}
-    assert [lm.id for lm in visible(m.matching, area, pass_key("veh-a", 1))] == [lid]
-    assert visible(m.matching, area, pass_key("veh-b", 2)) == []
-    x0 = m.state.landmarks[lid].x.copy()  # the initiating triangulation
-    # another vehicle in the same tick: the landmark is not its candidate
     m._apply_in_transaction([entry(m, 2, "veh-b", T0 + 0.3)])
-    assert m.counters.get("associated", 0) == 0
-    np.testing.assert_array_equal(m.state.landmarks[lid].x, x0)  # not re-solved yet
-    assert m.state.landmarks[lid].facing[3] == 0  # nor its facing (unknown when started)
-    assert lid in m.state.tick_touched
-    # a pass in the next tick: the tick ended (re-solved, merged), its rays link
+    assert not m.state.landmarks and not m.state.tick_born
+    assert candidates(m.matching, tile_of(m.opts.zoom), pass_key("veh-b", 2)).lms == []
+    pool = m.state.pending[tile_of(m.opts.zoom)]
+    assert len(pool) == 20 and not pool.tried.any()  # tried when the tick ends
     m._apply_in_transaction([entry(m, 3, "veh-c", T0 + 1.5)])
-    assert m.counters["associated"] >= 8
-    assert set(m.state.tick_born.values()) <= {pass_key("veh-c", 3)}
+    (lid,) = m.state.landmarks
+    assert m.counters["created"] == 1
+    assert m.counters["adopted"] >= 8  # the other pass's rays of the tick
     assert m.state.landmarks[lid].facing[3] == 1  # re-solved when the tick ended
+    assert m.counters["associated"] >= 8  # the next tick's unit sees it
+    assert not m.state.tick_born
 
 
 def test_the_map_is_the_same_however_batched_and_across_a_restart_in_a_tick(
@@ -88,9 +88,9 @@ def test_the_map_is_the_same_however_batched_and_across_a_restart_in_a_tick(
 ) -> None:
     """Forty passes of eight vehicles at two signs, 0.3 s apart, every fourth pass sending
     a second upload 0.1 s after its first: ticks of three to six units, a pass's second
-    upload in the tick where its first started the landmarks. Batches of 1, 7 and all,
-    associated one by one or together, and a restart while a tick is open, give one
-    map."""
+    upload in its first's tick. Batches of 1, 7 and all, associated one by one or
+    together, and a restart while a tick is open (rays waiting to be tried, or landmarks
+    to re-solve), give one map."""
     entries = traffic(tmp_path / "gen")
     digests = set()
     redone = 0
@@ -101,16 +101,28 @@ def test_the_map_is_the_same_however_batched_and_across_a_restart_in_a_tick(
         assert sorted(lm.cls for lm in svc.state.landmarks.values()) == [CLS, CLS + 1]
         redone += svc.counters.get("assoc_redone", 0)
         svc.db.close()
-    assert redone > 0  # the second uploads saw their pass's new landmarks
-    svc = matcher(tmp_path / "restart")
-    replay(svc, entries[:13], 5)
-    assert svc.state.tick_touched  # a tick is open
-    svc.db.close()
-    svc = matcher(tmp_path / "restart")  # its marks come back from the database
-    assert svc.state.tick_touched
-    replay(svc, entries, 5)  # the first 13 are skipped (applied)
-    digests.add(landmark_digest(svc))
+    assert redone == 0  # no landmark is born inside a tick: what was associated ahead holds
+    for cut in (3, 13):  # in the first tick (rays waiting, untried) and in a later one
+        svc = matcher(tmp_path / f"restart-{cut}")
+        replay(svc, entries[:cut], 5)
+        marks = (set(svc.state.tick_touched), _untried(svc))
+        assert marks[0] if cut == 13 else marks[1]  # a tick is open, with marks to keep
+        svc.db.close()
+        svc = matcher(tmp_path / f"restart-{cut}")  # its marks come back from the database
+        assert (set(svc.state.tick_touched), _untried(svc)) == marks
+        replay(svc, entries, 5)  # the first ones are skipped (applied)
+        digests.add(landmark_digest(svc))
+        svc.db.close()
     assert len(digests) == 1
+
+
+def _untried(svc: MatcherService) -> dict[str, list[int]]:
+    """The pool rows not yet tried as seeds, by tile."""
+    return {
+        t: np.flatnonzero(~p.tried).tolist()
+        for t, p in svc.state.pending.items()
+        if not p.tried.all()
+    }
 
 
 def test_facings_are_what_association_saw_after_a_restart(tmp_path: Path) -> None:
@@ -137,3 +149,35 @@ def test_a_unit_a_little_late_joins_the_clocks_tick_a_late_one_has_its_own(
     assert tick_of(m.matching, late, now) == int(late)
     assert tick_of(m.matching, late + 60.0, now) != tick_of(m.matching, late, now)
     assert tick_of(matcher(tmp_path / "z", tick_s=0.0).matching, now, now) is None
+
+
+class _NeverKept(dict):
+    """A cache that keeps nothing: every unit builds its candidate arrays anew."""
+
+    def __setitem__(self, key, value) -> None:
+        pass
+
+
+def test_candidate_arrays_kept_for_a_tick_give_the_map_built_anew_each_unit(
+    tmp_path: Path,
+) -> None:
+    """A tile's candidate arrays are kept until a landmark is started, removed or
+    re-solved (``gating_version``); the map is the one rebuilding them for every unit
+    gives, to the bit."""
+    entries = traffic(tmp_path / "gen")
+    bits = []
+    for name, cache in (("kept", None), ("anew", _NeverKept())):
+        svc = matcher(tmp_path / name)
+        if cache is not None:
+            svc.matching.candidate_arrays = cache
+        replay(svc, entries, 7)
+        lms = [svc.state.landmarks[i] for i in sorted(svc.state.landmarks)]
+        bits.append([(lm.id, lm.x.tobytes(), lm.cov.tobytes(), lm.facing.tobytes()) for lm in lms])
+        if cache is None:  # kept arrays are in use, and as new as the landmarks
+            version, kept = svc.matching.candidate_arrays[tile_of(svc.opts.zoom)]
+            assert version == svc.state.gating_version
+            np.testing.assert_array_equal(
+                kept.x, svc.frames(tile_of(svc.opts.zoom)).from_ecef(np.array([lm.x for lm in lms]))
+            )
+        svc.db.close()
+    assert bits[0] == bits[1]

@@ -8,6 +8,7 @@ import pytest
 from hdmap.geo.geodesy import (
     GEODESY,
     EnuFrame,
+    direction_from_angles,
     ecef_to_enu_vectors,
     enu_rotation,
     enu_to_ecef_vectors,
@@ -192,3 +193,23 @@ def test_vectors_from_enu_at_agrees_with_pyproj_points_1m_apart(
     # per-row origins broadcast the same way
     got_rows = frame.vectors_from_enu_at(v, np.full(50, lat), np.full(50, lon))
     np.testing.assert_allclose(got_rows, got, atol=1e-15)
+
+
+def test_a_point_or_direction_converts_the_same_alone_and_in_a_batch() -> None:
+    """Each row's result does not depend on the rows converted with it (the matcher reuses
+    rows of a unit's conversion for the rays it links: they must be what converting those
+    alone gives, to the bit)."""
+    rng = np.random.default_rng(3)
+    n = 300
+    f = EnuFrame(60.17, 24.94, 12.0)
+    lat, lon = 60.17 + rng.normal(0, 2e-3, n), 24.94 + rng.normal(0, 2e-3, n)
+    h = rng.normal(10, 3, n)
+    d = direction_from_angles(rng.uniform(-np.pi, np.pi, n), rng.normal(0, 0.1, n))
+    points, dirs = f.from_geodetic(lat, lon, h), f.vectors_from_enu_at(d, lat, lon)
+    back = f.vectors_to_ecef(dirs)
+    for i in range(0, n, 7):
+        one = slice(i, i + 1)
+        assert np.array_equal(f.from_geodetic(lat[one], lon[one], h[one]), points[one])
+        assert np.array_equal(f.vectors_from_enu_at(d[one], lat[one], lon[one]), dirs[one])
+        assert np.array_equal(f.vectors_to_ecef(dirs[one]), back[one])
+    np.testing.assert_allclose(dirs, f.vectors_from_ecef(back), atol=1e-15)

@@ -32,6 +32,11 @@ PARKED = 10
 
 
 def service(path: Path, **knobs) -> MatcherService:
+    """A matcher whose uploads are each their own gating tick (``tick_s`` 0, unless given):
+    each upload's rays are tried as seeds as it comes, which the counts here follow (with
+    ticks, a pass's rays wait for its tick's end unless over a budget:
+    :func:`test_in_one_tick_a_parked_car_is_held_to_its_budget_by_upload`)."""
+    knobs.setdefault("tick_s", 0.0)
     svc = MatcherService(ServiceOptions(data_dir=path), MatcherConfig(**knobs))
     svc.pubs = Sink()  # type: ignore[assignment]
     return svc
@@ -55,10 +60,14 @@ class Feed:
         self.frame = svc.frames(self.tile)
         self.seq = itertools.count(1)
 
-    def upload(self, vehicle: str, pass_id: int, obs: Observations) -> dict[str, float]:
+    def upload(
+        self, vehicle: str, pass_id: int, obs: Observations, at: float | None = None
+    ) -> dict[str, float]:
+        """Apply one upload stamped by ingest at ``at`` (None: now; its event time when its
+        rays carry none)."""
         before = dict(self.svc.counters)
         s = next(self.seq)
-        g = ObsGroup(vehicle, pass_id, s, time.time(), obs)
+        g = ObsGroup(vehicle, pass_id, s, time.time() if at is None else at, obs)
         self.svc._apply_in_transaction([LogEntry("obs", "ingest-t", self.tile, s, s, g.to_bytes())])
         return {k: v - before.get(k, 0) for k, v in self.svc.counters.items()}
 
@@ -108,6 +117,31 @@ def test_a_parked_car_is_held_to_its_budget_then_quarantined(tmp_path: Path) -> 
     # every ray received is linked, waiting or evicted
     c = svc.counters
     assert c["received"] == c.get("linked", 0) + svc.state.pending_count() + c["pending_evicted"]
+
+
+def test_in_one_tick_a_parked_car_is_held_to_its_budget_by_upload(tmp_path: Path) -> None:
+    """With gating ticks, a pass's rays are tried when the tick ends; a pass (or vehicle)
+    over its budget is tried and evicted at its upload, so what it pools inside one tick
+    (twenty uploads stamped within a second) stays bounded all the same."""
+    cap, after = 40, 3
+    svc = service(
+        tmp_path,
+        tick_s=1.0,
+        pending_max_per_pass=cap,
+        quarantine_after=after,
+        init_reseed_max=PARKED,
+    )
+    f = Feed(svc)
+    rng = np.random.default_rng(0)
+    t0 = float(int(time.time()) - 3600)  # a tick starts here
+    for k in range(20):
+        d = f.upload("veh-parked", 1, parked_rays(f.frame, k, rng), t0 + 0.04 * k)
+        assert d.get("init_rays", 0) <= cap + PARKED and f.waiting("veh-parked", 1) <= cap
+        # tried from the first upload over the budget (which evicts and makes the pass's
+        # budget record) until ``after`` more attempts failed (quarantined)
+        assert (d.get("init_rays", 0) > 0) == (cap // PARKED <= k <= cap // PARKED + after)
+    assert svc.counters["pending_evicted"] == 20 * PARKED - cap
+    assert svc.counters["passes_quarantined"] == 1
 
 
 def test_without_the_budgets_the_work_grows_with_the_pass(tmp_path: Path) -> None:
