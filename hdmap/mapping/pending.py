@@ -75,11 +75,17 @@ def touch_budget(m: Matching, vehicle: str, pass_id: int) -> None:
 
 
 def initiate(
-    m: Matching, tile: str, area: list[str], vehicle: str, pass_id: int, classes: np.ndarray
+    m: Matching,
+    tile: str,
+    area: list[str],
+    vehicle: str,
+    pass_id: int,
+    classes: np.ndarray | None = None,
 ) -> set[int]:
     """Candidate landmarks from this pass's pending rays around ``tile``, for the classes
     that just got new pending rays (for the others, this pass's pending rays only
-    shrank since they last failed to make a landmark). Returns the new landmarks' ids.
+    shrank since they last failed to make a landmark; None: the classes of its rays there
+    not tried yet). Returns the new landmarks' ids.
 
     Seeds (``MatchingConfig.init_reseed_max``): above that many waiting rays of a class,
     candidates grow only from the rays not tried as seeds yet, over all of the pass's
@@ -102,7 +108,7 @@ def initiate(
     ``init_seeds`` (seeds it grew from), ``init_new_seeds_only`` (classes seeded from the
     new rays only), ``init_skipped_quarantined`` (attempts a
     quarantined pass did not get), ``passes_quarantined`` (and by reason)."""
-    if classes.size == 0:
+    if classes is not None and classes.size == 0:
         return set()
     key = pass_key(vehicle, pass_id)
     where: list[tuple[str, np.ndarray]] = []  # (tile, rows of its pending pool)
@@ -123,6 +129,8 @@ def initiate(
     obs = type(pools[0][0].obs).concat([p.obs.take(i) for p, i in pools])
     received = max(float(p.received_at[i].max()) for p, i in pools)
     fresh = np.concatenate([~p.tried[i] for p, i in pools])
+    if classes is None:
+        classes = np.unique(obs.sign_class[fresh])
     for t, i in where:
         m.state.mark_tried(t, i)  # every one of them is a seed now, or was before
     rays = to_local(frame, obs)
@@ -191,23 +199,13 @@ def initiate_waiting(m: Matching) -> set[int]:
     for tile in m.state.take_untried_tiles():
         p = m.state.pending.get(tile)
         while p is not None and not p.tried.all():
-            row = int(np.flatnonzero(~p.tried)[np.argmin(p.key[~p.tried])])
-            key, vehicle, pass_id = int(p.key[row]), p.vehicle[row], int(p.pass_id[row])
-            area = m.area(tile)
-            classes = np.unique(
-                np.concatenate(
-                    [
-                        q.obs.sign_class[~q.tried & (q.key == key)]
-                        for q in (m.state.pending.get(t) for t in area)
-                        if q is not None
-                    ]
-                )
-            )  # initiate marks all of the pass's rays around the tile tried
-            born |= initiate(m, tile, area, vehicle, pass_id, classes)
+            # initiate marks every ray of the pass around the tile tried: the loop ends
+            untried = np.flatnonzero(~p.tried)
+            row = int(untried[np.argmin(p.key[untried])])
+            vehicle, pass_id = p.vehicle[row], int(p.pass_id[row])
+            born |= initiate(m, tile, m.area(tile), vehicle, pass_id)
             enforce_budget(m, tile, vehicle, pass_id, touch=False)
             p = m.state.pending.get(tile)
-            if p is not None and (p.key == key).any() and not p.tried[p.key == key].all():
-                m.state.mark_tried(tile, np.flatnonzero(p.key == key))  # no class was new
     return born
 
 
