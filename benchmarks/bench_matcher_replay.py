@@ -71,6 +71,8 @@ def timed_replay(entries: list[LogEntry], batch: int, data_dir: Path) -> dict:
         "wall_s": wall,
         "obs_per_cpu_s": n_obs / cpu if cpu > 0 else None,
         "cpu_us_per_obs": 1e6 * cpu / n_obs if n_obs else None,
+        "gating_ticks": svc.matching.tick_serial,
+        "units_per_tick": len(entries) / max(1, svc.matching.tick_serial),
         "landmarks": len(svc.state.landmarks),
         "pending_rays": svc.state.pending_count(),
         "counters": {k: v for k, v in sorted(svc.counters.items()) if isinstance(v, int | float)},
@@ -120,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{r['observations']} observations in {r['entries']} entries: {r['cpu_s']:.1f} s CPU, "
         f"{r['wall_s']:.1f} s wall; {r['obs_per_cpu_s']:,.0f} obs/s per core "
-        f"({r['cpu_us_per_obs']:.0f} us CPU per observation); {r['landmarks']} landmarks, "
+        f"({r['cpu_us_per_obs']:.0f} us CPU per observation); {r['gating_ticks']} gating "
+        f"ticks ({r['units_per_tick']:.1f} units a tick); {r['landmarks']} landmarks, "
         f"{r['pending_rays']} pending rays; state {r['memory']['state_bytes'] / 1e6:.1f} MB "
         f"({r['memory']['bytes_per_landmark_and_pending_ray']:.0f} B per landmark or pending "
         f"ray); digest {r['landmark_digest']}"

@@ -70,78 +70,185 @@ class Landmark:
     Facing`); with ``x`` and ``cov`` what association sees of it (:mod:`hdmap.mapping.tick`)."""
 
 
-@dataclass
 class PendingTile:
-    """Rays routed to one tile that wait for a landmark (columnar)."""
+    """Rays routed to one tile that wait for a landmark (columnar).
 
-    obs: Any
-    """The rays (an :class:`ObsRows` table)."""
-    vehicle: list[str] = field(default_factory=list)
-    pass_id: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    added_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-    received_at: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-    """Ingest receipt time (latency tracing)."""
-    key: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    """:func:`pass_key` of each ray's (vehicle, pass): vectorised selection of a pass."""
-    tried: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
-    """The ray has been a seed of an initiation attempt (see :func:`hdmap.mapping.pending.
-    initiate`). Every ray is offered as a seed in the unit that pools it or at the end of
-    its gating tick (:func:`hdmap.mapping.pending.initiate_waiting`); rows given without
-    it: tried (a store passes the untried ones of the current tick)."""
-    saved: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
-    """The ray is in storage (a store writes the others; rows given without it: saved)."""
-    per_vehicle: Counter[str] = field(default_factory=Counter)
-    """Rays of each vehicle (the per-vehicle budget is checked at every upload)."""
+    Columns: ``obs`` (the rays, an :class:`ObsRows` table), ``vehicle`` (an object array of
+    vehicle ids), ``pass_id``, ``added_at`` (event time the pending TTL is counted from),
+    ``received_at`` (ingest receipt, latency tracing), ``key`` (:func:`pass_key` of each
+    ray's (vehicle, pass): vectorised selection of a pass), ``tried`` (the ray has been a
+    seed of an initiation attempt, :func:`hdmap.mapping.pending.initiate`; every ray is
+    offered as a seed in the unit that pools it or at the end of its gating tick, and rows
+    given without it are tried: a store passes the untried ones of the current tick) and
+    ``saved`` (the ray is in storage; rows given without it: saved).
 
-    def __post_init__(self) -> None:
-        n = len(self.obs)
-        if self.key.size != n:
-            self.key = np.array(
-                [pass_key(v, int(p)) for v, p in zip(self.vehicle, self.pass_id, strict=True)],
-                np.int64,
-            )
-        if self.tried.size != n:
-            self.tried = np.ones(n, bool)
-        if self.saved.size != n:
-            self.saved = np.ones(n, bool)
-        if sum(self.per_vehicle.values()) != n:
-            self.per_vehicle = Counter(self.vehicle)
+    Appending is O(rows appended): :meth:`add` queues its rows, and the columns are
+    concatenated once, when one is next read (a gating tick's uploads add to a tile's pool
+    many times before its end reads it). The rays each vehicle and each pass have here are
+    counted as they come and go (:meth:`count_of`, ``per_vehicle``), so a budget check
+    reads no column. Invariant: the rows read are the rows added, in the order added, less
+    those :meth:`keep` dropped."""
+
+    def __init__(
+        self,
+        obs: Any,
+        vehicle: list[str] | NDArray[Any] | None = None,
+        pass_id: NDArray[np.int64] | None = None,
+        added_at: NDArray[np.float64] | None = None,
+        received_at: NDArray[np.float64] | None = None,
+    ) -> None:
+        n = len(obs)
+        self._obs = obs
+        self._vehicle = np.array(list(vehicle) if vehicle is not None else [], dtype=object)
+        self._pass_id = np.zeros(0, np.int64) if pass_id is None else np.asarray(pass_id, np.int64)
+        self._added_at = np.zeros(0) if added_at is None else np.asarray(added_at, float)
+        self._received_at = np.zeros(0) if received_at is None else np.asarray(received_at, float)
+        self._key = np.array(
+            [pass_key(str(v), int(p)) for v, p in zip(self._vehicle, self._pass_id, strict=True)],
+            np.int64,
+        )
+        self._tried = np.ones(n, bool)
+        self._saved = np.ones(n, bool)
+        self._local = np.full((n, 6), np.nan)
+        self._tail: list[tuple[Any, str, int, NDArray[np.float64], float, int, Any]] = []
+        self._n = n
+        self.per_vehicle: Counter[str] = Counter(self._vehicle.tolist())
+        """Rays of each vehicle (the per-vehicle budget is checked at every upload)."""
+        self._per_key: Counter[int] = Counter(self._key.tolist())
 
     def __len__(self) -> int:
-        return len(self.obs)
+        return self._n
+
+    def count_of(self, key: int) -> int:
+        """Rays of the pass with :func:`pass_key` ``key`` here."""
+        return self._per_key[key]
 
     def add(
-        self, obs: Any, vehicle: str, pass_id: int, at: float | NDArray[np.float64], received: float
+        self,
+        obs: Any,
+        vehicle: str,
+        pass_id: int,
+        at: float | NDArray[np.float64],
+        received: float,
+        local: NDArray[np.float64] | None = None,
     ) -> None:
         """Append one pass's rays with their event times ``at`` (one per ray, or one for
-        all: what the pending TTL is counted from), received by ingest at ``received``."""
-        self.obs = type(obs).concat([self.obs, obs])
-        self.vehicle += [vehicle] * len(obs)
-        self.pass_id = np.r_[self.pass_id, np.full(len(obs), pass_id, np.int64)]
-        self.added_at = np.r_[self.added_at, np.broadcast_to(np.asarray(at, float), len(obs))]
-        self.received_at = np.r_[self.received_at, np.full(len(obs), received)]
-        self.key = np.r_[self.key, np.full(len(obs), pass_key(vehicle, pass_id), np.int64)]
-        self.tried = np.r_[self.tried, np.zeros(len(obs), bool)]
-        self.saved = np.r_[self.saved, np.zeros(len(obs), bool)]
-        self.per_vehicle[vehicle] += len(obs)
+        all: what the pending TTL is counted from), received by ingest at ``received``;
+        ``local``: their origins and directions in the tile's frame, (n, 6), if known."""
+        n = len(obs)
+        if not n:
+            return
+        key = pass_key(vehicle, pass_id)
+        at_rows = np.array(np.broadcast_to(np.asarray(at, float), n))
+        self._tail.append((obs, vehicle, pass_id, at_rows, received, key, local))
+        self._n += n
+        self.per_vehicle[vehicle] += n
+        self._per_key[key] += n
+
+    def _flush(self) -> None:
+        """Concatenate the queued rows onto the columns (once for all of them)."""
+        tail, self._tail = self._tail, []
+        sizes = [len(t[0]) for t in tail]
+        self._obs = type(tail[0][0]).concat([self._obs, *(t[0] for t in tail)])
+        self._vehicle = np.concatenate(
+            [
+                self._vehicle,
+                *(np.full(k, t[1], dtype=object) for t, k in zip(tail, sizes, strict=True)),
+            ]
+        )
+        self._pass_id = np.concatenate(
+            [self._pass_id, *(np.full(k, t[2], np.int64) for t, k in zip(tail, sizes, strict=True))]
+        )
+        self._added_at = np.concatenate([self._added_at, *(t[3] for t in tail)])
+        self._received_at = np.concatenate(
+            [self._received_at, *(np.full(k, t[4]) for t, k in zip(tail, sizes, strict=True))]
+        )
+        self._key = np.concatenate(
+            [self._key, *(np.full(k, t[5], np.int64) for t, k in zip(tail, sizes, strict=True))]
+        )
+        self._local = np.concatenate(
+            [
+                self._local,
+                *(
+                    np.full((k, 6), np.nan) if t[6] is None else t[6]
+                    for t, k in zip(tail, sizes, strict=True)
+                ),
+            ]
+        )
+        total = sum(sizes)
+        self._tried = np.concatenate([self._tried, np.zeros(total, bool)])
+        self._saved = np.concatenate([self._saved, np.zeros(total, bool)])
+
+    def _columns(self) -> PendingTile:
+        if self._tail:
+            self._flush()
+        return self
+
+    @property
+    def obs(self) -> Any:
+        return self._columns()._obs
+
+    @property
+    def vehicle(self) -> NDArray[Any]:
+        return self._columns()._vehicle
+
+    @property
+    def pass_id(self) -> NDArray[np.int64]:
+        return self._columns()._pass_id
+
+    @property
+    def added_at(self) -> NDArray[np.float64]:
+        return self._columns()._added_at
+
+    @property
+    def received_at(self) -> NDArray[np.float64]:
+        return self._columns()._received_at
+
+    @property
+    def key(self) -> NDArray[np.int64]:
+        return self._columns()._key
+
+    @property
+    def tried(self) -> NDArray[np.bool_]:
+        return self._columns()._tried
+
+    @tried.setter
+    def tried(self, value: NDArray[np.bool_]) -> None:
+        self._columns()._tried = np.asarray(value, bool)
+
+    @property
+    def saved(self) -> NDArray[np.bool_]:
+        return self._columns()._saved
+
+    @property
+    def local(self) -> NDArray[np.float64]:
+        """(n, 6): each ray's origin and direction in the tile's frame, NaN where not
+        computed yet (:func:`hdmap.mapping.pending.pool_rays` fills it in: a conversion's
+        rows do not depend on the rows converted with them, so a kept row is the one a
+        conversion anew gives)."""
+        return self._columns()._local
 
     def keep(self, mask: NDArray[np.bool_]) -> None:
         """Keep only the rows ``mask`` marks."""
-        self.obs = self.obs.take(mask)
-        kept: list[str] = []
-        for v, k in zip(self.vehicle, mask, strict=True):
-            if k:
-                kept.append(v)
-            else:
-                self.per_vehicle[v] -= 1
-        self.vehicle = kept
-        self.per_vehicle = +self.per_vehicle  # vehicles without rays go
-        self.pass_id = self.pass_id[mask]
-        self.added_at = self.added_at[mask]
-        self.received_at = self.received_at[mask]
-        self.key = self.key[mask]
-        self.tried = self.tried[mask]
-        self.saved = self.saved[mask]
+        self._columns()
+        gone = ~mask
+        if gone.any():
+            v, k = np.unique(self._vehicle[gone], return_counts=True)
+            self.per_vehicle.subtract(dict(zip(v.tolist(), k.tolist(), strict=True)))
+            self.per_vehicle = +self.per_vehicle  # vehicles without rays go
+            p, k = np.unique(self._key[gone], return_counts=True)
+            self._per_key.subtract(dict(zip(p.tolist(), k.tolist(), strict=True)))
+            self._per_key = +self._per_key
+        self._obs = self._obs.take(mask)
+        self._vehicle = self._vehicle[mask]
+        self._pass_id = self._pass_id[mask]
+        self._added_at = self._added_at[mask]
+        self._received_at = self._received_at[mask]
+        self._key = self._key[mask]
+        self._local = self._local[mask]
+        self._tried = self._tried[mask]
+        self._saved = self._saved[mask]
+        self._n = int(mask.sum())
 
 
 @dataclass
@@ -196,6 +303,8 @@ class LandmarkTable:
         self._untried_tiles: set[str] = set()
         """Tiles whose pools got rays not yet tried as seeds (:meth:`take_untried_tiles`)."""
         self._removed_pending: list[tuple[str, int]] = []
+        self._tried_saved: list[tuple[str, int]] = []
+        """(vehicle, obs id) of rays in storage that became tried since the last save."""
         """(vehicle, obs id) of pending rays taken out since the last save."""
         self.covis_pairs = PairCounts()
         """Images in which two landmarks of one class were both detected: then they are two
@@ -220,6 +329,9 @@ class LandmarkTable:
         """Landmarks started in the current tick, with the :func:`pass_key` of the pass that
         started them (the only one that sees them before the tick ends)."""
         self._tick_dirty = False
+        """The current tick changed (its index, or it ended): a store rewrites its marks."""
+        self._tick_ids: set[int] = set()
+        """Landmarks whose tick marks changed since the last save (a store writes those)."""
         self.unfaced: set[int] = set()
         """Landmarks loaded without a gating facing (stored before facings were kept): the
         matcher computes theirs from their sums when it restarts."""
@@ -304,7 +416,9 @@ class LandmarkTable:
         self.tick_counted.update(counted)
         for lid in born:
             self.tick_born[lid] = key
-        self._tick_dirty = True
+        self._tick_ids |= touched
+        self._tick_ids.update(counted)
+        self._tick_ids |= born
 
     def start_tick(self, tick_id: int) -> None:
         """The current gating tick is now ``tick_id``."""
@@ -315,6 +429,7 @@ class LandmarkTable:
         """End the tick: its touched and counted landmarks (sorted), forgotten here."""
         out = sorted(self.tick_touched), sorted(self.tick_counted)
         self.tick_touched, self.tick_counted, self.tick_born = set(), set(), {}
+        self._tick_ids = set()
         self._tick_dirty = True
         return out
 
@@ -375,19 +490,26 @@ class LandmarkTable:
         pass_id: int,
         at: float | NDArray[np.float64],
         received: float,
+        local: NDArray[np.float64] | None = None,
     ) -> None:
         """Rays of one pass wait in ``tile``'s pool with their event times ``at`` (none:
-        nothing changes)."""
+        nothing changes); ``local``: their origins and directions in the tile's frame."""
         if len(obs):
-            self.pending[tile].add(obs, vehicle, pass_id, at, received)
+            self.pending[tile].add(obs, vehicle, pass_id, at, received, local)
             self._pending_dirty.add(tile)
             self._untried_tiles.add(tile)
 
     def mark_tried(self, tile: str, rows: NDArray[np.int64]) -> None:
         """The rows ``rows`` of ``tile``'s pool have been seeds of an initiation attempt."""
         p = self.pending[tile]
-        if not p.tried[rows].all():
-            p.tried[rows] = True
+        flips = rows[~p.tried[rows]]
+        if flips.size:
+            p.tried[flips] = True
+            stored = flips[p.saved[flips]]
+            if stored.size:
+                self._tried_saved += list(
+                    zip(p.vehicle[stored].tolist(), p.obs.obs_id[stored].tolist(), strict=True)
+                )
             self._pending_dirty.add(tile)
 
     def take_untried_tiles(self) -> list[str]:
@@ -403,7 +525,7 @@ class LandmarkTable:
             return
         p = self.pending[tile]
         ids = p.obs.obs_id[mask_remove].tolist()
-        vehicles = [v for v, k in zip(p.vehicle, mask_remove, strict=True) if k]
+        vehicles = p.vehicle[mask_remove].tolist()
         self._removed_pending += list(zip(vehicles, ids, strict=True))
         p.keep(~mask_remove)
         self._pending_dirty.add(tile)
@@ -440,6 +562,8 @@ class LandmarkTable:
         self._dirty.clear()
         self._pending_dirty.clear()
         self._removed_pending = []
+        self._tried_saved = []
         self._passes_dirty.clear()
         self._passes_gone.clear()
         self._tick_dirty = False
+        self._tick_ids = set()

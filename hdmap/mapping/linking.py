@@ -30,9 +30,18 @@ from schemas.ids import hold_key, pass_key
 def to_local(frame: Any, obs: Any) -> LocalRays:
     """Observations (an :class:`~hdmap.mapping.landmarks.ObsRows` table) -> rays in a
     tile's ENU frame."""
+    return local_rays(
+        obs,
+        frame.from_geodetic(obs.lat, obs.lon, obs.h),
+        frame.vectors_from_enu_at(obs.direction, obs.lat, obs.lon),
+    )
+
+
+def local_rays(obs: Any, origin: np.ndarray, direction: np.ndarray) -> LocalRays:
+    """:func:`to_local` of ``obs`` whose origins and directions in the frame are known."""
     return LocalRays(
-        origin=frame.from_geodetic(obs.lat, obs.lon, obs.h),
-        direction=frame.vectors_from_enu_at(obs.direction, obs.lat, obs.lon),
+        origin=origin,
+        direction=direction,
         sigma_az=obs.sigma_az,
         sigma_el=obs.sigma_el,
         sigma_pos_h=obs.sigma_pos_h,

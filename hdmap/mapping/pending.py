@@ -16,11 +16,11 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap.geo.tiles import in_region, quadkeys_of
-from hdmap.mapping.association import origin_cov, pair_chi2
+from hdmap.mapping.association import LocalRays, origin_cov, pair_chi2
 from hdmap.mapping.batch_association import UnitInput, associate_units
 from hdmap.mapping.initiation import propose, seeds_of
 from hdmap.mapping.landmarks import Landmark, PendingTile
-from hdmap.mapping.linking import create, link, to_local
+from hdmap.mapping.linking import create, link, local_rays, to_local
 from hdmap.mapping.matching import Matching
 from schemas.ids import pass_key
 
@@ -47,16 +47,15 @@ def enforce_budget(m: Matching, tile: str, vehicle: str, pass_id: int, touch: bo
     p = m.state.pending.get(tile)
     drop = np.zeros(0 if p is None else len(p), bool)
     if p is not None and cfg.pending_max_per_pass > 0:
-        mine = np.flatnonzero(p.key == key)
-        over = mine.size - cfg.pending_max_per_pass
+        over = p.count_of(key) - cfg.pending_max_per_pass
         if over > 0:
-            drop[_oldest(p, mine, over)] = True
+            drop[_oldest(p, np.flatnonzero(p.key == key), over)] = True
             m.tally("pending_evicted.pass", over)
             m.state.budget_of(vehicle, pass_id).evicted += over
     if p is not None and cfg.pending_max_per_vehicle > 0:
         over = p.per_vehicle[vehicle] - int(drop.sum()) - cfg.pending_max_per_vehicle
         if over > 0:  # found by name only when over (the count is kept as rays come and go)
-            theirs = np.flatnonzero(np.array([v == vehicle for v in p.vehicle], bool) & ~drop)
+            theirs = np.flatnonzero((p.vehicle == vehicle) & ~drop)
             drop[_oldest(p, theirs, over)] = True
             m.tally("pending_evicted.vehicle", over)
     n = int(drop.sum())
@@ -133,7 +132,16 @@ def initiate(
         classes = np.unique(obs.sign_class[fresh])
     for t, i in where:
         m.state.mark_tried(t, i)  # every one of them is a seed now, or was before
-    rays = to_local(frame, obs)
+    # the tile's own pool rows from its kept conversions, the neighbours' converted here
+    parts = [
+        pool_rays(m, t, i) if t == tile else to_local(frame, p.obs.take(i))
+        for (t, i), (p, _i) in zip(where, pools, strict=True)
+    ]
+    rays = local_rays(
+        obs,
+        np.concatenate([r.origin for r in parts]),
+        np.concatenate([r.direction for r in parts]),
+    )
     created: set[int] = set()
     attempted = False
     used = np.zeros(len(rays), bool)
@@ -183,7 +191,7 @@ def over_budget(m: Matching, tile: str, vehicle: str, pass_id: int) -> bool:
     if cfg.pending_max_per_vehicle > 0 and p.per_vehicle[vehicle] > cfg.pending_max_per_vehicle:
         return True
     key = pass_key(vehicle, pass_id)
-    return cfg.pending_max_per_pass > 0 and int((p.key == key).sum()) > cfg.pending_max_per_pass
+    return cfg.pending_max_per_pass > 0 and p.count_of(key) > cfg.pending_max_per_pass
 
 
 def initiate_waiting(m: Matching) -> set[int]:
@@ -236,7 +244,7 @@ def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
         cand = np.flatnonzero(np.isin(p.obs.sign_class, cls))
         if cand.size == 0:
             continue
-        local = to_local(frame, p.obs.take(cand))
+        local = pool_rays(m, t, cand)
         # a unit none of whose rays passes the wide gate (the first step of associate)
         # cannot be associated: offer only the others (exact, and the pool can be large)
         g = m.config.gate
@@ -271,6 +279,20 @@ def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
             link(m, p.obs.take(sel), [new[k] for k in lmi], v, pid, rec, (t, local.take(js)))
             m.tally("adopted", len(sel))
         m.state.drop_pending(t, take)
+
+
+def pool_rays(m: Matching, tile: str, rows: np.ndarray) -> LocalRays:
+    """The rows ``rows`` of ``tile``'s pool as rays in the tile's frame (:func:`to_local`),
+    from the pool's kept conversions (:attr:`~hdmap.mapping.landmarks.PendingTile.local`),
+    converting and keeping those it has not."""
+    p = m.state.pending[tile]
+    have = p.local[rows]
+    todo = np.flatnonzero(np.isnan(have[:, 0]))
+    if todo.size:
+        fresh = to_local(m.frames(tile), p.obs.take(rows[todo]))
+        have[todo, :3], have[todo, 3:] = fresh.origin, fresh.direction
+        p.local[rows[todo]] = have[todo]
+    return local_rays(p.obs.take(rows), have[:, :3], have[:, 3:])
 
 
 def drop_used(m: Matching, where: list[tuple[str, np.ndarray]], used: np.ndarray) -> None:

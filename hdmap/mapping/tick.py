@@ -3,8 +3,8 @@ re-solved and its waiting rays start landmarks.
 
 Event time is cut into ticks of ``MatchingConfig.tick_s`` seconds. A unit belongs to the
 tick of the matcher's clock (:meth:`hdmap.mapping.matching.Matching.entry_time`) when its
-own event time is at most ``tick_s`` behind the clock, else to the tick of its own event
-time (:func:`enter`); a run of consecutive units of one tick is a *gating tick*. Every
+own event time is at most ``tick_lag_s`` (3 s) behind the clock, else to the tick of its
+own event time (:func:`enter`); a run of consecutive units of one tick is a *gating tick*. Every
 unit of it is associated with the landmarks as they stood when it began: the set of
 landmarks, their gating estimates (position, covariance) and facings
 (``Landmark.facing``). What the units do meanwhile accumulates: links go into the gating
@@ -27,10 +27,12 @@ and landmarks started early by a pass over its pending budget
 pass alone until the tick ends): what :func:`hdmap.mapping.unit.signature` checks, and
 what lets the units of a tick be associated together.
 
-Live traffic at a high rate puts hundreds of units in one tick (uploads a little out of
-order included); an upload that comes late (a day's drives sent at once) goes by its own
-event times, so its units do not pile into the live tick (they would not see each other's
-new landmarks): where late and live entries interleave, ticks are short, down to one unit.
+Live traffic at a high rate puts hundreds of units in one tick (uploads seconds out of
+order included: a lag of ``tick_s`` alone cut a load test's every second into 4-18
+ticks, each straggler ending the live tick); an upload that comes late (a day's drives
+sent at once) goes by its own event times, so its units do not pile into the live tick
+(they would not see each other's new landmarks): where late and live entries interleave,
+ticks are short, down to one unit.
 
 ``tick_s = 0``: every unit is its own tick, ended at the end of the unit (initiation,
 sightings, re-solve and merge after each unit, with a vehicle's settlement re-solving at
@@ -65,12 +67,12 @@ Array = NDArray[np.float64]
 
 def tick_of(m: Matching, at: float, now: float) -> int | None:
     """The tick of a unit of event time ``at`` when the clock is at ``now``: the clock's when
-    the unit is at most ``tick_s`` behind it, else its own (index ``floor(t / tick_s)``;
-    None with ``tick_s = 0``: every unit its own)."""
+    the unit is at most ``tick_lag_s`` behind it, else its own (index ``floor(t /
+    tick_s)``; None with ``tick_s = 0``: every unit its own)."""
     step = m.config.tick_s
     if step <= 0:
         return None
-    return math.floor((now if now - at <= step else at) / step)
+    return math.floor((now if now - at <= m.config.tick_lag_s else at) / step)
 
 
 def enter(m: Matching, at: float) -> None:

@@ -126,24 +126,46 @@ def prepare_unit(m: Matching, tile: str, vehicle: str, pass_id: int, obs: Any) -
     return Prepared(tile, vehicle, pass_id, obs, applied, invalid, rays, area, c.lms, unit_input)
 
 
-def associate_prepared(m: Matching, units: list[Prepared]) -> list[Association | None]:
-    """The associations of ``units`` (None where a unit has no candidate), computed
-    together (:func:`hdmap.mapping.batch_association.associate_units`: each as alone)."""
-    todo = [u.input for u in units if u.input is not None]
-    done = iter(associate_units(todo, m.config.gate))
+@dataclass(frozen=True)
+class Checked:
+    """A unit's association and its group check (:func:`group_checks`)."""
+
+    res: Association
+    matched: np.ndarray
+    """``res.landmark`` without the groups whose rays meet elsewhere."""
+    rejected: int
+    """Rays the group check took out (counted ``group_rejected`` when the unit is matched)."""
+
+
+def associate_prepared(m: Matching, units: list[Prepared]) -> list[Checked | None]:
+    """The associations of ``units``, group-checked (None where a unit has no candidate),
+    computed together (:func:`hdmap.mapping.batch_association.associate_units`,
+    :func:`group_checks`: each as alone)."""
+    todo = [u for u in units if u.input is not None]
+    results = associate_units([u.input for u in todo if u.input is not None], m.config.gate)
+    checks = group_checks(
+        m,
+        [
+            (u.rays, r, u.input.x, u.input.cov)
+            for u, r in zip(todo, results, strict=True)
+            if u.input is not None
+        ],
+    )
+    done = iter(Checked(r, o, k) for r, (o, k) in zip(results, checks, strict=True))
     return [None if u.input is None else next(done) for u in units]
 
 
 def _associate(
-    m: Matching, u: Prepared, res: Association, trust: VehicleTrust
+    m: Matching, u: Prepared, chk: Checked, trust: VehicleTrust
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The unit's association ``res`` checked (:func:`group_check`): the landmark index of
-    each ray (-1: none) and the rays to drop (of a track that went to a landmark without
-    them). The vehicle's trust record takes the pass's gate result and offset, and may
-    settle."""
+    """The unit's checked association ``chk``: the landmark index of each ray (-1: none)
+    and the rays to drop (of a track that went to a landmark without them). The vehicle's
+    trust record takes the pass's gate result and offset, and may settle."""
     assert u.input is not None
-    rays, x, cov, cls = u.rays, u.input.x, u.input.cov, u.input.cls
-    matched = group_check(m, rays, res, x, cov)
+    rays, cls, res = u.rays, u.input.cls, chk.res
+    matched = chk.matched
+    if chk.rejected:
+        m.tally("group_rejected", chk.rejected)
     drop = np.zeros(len(rays), bool)
     if res.unlinked is not None and m.config.track_drop_unlinked:
         drop = res.unlinked & (matched < 0)
@@ -163,7 +185,7 @@ def _associate(
 
 
 def match_unit(
-    m: Matching, u: Prepared, at: float, received_at: float, res: Association | None
+    m: Matching, u: Prepared, at: float, received_at: float, res: Checked | None
 ) -> None:
     """Link the prepared unit's rays by its association ``res`` (None: computed here; see
     :func:`associate_prepared`), pool the rest, start landmarks, count sightings and note
@@ -196,7 +218,8 @@ def match_unit(
     waiting = obs.take(wait)
     captured = np.asarray(waiting.t, float)
     since = np.where(np.isfinite(captured), np.minimum(captured, at), at)
-    m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at)
+    kept = np.hstack([u.rays.origin[wait], u.rays.direction[wait]])  # the pool's frame
+    m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at, kept)
     born: set[int] = set()
     if m.config.tick_s <= 0 or over_budget(m, tile, vehicle, pass_id):
         new_classes = np.unique(obs.sign_class[wait])
@@ -209,27 +232,40 @@ def match_unit(
         touch_budget(m, vehicle, pass_id)
     counted: list[int] = []
     if cands and m.config.sightings.enabled:
-        counted = count_sightings(m, m.frames(tile), u.rays, cands, matched)
+        # within a tick the candidates' gating estimates are the ones prepared; with
+        # tick_s = 0 a settlement may have re-solved them in this unit
+        arrays = u.input if m.config.tick_s > 0 else None
+        counted = count_sightings(m, m.frames(tile), u.rays, cands, matched, arrays)
     m.state.note_tick(touched | born, counted, born, pass_key(vehicle, pass_id))
     if m.config.tick_s <= 0:
         end_tick(m)
 
 
 def count_sightings(
-    m: Matching, frame: Any, rays: LocalRays, cands: list[Landmark], matched: np.ndarray
+    m: Matching,
+    frame: Any,
+    rays: LocalRays,
+    cands: list[Landmark],
+    matched: np.ndarray,
+    arrays: UnitInput | None = None,
 ) -> list[int]:
     """Count, for the unit's candidate landmarks, whether it had them in view and whether
     it linked rays to them (:mod:`hdmap.mapping.sightings`; those not there are retired
-    when the tick ends). ``rays`` are in ``frame`` (the unit's tile's). Returns the ids
-    counted."""
+    when the tick ends). ``rays`` are in ``frame`` (the unit's tile's); ``arrays``: the
+    candidates' positions (in ``frame``) and facings as they still are, if known (else
+    taken from ``cands``: the same values, a conversion being row-independent). Returns the
+    ids counted."""
     cfg = m.config.sightings
     seen = np.zeros(len(cands), bool)
     seen[matched[matched >= 0]] = True
     view = seen.copy()
     rest = np.flatnonzero(~seen)  # a landmark the unit linked rays to is in view
     if rest.size:
-        x = frame.from_ecef(np.array([cands[k].x for k in rest]))
-        fac = gating_facings([cands[k] for k in rest])
+        if arrays is not None and arrays.facing is not None:
+            x, fac = arrays.x[rest], arrays.facing.take(rest)
+        else:
+            x = frame.from_ecef(np.array([cands[k].x for k in rest]))
+            fac = gating_facings([cands[k] for k in rest])
         view[rest] = in_view(rays.origin, rays.direction, x, fac.azimuth, fac.known, cfg)
     counted: list[int] = []
     for k in np.flatnonzero(view):
@@ -247,29 +283,61 @@ def group_check(
     m: Matching, rays: LocalRays, res: Association, x: np.ndarray, cov: np.ndarray
 ) -> np.ndarray:
     """``res.landmark`` without the groups whose rays meet elsewhere (see
-    ``MatchingConfig.group_check``)."""
-    out = res.landmark.copy()
+    ``MatchingConfig.group_check``; counted ``group_rejected``)."""
+    ((out, rejected),) = group_checks(m, [(rays, res, x, cov)])
+    if rejected:
+        m.tally("group_rejected", rejected)
+    return out
+
+
+def group_checks(
+    m: Matching, units: list[tuple[LocalRays, Association, np.ndarray, np.ndarray]]
+) -> list[tuple[np.ndarray, int]]:
+    """:func:`group_check` of several units (rays, association, candidates' positions and
+    covariances) at once, each as alone: its landmark indices and the rays it took out
+    (not counted here). The groups' triangulations and tests run in one call; every
+    group's sums are over its own rays in their order and each test is per group, so the
+    result is the one each unit gets alone, to the bit."""
+    outs = [res.landmark.copy() for _r, res, _x, _c in units]
     cfg = m.config
     if not cfg.group_check:
-        return out
-    hit = np.flatnonzero(out >= 0)
-    if hit.size == 0:
-        return out
-    lms, grp, n = np.unique(out[hit], return_inverse=True, return_counts=True)
-    moved = replace(rays.take(hit), origin=rays.origin[hit] + res.offset)
-    xt, ct = triangulate_groups(moved, grp, lms.size)
-    c = ct + cov[lms] + res.offset_cov
-    d = xt - x[lms]
+        return [(o, 0) for o in outs]
+    moved: list[LocalRays] = []
+    groups, lms_all, n_all, c_extra, d_ref = [], [], [], [], []
+    base = 0
+    for (rays, res, x, cov), out in zip(units, outs, strict=True):
+        hit = np.flatnonzero(out >= 0)
+        lms, grp, n = np.unique(out[hit], return_inverse=True, return_counts=True)
+        moved.append(replace(rays.take(hit), origin=rays.origin[hit] + res.offset))
+        groups.append(grp.astype(np.int64) + base)
+        lms_all.append(lms)
+        n_all.append(n)
+        c_extra.append(cov[lms] + res.offset_cov)
+        d_ref.append(x[lms])
+        base += lms.size
+    if base == 0:
+        return [(o, 0) for o in outs]
+    xt, ct = triangulate_groups(LocalRays.concat(moved), np.concatenate(groups), base)
+    c = ct + np.concatenate(c_extra)
+    d = xt - np.concatenate(d_ref)
+    n = np.concatenate(n_all)
     test = (n >= cfg.group_min_rays) & np.isfinite(d).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
     test &= np.abs(np.linalg.det(np.where(test[:, None, None], c, np.eye(3)))) > 1e-12
-    chi2 = np.zeros(lms.size)
+    chi2 = np.zeros(base)
     if test.any():
         chi2[test] = np.einsum(
             "ki,ki->k", d[test], np.linalg.solve(c[test], d[test][:, :, None])[:, :, 0]
         )
     bad = test & (chi2 > cfg.group_chi2)
-    if bad.any():
-        drop = np.isin(out, lms[bad])
-        out[drop] = -1
-        m.tally("group_rejected", int(drop.sum()))
-    return out
+    done: list[tuple[np.ndarray, int]] = []
+    start = 0
+    for out, lms in zip(outs, lms_all, strict=True):
+        b = bad[start : start + lms.size]
+        start += lms.size
+        rejected = 0
+        if b.any():
+            drop = np.isin(out, lms[b])
+            out[drop] = -1
+            rejected = int(drop.sum())
+        done.append((out, rejected))
+    return done

@@ -26,13 +26,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdmap.mapping.association import Association
 from hdmap.mapping.estimator import LandmarkSums
 from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.event_time import advance
 from hdmap.mapping.matching import AssocOutput, Matching, MatchingConfig, new_output
 from hdmap.mapping.tick import enter, tick_of
-from hdmap.mapping.unit import Prepared, associate_prepared, match_unit, prepare_unit, signature
+from hdmap.mapping.unit import (
+    Checked,
+    Prepared,
+    associate_prepared,
+    match_unit,
+    prepare_unit,
+    signature,
+)
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.service import ServiceOptions
 from hdmap.runtime.stage import StageService
@@ -52,7 +58,7 @@ from services.matcher.state import MatcherState
 
 log = logging.getLogger(__name__)
 
-Associated = tuple[Prepared, Association | None]
+Associated = tuple[Prepared, Checked | None]
 """A unit prepared for association and its association (None: no candidate)."""
 
 
@@ -263,7 +269,7 @@ class MatcherService(StageService):
         at = m.entry_time(g.received_at, np.asarray(g.obs.t, float))
         enter(m, at)  # the unit's gating tick (the one before it may end)
         u: Prepared | None = None
-        res: Association | None = None
+        res: Checked | None = None
         hit = self._ahead_of.pop(index, None)
         if hit is not None:
             serial, (p, r) = hit

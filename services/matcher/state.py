@@ -143,8 +143,7 @@ class MatcherState(LandmarkTable):
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
         c.executemany("DELETE FROM facings WHERE id=?", gone)
-        if self._tick_dirty:
-            self._save_tick()
+        self._save_tick()
         c.executemany("DELETE FROM sightings WHERE id=?", gone)
         for table, counts in (("covis", self.covis_pairs), ("copass", self.copass)):
             pairs = sorted(counts.dirty)
@@ -162,9 +161,13 @@ class MatcherState(LandmarkTable):
             )
         removed = self._removed_pending
         sql_ids = u64_to_i64(np.array([i for _v, i in removed], np.uint64)).tolist()
+        gone_rays = [(v, i) for (v, _i), i in zip(removed, sql_ids, strict=True)]
+        c.executemany("DELETE FROM pending WHERE vehicle=? AND obs_id=?", gone_rays)
+        tried = self._tried_saved
+        tried_ids = u64_to_i64(np.array([i for _v, i in tried], np.uint64)).tolist()
         c.executemany(
-            "DELETE FROM pending WHERE vehicle=? AND obs_id=?",
-            [(v, i) for (v, _i), i in zip(removed, sql_ids, strict=True)],
+            "DELETE FROM untried WHERE vehicle=? AND obs_id=?",
+            gone_rays + [(v, i) for (v, _i), i in zip(tried, tried_ids, strict=True)],
         )
         gone_v = [(v,) for v in sorted(self._trust_gone)]
         for table in ("trust", "trust_status", "trust_pass"):
@@ -220,9 +223,11 @@ class MatcherState(LandmarkTable):
                     for j, i in enumerate(new.tolist())
                 ],
             )
+            c.executemany(
+                "INSERT OR IGNORE INTO untried(vehicle, obs_id) VALUES (?,?)",
+                [(p.vehicle[i], ids[j]) for j, i in enumerate(new.tolist()) if not p.tried[i]],
+            )
             p.saved[:] = True
-        if self._pending_dirty:
-            self._save_untried()
         c.executemany(
             "DELETE FROM pass_budget WHERE vehicle=? AND pass_id=?", sorted(self._passes_gone)
         )
@@ -236,29 +241,21 @@ class MatcherState(LandmarkTable):
         )
         self.clear_marks()
 
-    def _save_untried(self) -> None:
-        """Rewrite the pending rays not yet tried as seeds (those pooled in the current
-        gating tick, :func:`hdmap.mapping.pending.initiate_waiting`)."""
-        c = self._conn
-        c.execute("DELETE FROM untried")
-        for p in self.pending.values():
-            rows = np.flatnonzero(~p.tried)
-            ids = u64_to_i64(p.obs.obs_id[rows]).tolist()
-            c.executemany(
-                "INSERT INTO untried(vehicle, obs_id) VALUES (?,?)",
-                [(p.vehicle[r], i) for r, i in zip(rows.tolist(), ids, strict=True)],
-            )
-
     def _save_tick(self) -> None:
-        """Rewrite the current gating tick's marks (a tick's worth of landmarks)."""
+        """Write the current gating tick's marks that changed: all of them again when the
+        tick changed (ended or started), else those of the landmarks noted since the last
+        save (a tick's worth of landmarks, not rewritten at every unit)."""
         c = self._conn
-        c.execute("DELETE FROM clock WHERE name='tick'")
-        if self.tick_id is not None:
-            c.execute("INSERT INTO clock(name, t) VALUES ('tick', ?)", (float(self.tick_id),))
-        c.execute("DELETE FROM tick")
-        ids = sorted(self.tick_touched | self.tick_counted | set(self.tick_born))
+        if self._tick_dirty:
+            c.execute("DELETE FROM clock WHERE name='tick'")
+            if self.tick_id is not None:
+                c.execute("INSERT INTO clock(name, t) VALUES ('tick', ?)", (float(self.tick_id),))
+            c.execute("DELETE FROM tick")
+            ids = sorted(self.tick_touched | self.tick_counted | set(self.tick_born))
+        else:
+            ids = sorted(self._tick_ids)
         c.executemany(
-            "INSERT INTO tick(id, touched, counted, born_key) VALUES (?,?,?,?)",
+            "INSERT OR REPLACE INTO tick(id, touched, counted, born_key) VALUES (?,?,?,?)",
             [
                 (
                     id_to_sql(i),

@@ -7,6 +7,7 @@ road, 10 rays each)."""
 
 from __future__ import annotations
 
+import sqlite3
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from hdmap.mapping.tick import candidates, tick_of
+from hdmap.runtime.store import id_to_sql, u64_to_i64
 from schemas import LogEntry, ObsGroup
 from schemas.ids import pass_key
 from services.matcher.replay import landmark_digest, open_matcher, replay
@@ -139,12 +141,14 @@ def test_facings_are_what_association_saw_after_a_restart(tmp_path: Path) -> Non
 def test_a_unit_a_little_late_joins_the_clocks_tick_a_late_one_has_its_own(
     tmp_path: Path,
 ) -> None:
-    """Uploads a fraction of a second out of order share the live tick; a day's drive
-    uploaded late goes by its own times (its passes do not pile into one tick)."""
+    """Uploads seconds out of order share the live tick; a day's drive uploaded late goes
+    by its own times (its passes do not pile into one tick)."""
     m = matcher(tmp_path)
     now = T0 + 0.9
+    lag = m.matching.config.tick_lag_s
     assert tick_of(m.matching, now - 0.5, now) == tick_of(m.matching, now, now) == int(T0)
-    assert tick_of(m.matching, now - 1.0, now) == int(T0)  # at most tick_s behind
+    assert tick_of(m.matching, now - lag, now) == int(T0)  # at most tick_lag_s behind
+    assert tick_of(m.matching, now - lag - 0.5, now) == int(now - lag - 0.5)
     late = now - 86400.0
     assert tick_of(m.matching, late, now) == int(late)
     assert tick_of(m.matching, late + 60.0, now) != tick_of(m.matching, late, now)
@@ -181,3 +185,53 @@ def test_candidate_arrays_kept_for_a_tick_give_the_map_built_anew_each_unit(
             )
         svc.db.close()
     assert bits[0] == bits[1]
+
+
+def _stored(svc: MatcherService) -> tuple[set, set]:
+    """The tick marks and the untried rays as the matcher's database holds them."""
+    conn = sqlite3.connect(f"file:{svc.db_path}?mode=ro", uri=True)
+    try:
+        marks = set(conn.execute("SELECT id, touched, counted, born_key FROM tick").fetchall())
+        untried = set(conn.execute("SELECT vehicle, obs_id FROM untried").fetchall())
+    finally:
+        conn.close()
+    return marks, untried
+
+
+def _in_memory(svc: MatcherService) -> tuple[set, set]:
+    st = svc.state
+    ids = st.tick_touched | st.tick_counted | set(st.tick_born)
+    marks = {
+        (id_to_sql(i), int(i in st.tick_touched), int(i in st.tick_counted), st.tick_born.get(i))
+        for i in ids
+    }
+    untried = {
+        (v, i)
+        for p in st.pending.values()
+        for v, i in zip(
+            p.vehicle[~p.tried].tolist(), u64_to_i64(p.obs.obs_id[~p.tried]).tolist(), strict=True
+        )
+    }
+    return marks, untried
+
+
+def test_the_stored_tick_marks_and_untried_rays_follow_memory_after_every_transaction(
+    tmp_path: Path,
+) -> None:
+    """The tick's marks and the untried rays are written as they change, not rewritten
+    whole in every transaction: after each one (ticks opening and ending, rays pooled,
+    tried, adopted and used, a landmark touched for the first time in the middle of a
+    tick) the database holds what memory holds. Four passes a tick; the first of each
+    sees one sign, the others both."""
+    m0 = matcher(tmp_path / "gen")
+    entries = [entry(m0, k + 1, f"veh-{k % 8}", T0 + 0.25 * k, both=k % 4 != 0) for k in range(24)]
+    m0.db.close()
+    svc = matcher(tmp_path / "m")
+    seen_untried = seen_marks = 0
+    for i in range(len(entries)):
+        svc._apply_in_transaction(svc._unapplied(entries[i : i + 1]))
+        marks, untried = _in_memory(svc)
+        assert _stored(svc) == (marks, untried)
+        seen_marks += bool(marks)
+        seen_untried += bool(untried)
+    assert seen_marks and seen_untried  # both had something to keep along the way
