@@ -350,6 +350,14 @@ class LandmarkTable:
         self.counters[home] = n
         return landmark_id(home, n)
 
+    def removed_since_save(self) -> set[int]:
+        """Landmarks removed since the last save (or load)."""
+        return self._deleted
+
+    def mark_changed(self, ids: list[int]) -> None:
+        """The landmarks ``ids`` changed in place (their sums rows): a store writes them."""
+        self._dirty.update(ids)
+
     def put(self, lm: Landmark) -> None:
         """Store ``lm`` (also after changing it in place: ``by_tile`` follows its tile)."""
         prev = self._indexed.get(lm.id)

@@ -110,7 +110,9 @@ def link(
             here = to_local(m.frames(home), sub)
         rows = np.array([lms[k].row for k in idx], np.int64)
         rays = to_rays(here, np.full(len(idx), gating) if gating < 1.0 else None)
-        m.unsummed.append((rows, np.full(len(idx), key, np.int64), rays, hold[sel]))
+        ids = np.array([lms[k].id for k in idx], np.uint64)
+        m.hold_link((rows, np.full(len(idx), key, np.int64), rays, hold[sel]), ids)
+        m.state.mark_changed(ids.tolist())  # its row's sums change
         _, first = np.unique(rows, return_index=True)
         m.quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
         out = m.out[home]

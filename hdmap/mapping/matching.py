@@ -275,6 +275,13 @@ class Matching:
         self.unsummed: list[tuple[Any, Any, Rays, Any]] = []
         """Links not yet added to the gating sums (rows, pass keys, rays, hold keys):
         :meth:`flush_links`."""
+        self.unsummed_ids: list[np.ndarray] = []
+        """The landmark id of each held link's row (a store keeps held links by id: rows
+        are numbered anew when the sums are reloaded)."""
+        self.held_saved = 0
+        """Held links a store has already written (:meth:`held_to_save`)."""
+        self.held_flushed = False
+        """The sums took the held links since the store last wrote them."""
         self.candidate_arrays: dict[str, tuple[int, Any]] = {}
         """Per tile, the landmarks its units see as arrays, with the landmarks'
         ``gating_version`` they were built at (:func:`hdmap.mapping.tick.candidates`)."""
@@ -286,7 +293,8 @@ class Matching:
         """After ``state`` was (re)loaded with ``sums``: open passes are quiet from now on,
         the fleet's offsets and the flagged vehicles follow the trust records."""
         self._sums = sums
-        self.unsummed = []
+        self.unsummed, self.unsummed_ids = [], []
+        self.held_saved, self.held_flushed = 0, False
         if self.state.unfaced:
             lms = [self.state.landmarks[i] for i in sorted(self.state.unfaced)]
             for lm, fk in zip(lms, facings_of(self, lms).rows(), strict=True):
@@ -324,8 +332,45 @@ class Matching:
         one per unit, for one call's fixed cost. Reading :attr:`sums` flushes first (a
         re-solve, the facings, a merge, a settlement, closing quiet passes, saving the
         state all do), so nothing sees the sums without the links made before."""
-        parts, self.unsummed = self.unsummed, []
+        parts, self.unsummed, self.unsummed_ids = self.unsummed, [], []
+        if parts:
+            self.held_saved, self.held_flushed = 0, True
         self._sums.accumulate_parts(parts)
+
+    def hold_link(self, item: tuple[Any, Any, Rays, Any], ids: np.ndarray) -> None:
+        """Hold one link call's rays for the gating sums (:meth:`flush_links`): (rows, pass
+        keys, rays, hold keys), and the landmark ids of the rows."""
+        self.unsummed.append(item)
+        self.unsummed_ids.append(ids)
+
+    def hold_again(self, held: list[tuple[np.ndarray, tuple[Any, Any, Rays, Any]]]) -> None:
+        """After a restart: the held links a store kept, (landmark ids, item with rows of
+        the reloaded sums), in their order; they count as written."""
+        for ids, item in held:
+            self.hold_link(item, ids)
+        self.held_saved, self.held_flushed = len(self.unsummed), False
+
+    def held_to_save(self) -> tuple[bool, int, list[tuple[np.ndarray, tuple[Any, Any, Rays, Any]]]]:
+        """What a store writes of the held links: whether the sums took them since it last
+        did (its copy empties), the position of the first new one and the new ones (landmark
+        ids, item); then they count as written. A held link to a landmark that is gone
+        flushes them all first (its row has no id to be kept by)."""
+        gone = self.state.removed_since_save()
+        if gone and self.unsummed_ids:
+            held = np.concatenate(self.unsummed_ids)
+            if np.isin(held, np.array(sorted(gone), np.uint64)).any():
+                self.flush_links()
+        start = self.held_saved
+        new = list(zip(self.unsummed_ids[start:], self.unsummed[start:], strict=True))
+        flushed = self.held_flushed
+        self.held_saved, self.held_flushed = len(self.unsummed), False
+        return flushed, start, new
+
+    @property
+    def sums_as_held(self) -> LandmarkSums:
+        """The gating sums without the held links (what a store packs: it keeps the held
+        links apart, :meth:`held_to_save`)."""
+        return self._sums
 
     @property
     def now(self) -> float:

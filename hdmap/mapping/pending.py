@@ -230,24 +230,30 @@ def _note_attempt(m: Matching, vehicle: str, pass_id: int, made: bool) -> None:
 
 
 def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
-    """Offer pending rays of other passes to freshly created landmarks."""
+    """Offer pending rays of other passes to freshly created landmarks: in each tile of
+    ``area`` (in order) the waiting rays of each (vehicle, pass) are a unit associated with
+    the new landmarks, and the rays it links are taken from the pool. The units of all the
+    tiles are associated in one call (each as alone:
+    :func:`~hdmap.mapping.batch_association.associate_units`)."""
+    g = m.config.gate
+    cls = np.array([c.cls for c in new], np.int64)
+    cov = np.array([c.cov for c in new])
+    x_ecef = np.array([c.x for c in new])
+    offers = []  # (tile, pool rows offered, their local rays, units (vehicle, pass, rows))
+    inputs: list[UnitInput] = []
     for t in area:
         p = m.state.pending.get(t)
         if p is None or not len(p):
             continue
-        frame = m.frames(t)
-        x = frame.from_ecef(np.array([c.x for c in new]))
-        cov = np.array([c.cov for c in new])
-        cls = np.array([c.cls for c in new], np.int64)
         # only rays of the new landmarks' classes can match (associate pairs same-class
         # only): select them first, convert them once
         cand = np.flatnonzero(np.isin(p.obs.sign_class, cls))
         if cand.size == 0:
             continue
+        x = m.frames(t).from_ecef(x_ecef)
         local = pool_rays(m, t, cand)
         # a unit none of whose rays passes the wide gate (the first step of associate)
         # cannot be associated: offer only the others (exact, and the pool can be large)
-        g = m.config.gate
         ri, li = np.nonzero(local.sign_class[:, None] == cls[None, :])
         wide = origin_cov(local, g.pass_bias_sigma_m, g.vertical_bias_sigma_m)
         chi2, ok = pair_chi2(local, ri, x[li], cov[li], wide, g)
@@ -262,22 +268,24 @@ def adopt(m: Matching, area: list[str], new: list[Landmark]) -> None:
             (p.vehicle[cand[f]], int(p.pass_id[cand[f]]), js)
             for f, js in zip(first.tolist(), members, strict=True)
         )
-        take = np.zeros(len(p), bool)
-        links: list[tuple[np.ndarray, np.ndarray, np.ndarray, str, int, float]] = []
         units = [u for u in units if live[u[2]].any()]
-        results = associate_units(
-            [UnitInput(local.take(js), x, cov, cls) for _v, _pid, js in units], m.config.gate
-        )
-        for (v, pid, js), res in zip(units, results, strict=True):
-            sel = cand[js]
+        offers.append((t, cand, local, units))
+        inputs += [UnitInput(local.take(js), x, cov, cls) for _v, _pid, js in units]
+    results = iter(associate_units(inputs, g))
+    for t, cand, local, units in offers:
+        p = m.state.pending[t]
+        take = np.zeros(len(p), bool)
+        for v, pid, js in units:
+            res = next(results)
             hit = res.landmark >= 0
-            if hit.any():
-                take[sel[hit]] = True
-                rec = float(p.received_at[sel[hit]].max())
-                links.append((sel[hit], js[hit], res.landmark[hit], v, pid, rec))
-        for sel, js, lmi, v, pid, rec in links:
-            link(m, p.obs.take(sel), [new[k] for k in lmi], v, pid, rec, (t, local.take(js)))
-            m.tally("adopted", len(sel))
+            if not hit.any():
+                continue
+            sel = cand[js]
+            take[sel[hit]] = True
+            rec = float(p.received_at[sel[hit]].max())
+            lms = [new[k] for k in res.landmark[hit]]
+            link(m, p.obs.take(sel[hit]), lms, v, pid, rec, (t, local.take(js[hit])))
+            m.tally("adopted", int(hit.sum()))
         m.state.drop_pending(t, take)
 
 

@@ -117,13 +117,36 @@ def _signature(applied: np.ndarray, cands: list[Landmark]) -> tuple[bytes, tuple
 def prepare_unit(m: Matching, tile: str, vehicle: str, pass_id: int, obs: Any) -> Prepared:
     """The unit of ``vehicle``'s pass ``pass_id`` in ``tile`` with rays ``obs`` (an
     observation table), ready to associate (reads the state, changes nothing)."""
-    frame = m.frames(tile)
-    obs, applied, invalid = _corrected(m, frame, obs, vehicle)
-    rays = to_local(frame, obs)
-    area = m.area(tile)
-    c = candidates(m, tile, pass_key(vehicle, pass_id))
-    unit_input = UnitInput(rays, c.x, c.cov, c.cls, c.facing) if c.lms else None
-    return Prepared(tile, vehicle, pass_id, obs, applied, invalid, rays, area, c.lms, unit_input)
+    (u,) = prepare_units(m, [(tile, vehicle, pass_id, obs)])
+    return u
+
+
+def prepare_units(m: Matching, units: list[tuple[str, str, int, Any]]) -> list[Prepared]:
+    """:func:`prepare_unit` of each (tile, vehicle, pass, rays), the rays of the units of
+    one tile converted into its frame in one call (a conversion's rows do not depend on
+    the rows converted with them: the rays each unit gets alone)."""
+    fixed = [_corrected(m, m.frames(t), obs, v) for t, v, _p, obs in units]
+    by_tile: dict[str, list[int]] = {}
+    for k, (t, *_rest) in enumerate(units):
+        by_tile.setdefault(t, []).append(k)
+    rays: dict[int, LocalRays] = {}
+    for t, ks in by_tile.items():
+        both = to_local(m.frames(t), type(fixed[ks[0]][0]).concat([fixed[k][0] for k in ks]))
+        start = 0
+        for k in ks:
+            n = len(fixed[k][0])
+            part = both.take(np.arange(start, start + n))
+            # a unit none of whose rays is tracked has no track column (as alone)
+            rays[k] = part if fixed[k][0].track.any() else replace(part, track=None)
+            start += n
+    out = []
+    for k, (t, v, pid, _obs) in enumerate(units):
+        obs, applied, invalid = fixed[k]
+        c = candidates(m, t, pass_key(v, pid))
+        unit_input = UnitInput(rays[k], c.x, c.cov, c.cls, c.facing) if c.lms else None
+        area = m.area(t)
+        out.append(Prepared(t, v, pid, obs, applied, invalid, rays[k], area, c.lms, unit_input))
+    return out
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,7 @@ from hdmap.mapping.unit import (
     associate_prepared,
     match_unit,
     prepare_unit,
+    prepare_units,
     signature,
 )
 from hdmap.runtime.config import ConfigError
@@ -54,6 +55,7 @@ from schemas import (
     ObsGroup,
     TrustChanges,
 )
+from services.matcher import held_links
 from services.matcher.state import MatcherState
 
 log = logging.getLogger(__name__)
@@ -189,6 +191,8 @@ class MatcherService(StageService):
         sums = LandmarkSums(self.config.estimator)
         self.state.load(sums.unpack_rows)
         self.matching.restart(sums)
+        row_of = {lid: lm.row for lid, lm in self.state.landmarks.items()}
+        self.matching.hold_again(held_links.load(self.db, row_of))
 
     def on_commit(self) -> None:
         """Nothing to do: memory already is what was committed."""
@@ -249,7 +253,8 @@ class MatcherService(StageService):
                 len(late),
                 max(late) - self.matching.now,
             )
-        self.state.save(self.sums.pack_rows)
+        held_links.save(self.db, *self.matching.held_to_save())
+        self.state.save(self.matching.sums_as_held.pack_rows)
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
 
@@ -303,10 +308,9 @@ class MatcherService(StageService):
             if tick_of(m, at, now) != tick:
                 break
             run.append(k)
-        units = [
-            prepare_unit(m, e.tile, g.vehicle_id, g.pass_id, g.obs)
-            for e, g in (decoded[k] for k in run)
-        ]
+        units = prepare_units(
+            m, [(e.tile, g.vehicle_id, g.pass_id, g.obs) for e, g in (decoded[k] for k in run)]
+        )
         return list(zip(run, zip(units, associate_prepared(m, units), strict=True), strict=True))
 
     # -- timers and stats -----------------------------------------------------------------------

@@ -25,6 +25,7 @@ from hdmap.mapping.trust import PassOffsets, VehicleTrust
 from hdmap.runtime.store import id_from_sql, id_to_sql, u64_to_i64
 from schemas import Observations
 from schemas.ids import pass_key
+from services.matcher import held_links
 
 _REC = Observations.CODEC.record_dtype
 
@@ -79,6 +80,7 @@ class MatcherState(LandmarkTable):
         super().__init__(Observations.empty)
         self._conn = conn
         conn.executescript(SCHEMA)
+        conn.executescript(held_links.SCHEMA)
 
     def next_id(self, home: str) -> int:
         """A new landmark id of ``home``; the tile's counter is written at once."""
