@@ -19,9 +19,10 @@ from hdmap.geo.tiles import in_region, quadkeys_of
 from hdmap.mapping.association import LocalRays, origin_cov, pair_chi2
 from hdmap.mapping.batch_association import UnitInput, associate_units
 from hdmap.mapping.initiation import propose, seeds_of
-from hdmap.mapping.landmarks import Landmark, PendingTile
+from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import create, link, local_rays, to_local
 from hdmap.mapping.matching import Matching
+from hdmap.mapping.pool import PendingTile
 from schemas.ids import pass_key
 
 NO_LANDMARK = "no_landmark_at_budget"

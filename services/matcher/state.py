@@ -20,7 +20,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hdmap.mapping.landmarks import Landmark, LandmarkTable, PassBudget, PendingTile
+from hdmap.mapping.landmarks import Landmark, LandmarkTable, PassBudget
+from hdmap.mapping.pool import PendingTile
 from hdmap.mapping.trust import PassOffsets, VehicleTrust
 from hdmap.runtime.store import id_from_sql, id_to_sql, u64_to_i64
 from schemas import Observations
