@@ -61,15 +61,20 @@ def vehicles_for(rate: float) -> int:
     return int(min(200, max(10, rate // 100)))
 
 
-def fleet_admission(workdir: Path, linger_s: float | None = None) -> dict[str, list[str]]:
+def fleet_admission(
+    workdir: Path, linger_s: float | None = None, publish_interval_s: float | None = None
+) -> dict[str, list[str]]:
     """``Stack(extra_service_args=...)`` for an ingest that admits the load generator's
     fleet at once: its vehicles are new in every run (a fresh run tag), and up to 200 of
     them start together, past ingest's default budget of new vehicles (50 at once). With
     ``linger_s``, the stage services' batches linger that long (``[NAME.batching]``;
-    None: their default)."""
+    None: their default); with ``publish_interval_s``, the publisher coalesces a tile's
+    changes that long (``[publisher] interval_s``)."""
     workdir.mkdir(parents=True, exist_ok=True)
     cfg = workdir / "stack.toml"
     text = "[ingest.rate_limit]\nnew_vehicle_burst = 1000.0\n"
+    if publish_interval_s is not None:
+        text += f"[publisher]\ninterval_s = {float(publish_interval_s)!r}\n"
     if linger_s is not None:
         for name in ("matcher", "solver", "publisher"):
             text += f"[{name}.batching]\nlinger_s = {float(linger_s)!r}\n"
@@ -360,6 +365,11 @@ def main() -> int:
         type=float,
         help="the stage services' batch linger (s; default: theirs, [NAME.batching] linger_s)",
     )
+    ap.add_argument(
+        "--publish-interval-s",
+        type=float,
+        help="the publisher's coalescing interval (s; default: its own, [publisher] interval_s)",
+    )
     ap.add_argument("--progress", action="store_true", help="live progress lines")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--data-dir", type=Path, help="keep the stack's state and logs here")
@@ -374,12 +384,13 @@ def main() -> int:
         "goal_obs_per_s": GOAL,
         "p99_max_s": P99_MAX_S,
         "linger_s": args.linger_s,
+        "publish_interval_s": args.publish_interval_s,
         "steps": [],
     }
     print(json.dumps(out["machine"]), "load average", out["load_average_start"], flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.data_dir or Path(tmp)
-        admit = fleet_admission(work, args.linger_s)
+        admit = fleet_admission(work, args.linger_s, args.publish_interval_s)
         with Stack(work / "stack", extra_service_args=admit) as st:
             st.start_all()
             payload, n = reference_payload(load_config(rates[0], seconds))

@@ -114,7 +114,7 @@ def initiate(
     where: list[tuple[str, np.ndarray]] = []  # (tile, rows of its pending pool)
     for t in area:
         p = m.state.pending.get(t)
-        if p is not None and (mine := np.flatnonzero(p.key == key)).size:
+        if p is not None and p.count_of(key) and (mine := np.flatnonzero(p.key == key)).size:
             where.append((t, mine))
     budget = m.state.passes.get(key)
     if budget is not None and budget.quarantined:
