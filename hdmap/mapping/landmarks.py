@@ -2,9 +2,9 @@
 trust records and co-visibility counts, with marks of what changed since the last save.
 
 Landmarks are a dict of :class:`Landmark` records by id (indexed by tile); the pending
-pool is one columnar :class:`~hdmap.mapping.pool.PendingTile` per tile; the passes that outgrew their pending
-budget have a :class:`PassBudget` record. Persistence is not here: the service's store
-writes what the marks name and rebuilds the table from its database.
+pool is one columnar :class:`~hdmap.mapping.pool.PendingTile` per tile; the passes that
+outgrew their pending budget have a :class:`PassBudget` record. Persistence is not here:
+the service's store writes what the marks name and rebuilds the table from its database.
 """
 
 from __future__ import annotations

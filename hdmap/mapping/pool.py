@@ -16,14 +16,15 @@ from schemas.ids import pass_key
 class PendingTile:
     """Rays routed to one tile that wait for a landmark (columnar).
 
-    Columns: ``obs`` (the rays, an :class:`~hdmap.mapping.landmarks.ObsRows` table), ``vehicle`` (an object array of
-    vehicle ids), ``pass_id``, ``added_at`` (event time the pending TTL is counted from),
-    ``received_at`` (ingest receipt, latency tracing), ``key`` (:func:`pass_key` of each
-    ray's (vehicle, pass): vectorised selection of a pass), ``tried`` (the ray has been a
-    seed of an initiation attempt, :func:`hdmap.mapping.pending.initiate`; every ray is
-    offered as a seed in the unit that pools it or at the end of its gating tick, and rows
-    given without it are tried: a store passes the untried ones of the current tick) and
-    ``saved`` (the ray is in storage; rows given without it: saved).
+    Columns: ``obs`` (the rays, an :class:`~hdmap.mapping.landmarks.ObsRows` table),
+    ``vehicle`` (an object array of vehicle ids), ``pass_id``, ``added_at`` (event time the
+    pending TTL is counted from), ``received_at`` (ingest receipt, latency tracing), ``key``
+    (:func:`pass_key` of each ray's (vehicle, pass): vectorised selection of a pass),
+    ``tried`` (the ray has been a seed of an initiation attempt,
+    :func:`hdmap.mapping.pending.initiate`; every ray is offered as a seed in the unit that
+    pools it or at the end of its gating tick, and rows given without it are tried: a store
+    passes the untried ones of the current tick) and ``saved`` (the ray is in storage; rows
+    given without it: saved).
 
     Appending is O(rows appended): :meth:`add` queues its rows, and the columns are
     concatenated once, when one is next read (a gating tick's uploads add to a tile's pool
