@@ -105,7 +105,8 @@ def initiate(
     re-run finds, without the re-run's O(P^2) per upload in the pass's pending rays P.
 
     Counted: ``init_rays`` (rays handed to :func:`~hdmap.mapping.initiation.propose`),
-    ``init_seeds`` (seeds it grew from), ``init_new_seeds_only`` (classes seeded from the
+    ``init_seeds`` (seeds it grew from), ``init_too_few`` (attempts with too few rays of
+    every untried class: nothing gathered), ``init_new_seeds_only`` (classes seeded from the
     new rays only), ``init_skipped_quarantined`` (attempts a
     quarantined pass did not get), ``passes_quarantined`` (and by reason)."""
     if classes is not None and classes.size == 0:
@@ -126,13 +127,19 @@ def initiate(
         return set()
     frame = m.frames(tile)
     pools = [(m.state.pending[t], i) for t, i in where]
-    obs = type(pools[0][0].obs).concat([p.obs.take(i) for p, i in pools])
-    received = max(float(p.received_at[i].max()) for p, i in pools)
+    sign_class = np.concatenate([p.obs.sign_class[i] for p, i in pools]).astype(np.int64)
     fresh = np.concatenate([~p.tried[i] for p, i in pools])
     if classes is None:
-        classes = np.unique(obs.sign_class[fresh])
+        classes = np.unique(sign_class[fresh])
     for t, i in where:
         m.state.mark_tried(t, i)  # every one of them is a seed now, or was before
+    have, count = np.unique(sign_class, return_counts=True)
+    enough = have[count >= m.config.init.min_rays]  # fewer rays: propose makes nothing
+    if np.intersect1d(enough, classes).size == 0:
+        m.tally("init_too_few", 1)
+        return set()  # nothing to try: no ray gathered or converted
+    obs = type(pools[0][0].obs).concat([p.obs.take(i) for p, i in pools])
+    received = max(float(p.received_at[i].max()) for p, i in pools)
     # the tile's own pool rows from its kept conversions, the neighbours' converted here
     parts = [
         pool_rays(m, t, i) if t == tile else to_local(frame, p.obs.take(i))
@@ -146,8 +153,6 @@ def initiate(
     created: set[int] = set()
     attempted = False
     used = np.zeros(len(rays), bool)
-    have, count = np.unique(rays.sign_class, return_counts=True)
-    enough = have[count >= m.config.init.min_rays]  # fewer rays: propose makes nothing
     for cls in np.intersect1d(enough, classes):
         idx = np.flatnonzero(rays.sign_class == cls)
         sub = rays.take(idx)
