@@ -258,15 +258,21 @@ def snapshots(session, tiles: list[str]) -> tuple[Landmarks, dict[str, int]]:
 
 
 def persisted_rays(stack: Stack, service: str) -> int:
-    """Rays in the landmark sums a service has committed: what it restarts from."""
+    """Rays in the landmark sums a service has committed, with the matcher's links held for
+    its gating sums until its tick ends (services/matcher/held_links.py): what it restarts
+    from."""
     conn = connect(stack.data_dir / f"{service}-all" / "state.sqlite", readonly=True)
     try:
         blobs = [r[0] for r in conn.execute("SELECT sums FROM landmarks")]
+        held = 0
+        if service == "matcher":
+            held = conn.execute("SELECT COALESCE(SUM(n), 0) FROM held_links").fetchone()[0]
     finally:
         conn.close()
     sums = LandmarkSums(EstimatorConfig())
     rows = sums.unpack_rows(blobs)
-    return int(np.sum(sums.solve(rows, update_reference=False).n_obs)) if blobs else 0
+    summed = int(np.sum(sums.solve(rows, update_reference=False).n_obs)) if blobs else 0
+    return summed + int(held)
 
 
 def drive(stack: Stack, tmp: Path, fault: Fault | None = None) -> Run:
