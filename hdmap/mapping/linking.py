@@ -110,11 +110,12 @@ def link(
             here = to_local(m.frames(home), sub)
         rows = np.array([lms[k].row for k in idx], np.int64)
         rays = to_rays(here, np.full(len(idx), gating) if gating < 1.0 else None)
-        ids = np.array([lms[k].id for k in idx], np.uint64)
+        _, first, inv = np.unique(rows, return_index=True, return_inverse=True)
+        first_ids = [lms[idx[f]].id for f in first.tolist()]
+        ids = np.array(first_ids, np.uint64)[inv.reshape(-1)]
         m.hold_link((rows, np.full(len(idx), key, np.int64), rays, hold[sel]), ids)
-        m.state.mark_changed(ids.tolist())  # its row's sums change
-        _, first = np.unique(rows, return_index=True)
-        m.quiet.note(key, [(lms[idx[f]].id, lms[idx[f]].row) for f in first])
+        m.state.mark_changed(first_ids)  # their rows' sums change
+        m.quiet.note(key, list(zip(first_ids, rows[first].tolist(), strict=True)))
         out = m.out[home]
         vi = out.vehicle_index(vehicle)
         out.links += [(lms[k].id, vi, pass_id) for k in idx]

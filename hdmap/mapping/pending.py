@@ -115,8 +115,8 @@ def initiate(
     where: list[tuple[str, np.ndarray]] = []  # (tile, rows of its pending pool)
     for t in area:
         p = m.state.pending.get(t)
-        if p is not None and p.count_of(key) and (mine := np.flatnonzero(p.key == key)).size:
-            where.append((t, mine))
+        if p is not None and p.count_of(key):
+            where.append((t, np.flatnonzero(p.key == key)))
     budget = m.state.passes.get(key)
     if budget is not None and budget.quarantined:
         m.tally("init_skipped_quarantined", 1)

@@ -93,32 +93,22 @@ class PendingTile:
         """Concatenate the queued rows onto the columns (once for all of them)."""
         tail, self._tail = self._tail, []
         sizes = [len(t[0]) for t in tail]
+
+        def per_row(i: int, dtype: Any) -> NDArray[Any]:
+            """Field ``i`` of each queued pass, repeated for each of its rows."""
+            return np.repeat(np.array([t[i] for t in tail], dtype=dtype), sizes)
+
         self._obs = type(tail[0][0]).concat([self._obs, *(t[0] for t in tail)])
-        self._vehicle = np.concatenate(
-            [
-                self._vehicle,
-                *(np.full(k, t[1], dtype=object) for t, k in zip(tail, sizes, strict=True)),
-            ]
-        )
-        self._pass_id = np.concatenate(
-            [self._pass_id, *(np.full(k, t[2], np.int64) for t, k in zip(tail, sizes, strict=True))]
-        )
+        self._vehicle = np.concatenate([self._vehicle, per_row(1, object)])
+        self._pass_id = np.concatenate([self._pass_id, per_row(2, np.int64)])
         self._added_at = np.concatenate([self._added_at, *(t[3] for t in tail)])
-        self._received_at = np.concatenate(
-            [self._received_at, *(np.full(k, t[4]) for t, k in zip(tail, sizes, strict=True))]
-        )
-        self._key = np.concatenate(
-            [self._key, *(np.full(k, t[5], np.int64) for t, k in zip(tail, sizes, strict=True))]
-        )
-        self._local = np.concatenate(
-            [
-                self._local,
-                *(
-                    np.full((k, 6), np.nan) if t[6] is None else t[6]
-                    for t, k in zip(tail, sizes, strict=True)
-                ),
-            ]
-        )
+        self._received_at = np.concatenate([self._received_at, per_row(4, float)])
+        self._key = np.concatenate([self._key, per_row(5, np.int64)])
+        local = [
+            np.full((k, 6), np.nan) if t[6] is None else t[6]
+            for t, k in zip(tail, sizes, strict=True)
+        ]
+        self._local = np.concatenate([self._local, *local])
         total = sum(sizes)
         self._tried = np.concatenate([self._tried, np.zeros(total, bool)])
         self._saved = np.concatenate([self._saved, np.zeros(total, bool)])

@@ -164,15 +164,10 @@ def associate_prepared(m: Matching, units: list[Prepared]) -> list[Checked | Non
     """The associations of ``units``, group-checked (None where a unit has no candidate),
     computed together (:func:`hdmap.mapping.batch_association.associate_units`,
     :func:`group_checks`: each as alone)."""
-    todo = [u for u in units if u.input is not None]
-    results = associate_units([u.input for u in todo if u.input is not None], m.config.gate)
+    todo = [(u.rays, u.input) for u in units if u.input is not None]
+    results = associate_units([i for _r, i in todo], m.config.gate)
     checks = group_checks(
-        m,
-        [
-            (u.rays, r, u.input.x, u.input.cov)
-            for u, r in zip(todo, results, strict=True)
-            if u.input is not None
-        ],
+        m, [(rays, r, i.x, i.cov) for (rays, i), r in zip(todo, results, strict=True)]
     )
     done = iter(Checked(r, o, k) for r, (o, k) in zip(results, checks, strict=True))
     return [None if u.input is None else next(done) for u in units]
