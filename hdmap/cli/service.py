@@ -12,6 +12,7 @@ from typing import Any
 from hdmap.cli.common import add_bus_arguments, bus_from_args, setup_logging
 from hdmap.geo.tiles import DEFAULT_ZOOM, valid_quadkey
 from hdmap.runtime.config import EXIT_CONFIG, ConfigError, from_mapping, load_toml
+from hdmap.runtime.gaps import GapPolicy
 from hdmap.runtime.service import Batching, ServiceOptions, run_until_signalled
 
 log = logging.getLogger(__name__)
@@ -54,8 +55,14 @@ def service_config(name: str, table: Mapping[str, Any]) -> tuple[Batching, Any]:
     config; a bad key or value is a :class:`ConfigError` naming it."""
     own = dict(table)
     batching = from_mapping(Batching, own.pop("batching", {}), f"{name}.batching")
+    own.pop("gaps", None)  # the runtime's too: gap_policy
     module, _cls, cfg_name = SERVICES[name]
     return batching, from_mapping(getattr(importlib.import_module(module), cfg_name), own, name)
+
+
+def gap_policy(name: str, table: Mapping[str, Any]) -> GapPolicy:
+    """The ``[NAME.gaps]`` subtable of a service's table (:class:`GapPolicy`)."""
+    return from_mapping(GapPolicy, table.get("gaps", {}), f"{name}.gaps")
 
 
 def build(args: argparse.Namespace):
@@ -67,6 +74,7 @@ def build(args: argparse.Namespace):
     batching, config = service_config(args.name, table)
     opts = ServiceOptions(
         batching=batching,
+        gaps=gap_policy(args.name, table),
         region=tuple(args.region),
         data_dir=Path(args.data_dir),
         bus=bus_from_args(args),

@@ -37,9 +37,32 @@ def run(args: argparse.Namespace) -> int:
     for s in stats:
         region = ",".join(s.region) or "all"
         print(f"{s.service:<10} {s.instance:<40} region={region}")
+        for line in attention(s.counters):
+            print(f"  ! {line}")
         for k in sorted(s.counters):
             v = s.counters[k]
             print(f"    {k:<22} {v:.3f}" if isinstance(v, float) else f"    {k:<22} {v}")
         for reason, n in sorted(s.rejected.items()):
             print(f"    rejected[{reason}] {n}")
     return 0
+
+
+def attention(c: dict[str, float]) -> list[str]:
+    """What an operator should look at in a service's counters (gaps in its input log).
+
+    >>> for line in attention({"gaps_open": 1, "gap_oldest_s": 12.5, "entries_ahead": 3}):
+    ...     print(line)
+    gap in the input log open for 12.5 s (3 entries waiting behind it)
+    """
+    out = []
+    if c.get("gaps_open", 0):
+        out.append(
+            f"gap in the input log open for {c.get('gap_oldest_s', 0):.1f} s "
+            f"({int(c.get('entries_ahead', 0))} entries waiting behind it)"
+        )
+    if c.get("gaps_expired", 0):
+        out.append(
+            f"{int(c['gaps_expired'])} gaps not filled in time (their waiting entries were "
+            "dropped and asked for again)"
+        )
+    return out

@@ -52,6 +52,7 @@ import zenoh
 from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
 from hdmap.runtime.config import ConfigError
+from hdmap.runtime.gaps import GapPolicy
 from hdmap.runtime.store import (
     EXIT_CORRUPT,
     EXIT_RESTART,
@@ -137,6 +138,7 @@ class ServiceOptions:
     catchup_interval_s: float = 5.0
     inbox_size: int = 4096
     batching: Batching = field(default_factory=Batching)
+    gaps: GapPolicy = field(default_factory=GapPolicy)
 
 
 @dataclass

@@ -6,7 +6,10 @@ publisher:
 1. live entries arrive on the input stage key for the region; the consumer puts
    them in order, drops duplicates and notices gaps;
 2. on start, on a gap, when an upstream producer appears, and every
-   ``catchup_interval_s``, the consumer replays what it is missing;
+   ``catchup_interval_s``, the consumer replays what it is missing; the producers'
+   answers are waited for on a thread of their own (:mod:`hdmap.runtime.catchup`), so
+   live entries keep flowing meanwhile, and a gap nobody fills is retried with backoff
+   and given up after a while (:class:`~hdmap.runtime.stream.GapPolicy`);
 3. ``apply(entries)`` runs inside one SQLite transaction together with the
    offsets of those entries and the output entries it appends;
 4. after the commit, the output entries are published live.
@@ -34,6 +37,7 @@ from itertools import pairwise
 
 import zenoh
 
+from hdmap.runtime.catchup import BackgroundCatchUp, Fetch, bus_fetch
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.store import DatabaseCorrupt, StorageError
 from hdmap.runtime.stream import STAGE_KEYS, LogConsumer, LogServer, LogWriter
@@ -53,7 +57,11 @@ class StageService(Service):
 
     def __init__(self, opts: ServiceOptions):
         super().__init__(opts)
-        self.consumer = LogConsumer(self.db, self.input_stage, self.region)
+        self.consumer = LogConsumer(
+            self.db, self.input_stage, self.region, opts.gaps, lambda: self.clock()
+        )
+        self.catchups: BackgroundCatchUp | None = None
+        """Set up with the session (:meth:`setup`), or by a test with its own fetch."""
         self.writer = (
             LogWriter(self.db, self.output_stage, self.instance) if self.output_stage else None
         )
@@ -105,9 +113,23 @@ class StageService(Service):
                 )
             )
         self.every(self.opts.catchup_interval_s, lambda _now: self._mark_catchup())
+        self.use_fetch(bus_fetch(self.session))
         self.inbox.put(Item("kick", "", b""))
 
+    def use_fetch(self, fetch_round: Fetch, executor=None) -> None:
+        """Catch up with ``fetch_round`` (the bus, or a test's log) on ``executor``."""
+        if self.catchups is not None:
+            self.catchups.close()
+        self.catchups = BackgroundCatchUp(self.consumer, fetch_round, self._kick, executor=executor)
+
+    def _kick(self) -> None:
+        """Wake the worker (a catch-up round's answers are in); a full inbox wakes it too."""
+        with contextlib.suppress(queue.Full):
+            self.inbox.put_nowait(Item("kick", "", b""))
+
     def teardown(self) -> None:
+        if self.catchups is not None:
+            self.catchups.close()
         if self._log_server is not None:
             self._log_server.close()
 
@@ -160,12 +182,22 @@ class StageService(Service):
         self.handle([])
 
     def _deliver(self, deliver: list[LogEntry]) -> None:
-        """Catch up if needed, then apply what is not applied yet."""
-        if self.consumer.need_catchup:
-            try:
-                deliver += self.consumer.catch_up(self.session)
-            except zenoh.ZError as exc:
-                log.warning("catch-up failed: %s", exc)
+        """Take in the catch-up rounds that are done (and start the next that is due),
+        give up gaps open too long, then apply what is not applied yet."""
+        now = self.clock()
+        if self.catchups is not None:
+            deliver += self.catchups.poll(now)
+        for producer, tile, last, first in self.consumer.expire_gaps(now):
+            log.warning(
+                "%s: gap in %s/%s not filled in %g s (applied up to %d, waiting from %d); "
+                "the waiting entries are dropped and the log asked again later",
+                self.name,
+                producer,
+                tile,
+                self.consumer.policy.timeout_s,
+                last,
+                first,
+            )
         deliver = self._unapplied(in_producer_order(deliver))
         if deliver:
             self._apply_and_publish(deliver)
@@ -264,6 +296,11 @@ class StageService(Service):
             "entries_gap": s.gaps,
             "entries_replayed": s.replayed,
             "catchups": s.catchups,
+            "gaps_open": len(self.consumer._opened),
+            "gap_oldest_s": self.consumer.oldest_gap_s(),
+            "gaps_expired": s.gaps_expired,
+            "entries_ahead": self.consumer.ahead_entries,
+            "entries_ahead_dropped": s.ahead_dropped,
             "entries_deferred": self._deferred,
             "inbox_overflows": self._dropped_batches,
         }

@@ -15,6 +15,13 @@ the last ``seq`` it applied per (producer, tile). It therefore
   by querying the producers' replay queryables (``hdmap/v1/log/<stage>/*/<region>``)
   with its offsets; replayed entries are applied in ``gseq`` order.
 
+Gaps are bounded (:class:`GapPolicy`): at most ``max_ahead`` entries wait behind gaps
+(more are dropped: the producer's log still has them); a gap the catch-up did not fill is
+tried again after ``retry_s``, doubling, not at every batch; one still open after
+``timeout_s`` is reported (counted, logged) and its waiting entries dropped, so that an
+entry no producer wrote (a forged one far ahead) cannot hold anything up for long. The
+buffer only saves a replay: what it drops is fetched again from the producer's log.
+
 So nothing committed upstream is lost (it is in the producer's log until the
 consumer has it) and nothing is applied twice (offsets commit with the effects).
 """
@@ -33,6 +40,7 @@ import zenoh
 
 from hdmap.geo.tiles import in_region
 from hdmap.runtime.bus import query
+from hdmap.runtime.gaps import GapPolicy
 from hdmap.runtime.queries import QueryServer
 from schemas import DecodeError, ErrorReply, LogEntry, LogHead, LogQuery, decode_replay, keys
 
@@ -159,6 +167,10 @@ class ConsumerStats:
     gaps: int = 0
     replayed: int = 0
     catchups: int = 0
+    ahead_dropped: int = 0
+    """Live entries not held behind a gap (the buffer was full); replayed later."""
+    gaps_expired: int = 0
+    """Gaps not filled within ``GapPolicy.timeout_s`` (their waiting entries dropped)."""
 
 
 LAG_CAP = 1_000_000
@@ -193,10 +205,28 @@ class LogConsumer:
         PRIMARY KEY (stage, producer)) WITHOUT ROWID;
     """
 
-    def __init__(self, conn: sqlite3.Connection, stage: str, prefixes: Sequence[str]):
+    def __init__(
+        self,
+        conn: sqlite3.Connection,
+        stage: str,
+        prefixes: Sequence[str],
+        gaps: GapPolicy | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.stage = stage
         self.prefixes = list(prefixes)
+        self.policy = gaps or GapPolicy()
+        self.clock = clock
         self._conn = conn
+        self._opened: dict[tuple[str, str], float] = {}
+        """When each gap with entries waiting behind it opened (the consumer's clock)."""
+        self._tries = 0
+        """Catch-ups in a row that left a gap open (the retry delay doubles with them)."""
+        self._retry_at: float | None = None
+        self.more = False
+        """The last catch-up round was cut short (``limit``): the next round is due now."""
+        self.generation = 0
+        """Bumped by every rewind: a catch-up asked before it is stale."""
         conn.executescript(self.SCHEMA)
         self._committed: dict[tuple[str, str], int] = {}
         self._committed_wm: dict[str, int] = {}
@@ -224,9 +254,12 @@ class LogConsumer:
         """producer -> tile -> (delivered seq, its gseq) for deliveries past the watermark."""
         self._uncommitted: set[tuple[str, str]] = set()
         self._ahead.clear()
+        self._opened.clear()
         self._pending_commit = {}
         self._pending_wm = {}
         self.need_catchup = True
+        self.more = False
+        self.generation += 1
 
     # -- delivery ---------------------------------------------------------------------
 
@@ -243,9 +276,7 @@ class LogConsumer:
             self._note(entry, last)
             return []
         if entry.seq > last + 1:
-            self._ahead[k][entry.seq] = entry
-            self.stats.gaps += 1
-            self.need_catchup = True
+            self._hold(k, entry)
             return []
         out = [entry]
         buf = self._ahead.get(k)
@@ -253,9 +284,74 @@ class LogConsumer:
             out.append(nxt)
         if buf is not None and not buf:
             del self._ahead[k]
+            self._opened.pop(k, None)
         self._delivered[k] = out[-1].seq
         self._uncommitted.add(k)
         self._note(out[-1], out[-1].seq)
+        return out
+
+    def _hold(self, k: tuple[str, str], entry: LogEntry) -> None:
+        """Keep a live entry behind its tile's gap (if the buffer has room); a new gap asks
+        for a catch-up at once."""
+        self.stats.gaps += 1
+        if self.ahead_entries >= self.policy.max_ahead:
+            self.stats.ahead_dropped += 1
+            self.need_catchup = True
+            return
+        if k not in self._opened:
+            self._opened[k] = self.clock()
+            self.need_catchup = True
+        self._ahead[k][entry.seq] = entry
+
+    @property
+    def ahead_entries(self) -> int:
+        """Live entries waiting behind gaps."""
+        return sum(len(b) for b in self._ahead.values())
+
+    def oldest_gap_s(self, now: float | None = None) -> float:
+        """Seconds the oldest open gap has been open (0: none)."""
+        if not self._opened:
+            return 0.0
+        return max(0.0, (self.clock() if now is None else now) - min(self._opened.values()))
+
+    def wants_catchup(self, now: float) -> bool:
+        """Whether a catch-up is due at ``now``: asked for (start, a new gap, a producer
+        appearing, the periodic timer, a rollback), the rest of a cut-short one, or the
+        retry of a gap the last one left open."""
+        if self.need_catchup or self.more:
+            return True
+        return bool(self._ahead) and self._retry_at is not None and now >= self._retry_at
+
+    def begin_catchup(self) -> None:
+        """A catch-up starts: what asked for it is served by it."""
+        self.stats.catchups += 1
+        self.need_catchup = False
+
+    def end_round(self, complete: bool, now: float) -> None:
+        """A catch-up round was absorbed: another at once if it was cut short; a gap still
+        open is tried again after the policy's delay (doubling), not at every batch."""
+        self.more = not complete
+        if self.more:
+            return
+        if not self._ahead:
+            self._tries, self._retry_at = 0, None
+            return
+        delay = min(self.policy.retry_max_s, self.policy.retry_s * 2.0**self._tries)
+        self._tries += 1
+        self._retry_at = now + delay
+
+    def expire_gaps(self, now: float) -> list[tuple[str, str, int, int]]:
+        """Drop the entries waiting behind gaps open ``timeout_s`` or longer: each such gap
+        as (producer, tile, last delivered seq, first waiting seq)."""
+        out = []
+        for k, t0 in list(self._opened.items()):
+            if now - t0 < self.policy.timeout_s:
+                continue
+            buf = self._ahead.pop(k, {})
+            del self._opened[k]
+            self._seen[k] = self._delivered.get(k, 0)  # a forged seq claims no lag
+            out.append((k[0], k[1], self._delivered.get(k, 0), min(buf, default=0)))
+            self.stats.gaps_expired += 1
         return out
 
     def _note(self, entry: LogEntry, delivered: int) -> None:
@@ -330,21 +426,15 @@ class LogConsumer:
 
         Bounded: at most ``max_rounds`` queries of ``limit`` entries per producer.
         """
-        self.stats.catchups += 1
+        self.begin_catchup()
         out: list[LogEntry] = []
         for _ in range(max_rounds):
-            req = self.query(limit).to_bytes()
-            replies = [
-                ok
-                for sel in self.selector()
-                for _key, ok, _err in query(session, sel, req, timeout=timeout)
-                if ok is not None
-            ]
+            replies = fetch(session, self.selector(), self.query(limit).to_bytes(), timeout)
             delivered, complete = self.absorb(replies)
             out += delivered
+            self.end_round(complete, self.clock())
             if complete:
                 break
-        self.need_catchup = any(self._ahead.values())
         return out
 
     def absorb(self, replies: Iterable[bytes]) -> tuple[list[LogEntry], bool]:
@@ -411,6 +501,18 @@ class LogConsumer:
     def watermarks(self) -> dict[str, int]:
         """Committed watermarks per producer."""
         return dict(self._committed_wm)
+
+
+def fetch(
+    session: zenoh.Session, selectors: list[str], request: bytes, timeout: float
+) -> list[bytes]:
+    """One catch-up round: the producers' replies to ``request`` (error replies dropped)."""
+    return [
+        ok
+        for sel in selectors
+        for _key, ok, _err in query(session, sel, request, timeout=timeout)
+        if ok is not None
+    ]
 
 
 def rows_per_tile(conn: sqlite3.Connection, req: LogQuery, producer: str) -> list[Row]:

@@ -28,6 +28,7 @@ import pytest
 from fleetsim.synthetic import make_observations
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session, query
+from hdmap.runtime.catchup import InlineExecutor
 from hdmap.runtime.service import Item, ServiceOptions
 from hdmap.runtime.stage import StageService
 from hdmap.runtime.store import EXIT_RESTART, StorageError, connect, transaction
@@ -226,16 +227,12 @@ class Recorder(StageService):
         )
         self.log = log
         self.session = None  # never opened: the replay below stands in for the bus
-        self.consumer.catch_up = self._replay  # the producers' replay, served from ``log``
+        self.use_fetch(self._replay, executor=InlineExecutor())  # the producers' replay
         self.consumer.need_catchup = False
 
-    def _replay(self, _session, **_kw) -> list[LogEntry]:
-        self.consumer.stats.catchups += 1
-        out: list[LogEntry] = []
-        for e in sorted(self.log, key=lambda e: e.gseq):
-            out += self.consumer.offer(e)
-        self.consumer.need_catchup = False
-        return out
+    def _replay(self, _selectors, _request) -> list[bytes]:
+        """The producer's whole log, as its replay queryable would answer (no head)."""
+        return [e.to_bytes() for e in sorted(self.log, key=lambda e: e.gseq)]
 
     def apply(self, entries: list[LogEntry]) -> None:
         for e in entries:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from hdmap.runtime.catchup import InlineExecutor
 from hdmap.runtime.service import Backoff, Item, Service, ServiceOptions, run_until_signalled
 from hdmap.runtime.stage import StageService
 from hdmap.runtime.store import EXIT_CORRUPT, DatabaseCorrupt, StorageError, connect
@@ -52,17 +53,14 @@ class Counted(StageService):
         self.pad = pad
         self.pubs = Sink()  # type: ignore[assignment]
         self.session = None  # type: ignore[assignment]  # no bus: the replay below
-        self.consumer.catch_up = self._replay  # type: ignore[method-assign]
+        self.use_fetch(self._replay, executor=InlineExecutor())
         self.during: Callable[[], None] = lambda: None
         self.attempts: list[float] = []
         self.clock = Clock()
 
-    def _replay(self, _session: object, **_kw: object) -> list[LogEntry]:
-        out: list[LogEntry] = []
-        for e in sorted(self.published, key=lambda e: e.gseq):
-            out += self.consumer.offer(e)
-        self.consumer.need_catchup = False
-        return out
+    def _replay(self, _selectors: list[str], _request: bytes) -> list[bytes]:
+        """The producer's whole log, as its replay queryable would answer (no head)."""
+        return [e.to_bytes() for e in sorted(self.published, key=lambda e: e.gseq)]
 
     def _apply_in_transaction(self, entries: list[LogEntry]) -> None:
         self.attempts.append(self.clock())

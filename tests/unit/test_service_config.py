@@ -50,3 +50,17 @@ def test_deploy_file_batching_is_each_service_s_default() -> None:
         module, cls, _c = SERVICES[name]
         own = getattr(importlib.import_module(module), cls).batch_linger_s
         assert batching == Batching(linger_s=own), name
+
+
+def test_deploy_file_gaps_are_the_defaults_and_a_bad_one_names_its_key() -> None:
+    from hdmap.cli.service import gap_policy
+    from hdmap.runtime.gaps import GapPolicy
+
+    with open(ROOT / "deploy" / "services.toml", "rb") as f:
+        table = tomllib.load(f)
+    assert gap_policy("matcher", table["matcher"]) == GapPolicy()
+    assert gap_policy("solver", table["solver"]) == GapPolicy()  # no table: the defaults
+    with pytest.raises(ConfigError, match=r"matcher\.gaps\.timeout_s"):
+        gap_policy("matcher", {"gaps": {"timeout_s": "soon"}})
+    with pytest.raises(ConfigError, match=r"gaps\.timeout_s: seconds"):
+        gap_policy("matcher", {"gaps": {"timeout_s": -1.0}})
