@@ -2,7 +2,7 @@
 the watermark.
 
 A consumer catches up every few seconds (and on every gap). This script runs a real
-router, a producer's replay queryable (:class:`hdmap.runtime.stream.LogServer`) over a
+router, a producer's replay queryable (:class:`hdmap.runtime.log_out.LogServer`) over a
 log of one entry in each of N tiles, and a consumer that has applied all of them; then
 ten new entries are written and, side by side in one run, fetched with:
 
@@ -30,8 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import machine, machine_line, write_json
 from hdmap.ops.stack import Stack
 from hdmap.runtime.bus import open_session, query
+from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.store import connect, transaction
-from hdmap.runtime.stream import LogConsumer, LogServer, LogWriter
+from hdmap.runtime.stream import LogConsumer
 from schemas import LogEntry, LogQuery
 
 PRODUCER = "ingest-bench"

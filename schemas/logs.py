@@ -50,6 +50,16 @@ class LogEntry(Message):
     ``seq`` counts this producer's entries for this tile (1, 2, ...: a consumer
     seeing a gap catches up); ``gseq`` counts all of this producer's entries, so
     replayed entries can be applied in their original order.
+
+    ``epoch`` names the producer's run that wrote the entry (a new one at every start,
+    larger than any before it in the producer's database), ``base`` is the tile's last
+    ``seq`` and ``gbase`` the producer's last ``gseq`` when that run began. A producer
+    restored from an old backup numbers its new entries with ``seq`` values its consumers
+    already applied (from the lost run): a consumer that meets a newer epoch whose
+    ``base`` is below what it applied of the tile resynchronises the tile to ``base``, and
+    one whose last entry of the producer is past ``gbase`` asks again from there
+    (:class:`hdmap.runtime.stream.LogConsumer`).
+    Optional on the wire (absent = 0: a producer from before epochs).
     """
 
     TYPE: ClassVar[str] = "log_entry"
@@ -59,9 +69,13 @@ class LogEntry(Message):
     seq: int
     gseq: int
     body: bytes
+    epoch: int = 0
+    base: int = 0
+    gbase: int = 0
+    """The producer's ``gseq`` when the entry's run began."""
 
     def _encode(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "stage": self.stage,
             "producer": self.producer,
             "tile": self.tile,
@@ -69,19 +83,40 @@ class LogEntry(Message):
             "gseq": int(self.gseq),
             "body": self.body,
         }
+        if self.epoch:
+            out["epoch"], out["base"] = int(self.epoch), int(self.base)
+            out["gbase"] = int(self.gbase)
+        return out
 
     @classmethod
     def from_bytes(cls, data: bytes) -> LogEntry:
         m = cls._open(data)
+        seq = get_int(m, "seq", 1)
+        epoch = get_int(m, "epoch", 0, 2**63 - 1) if "epoch" in m else 0
+        base = get_int(m, "base", 0, seq - 1) if "base" in m else 0
+        gseq = get_int(m, "gseq", 1)
+        gbase = get_int(m, "gbase", 0, gseq - 1) if "gbase" in m else 0
         return cls(
             stage=get_str(m, "stage", _STAGE_RE, _STAGE),
             producer=get_str(m, "producer"),
             tile=get_str(m, "tile", TILE_RE, TILE_TEXT),
-            seq=get_int(m, "seq", 1),
-            gseq=get_int(m, "gseq", 1),
+            seq=seq,
+            gseq=gseq,
             body=get_bytes(m, "body"),
+            epoch=epoch,
+            base=base,
+            gbase=gbase,
         )
 
+    @property
+    def order(self) -> tuple[int, int]:
+        """Where the entry stands in its producer's writing: ``(epoch, gseq)`` (a restored
+        producer's ``gseq`` restarts below its lost run's; its epoch is newer)."""
+        return (self.epoch, self.gseq)
+
+
+MAX_EPOCHS = 64
+"""A producer's latest runs a :class:`LogHead` lists."""
 
 MAX_LISTED_TILES = 100_000
 """Tiles a :class:`LogQuery` may list over all producers."""
@@ -187,23 +222,41 @@ class LogHead(Message):
     producer: str
     through: int
     head: int
+    epochs: list[tuple[int, int]] = field(default_factory=list)
+    """The producer's latest runs, oldest first: (epoch, ``gseq`` when it began). A
+    consumer whose watermark is past the start of the first epoch newer than any it has
+    seen met a restored producer (see :class:`LogEntry`). Optional (absent: none)."""
 
     def _encode(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "stage": self.stage,
             "producer": self.producer,
             "through": int(self.through),
             "head": int(self.head),
         }
+        if self.epochs:
+            out["epochs"] = [[int(e), int(g)] for e, g in self.epochs]
+        return out
 
     @classmethod
     def from_bytes(cls, data: bytes) -> LogHead:
         m = cls._open(data)
+        epochs = []
+        for i, pair in enumerate(get_list(m, "epochs", MAX_EPOCHS) if "epochs" in m else []):
+            if (
+                not isinstance(pair, list)
+                or len(pair) != 2
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in pair)
+                or not all(0 <= v < 2**63 for v in pair)
+            ):
+                raise DecodeError("epochs", "expected [epoch, gseq] pairs of non-negative ints", i)
+            epochs.append((pair[0], pair[1]))
         return cls(
             stage=get_str(m, "stage", _STAGE_RE, _STAGE),
             producer=get_str(m, "producer"),
             through=get_int(m, "through", 0, 2**63 - 1),
             head=get_int(m, "head", 0, 2**63 - 1),
+            epochs=epochs,
         )
 
     @property

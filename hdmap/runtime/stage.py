@@ -38,9 +38,10 @@ from itertools import pairwise
 import zenoh
 
 from hdmap.runtime.catchup import BackgroundCatchUp, Fetch, bus_fetch
+from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.store import DatabaseCorrupt, StorageError
-from hdmap.runtime.stream import STAGE_KEYS, LogConsumer, LogServer, LogWriter
+from hdmap.runtime.stream import STAGE_KEYS, LogConsumer
 from schemas import DecodeError, LogEntry, keys
 
 log = logging.getLogger(__name__)
@@ -296,6 +297,7 @@ class StageService(Service):
             "entries_gap": s.gaps,
             "entries_replayed": s.replayed,
             "catchups": s.catchups,
+            "resyncs": s.resyncs,
             "gaps_open": len(self.consumer._opened),
             "gap_oldest_s": self.consumer.oldest_gap_s(),
             "gaps_expired": s.gaps_expired,
@@ -307,7 +309,8 @@ class StageService(Service):
 
 
 def in_producer_order(entries: list[LogEntry]) -> list[LogEntry]:
-    """Each producer's entries in its ``gseq`` order, at the places its entries take.
+    """Each producer's entries in the order it wrote them (``LogEntry.order``: its runs in
+    turn, each in ``gseq`` order), at the places its entries take.
 
     The consumer releases a live entry that waited behind a gap as soon as the gap is
     filled, ahead of replayed entries of other tiles the producer wrote before it; this
@@ -318,9 +321,9 @@ def in_producer_order(entries: list[LogEntry]) -> list[LogEntry]:
     mine: dict[str, list[LogEntry]] = defaultdict(list)
     for e in entries:
         mine[e.producer].append(e)
-    if all(all(a.gseq < b.gseq for a, b in pairwise(v)) for v in mine.values()):
+    if all(all(a.order < b.order for a, b in pairwise(v)) for v in mine.values()):
         return entries
-    queues = {p: iter(sorted(v, key=lambda e: e.gseq)) for p, v in mine.items()}
+    queues = {p: iter(sorted(v, key=lambda e: e.order)) for p, v in mine.items()}
     return [next(queues[e.producer]) for e in entries]
 
 

@@ -34,15 +34,13 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import zenoh
 
 from hdmap.geo.tiles import in_region
 from hdmap.runtime.bus import query
 from hdmap.runtime.gaps import GapPolicy
-from hdmap.runtime.queries import QueryServer
-from schemas import DecodeError, ErrorReply, LogEntry, LogHead, LogQuery, decode_replay, keys
+from schemas import DecodeError, LogEntry, LogHead, LogQuery, decode_replay, keys
 
 log = logging.getLogger(__name__)
 
@@ -53,113 +51,6 @@ STAGE_KEYS: dict[str, Callable[[str], str]] = {
 }
 
 
-class LogWriter:
-    """Producer side: appends entries inside the caller's transaction.
-
-    ``append`` stages an entry; the transaction's outcome (``on_commit`` /
-    ``on_rollback``, see :func:`hdmap.runtime.store.transaction`) makes it final or drops it.
-    """
-
-    SCHEMA = """
-    CREATE TABLE IF NOT EXISTS log_out (
-        gseq INTEGER PRIMARY KEY, tile TEXT NOT NULL, seq INTEGER NOT NULL,
-        body BLOB NOT NULL, created_at REAL NOT NULL);
-    CREATE UNIQUE INDEX IF NOT EXISTS log_out_tile_seq ON log_out(tile, seq);
-    CREATE TABLE IF NOT EXISTS log_heads (tile TEXT PRIMARY KEY, seq INTEGER NOT NULL)
-        WITHOUT ROWID;
-    """
-
-    def __init__(self, conn: sqlite3.Connection, stage: str, producer: str):
-        self.stage, self.producer = stage, producer
-        self._conn = conn
-        conn.executescript(self.SCHEMA)
-        self._heads = dict(conn.execute("SELECT tile, seq FROM log_heads").fetchall())
-        self._gseq = conn.execute("SELECT COALESCE(MAX(gseq), 0) FROM log_out").fetchone()[0]
-        self._staged: list[LogEntry] = []
-        self._staged_heads: dict[str, int] = {}
-
-    def append(self, tile: str, body: bytes) -> LogEntry:
-        seq = self._staged_heads.get(tile, self._heads.get(tile, 0)) + 1
-        gseq = (self._staged[-1].gseq if self._staged else self._gseq) + 1
-        self._staged_heads[tile] = seq
-        entry = LogEntry(self.stage, self.producer, tile, seq, gseq, body)
-        self._conn.execute(
-            "INSERT INTO log_out(gseq, tile, seq, body, created_at) VALUES (?, ?, ?, ?, ?)",
-            (gseq, tile, seq, body, time.time()),
-        )
-        self._conn.execute("INSERT OR REPLACE INTO log_heads(tile, seq) VALUES (?, ?)", (tile, seq))
-        self._staged.append(entry)
-        return entry
-
-    def on_commit(self) -> None:
-        self._heads.update(self._staged_heads)
-        if self._staged:
-            self._gseq = self._staged[-1].gseq
-        self._staged, self._staged_heads = [], {}
-
-    def on_rollback(self) -> None:
-        self._staged, self._staged_heads = [], {}
-
-    @property
-    def heads(self) -> dict[str, int]:
-        return dict(self._heads)
-
-    @property
-    def gseq(self) -> int:
-        return self._gseq
-
-
-Row = tuple[int, str, int, bytes]
-"""``(gseq, tile, seq, body)`` of a ``log_out`` row."""
-
-SCAN_FACTOR = 50
-"""A replay answer reads at most this many times its ``limit`` entries past the
-watermark (entries of other regions included) before it stops with ``through``."""
-
-
-class LogServer(QueryServer):
-    """Producer side: answers replay queries (``hdmap/v1/log/<stage>/<producer>/*``)."""
-
-    def __init__(self, session: zenoh.Session, db_path: str | Path, stage: str, producer: str):
-        self.stage, self.producer = stage, producer
-        super().__init__(
-            session, keys.log(stage, producer, keys.ANY), db_path, self._reply, f"log-{stage}"
-        )
-
-    def _reply(self, conn: sqlite3.Connection, q: zenoh.Query) -> None:
-        try:
-            req = LogQuery.from_bytes(q.payload.to_bytes() if q.payload is not None else b"")
-            if req.stage != self.stage:
-                raise DecodeError("stage", f"this queryable serves {self.stage!r}")
-        except DecodeError as exc:
-            q.reply_err(ErrorReply.of(exc).to_bytes())
-            return
-        conn.execute("BEGIN")  # one snapshot of the log for the whole answer
-        try:
-            if req.after_gseq is None:
-                rows, head = rows_per_tile(conn, req, self.producer), None
-            else:
-                rows, head = rows_since(conn, req, self.producer)
-            for gseq, tile, seq, body in rows:
-                entry = LogEntry(self.stage, self.producer, tile, seq, gseq, body)
-                q.reply(keys.log(self.stage, self.producer, tile), entry.to_bytes())
-        finally:
-            conn.execute("COMMIT")
-        if head is not None:
-            q.reply(
-                keys.log(self.stage, self.producer, _head_chunk(str(q.key_expr))), head.to_bytes()
-            )
-
-
-def _head_chunk(selector: str) -> str:
-    """A last key chunk for the closing :class:`LogHead` that the query's selector
-    matches (``0123$*`` -> ``0123``; ``*`` or ``**`` -> ``head``)."""
-    last = selector.rsplit("/", 1)[-1]
-    if last.endswith("$*"):
-        return last[:-2] or "head"
-    return "head" if "*" in last else last
-
-
 @dataclass
 class ConsumerStats:
     applied: int = 0
@@ -167,6 +58,8 @@ class ConsumerStats:
     gaps: int = 0
     replayed: int = 0
     catchups: int = 0
+    resyncs: int = 0
+    """Times a producer restored from an older state was met (a tile or its watermark)."""
     ahead_dropped: int = 0
     """Live entries not held behind a gap (the buffer was full); replayed later."""
     gaps_expired: int = 0
@@ -188,6 +81,17 @@ class LogConsumer:
     watermark is saved only by a transaction that leaves nothing delivered uncommitted,
     so the saved one holds for the saved offsets.
 
+    Invariant (epochs): a tile's offset and the epoch of the entry that set it are kept
+    together, and so are a producer's watermark and the (epoch, ``gseq``) of its last
+    entry delivered. An entry of an older run than its tile's is stale (dropped); one of a
+    newer run whose ``base`` is below the tile's offset resynchronises the tile to
+    ``base`` (the producer was restored from an older state; what was applied past it
+    stays applied, once); a newer run that began (``gbase``) below the producer's last
+    entry delivered takes the watermark back to ``gbase`` and the tiles past it are asked
+    for by ``gseq`` (from an entry or the producer's :class:`LogHead`). Pitfall: a
+    restored producer's entries that its consumers had not received when it was lost are
+    lost with it; restore the consumers downstream too, or accept it (docs/operations.md).
+
     Pitfall: the watermark trusts the producer's :class:`LogHead`. A forged head (anyone
     may answer on ``hdmap/v1/log/**`` in default mode; in secured mode only services may)
     with a large ``through`` makes the consumer skip what it has not seen in tiles with no
@@ -199,9 +103,11 @@ class LogConsumer:
     SCHEMA = """
     CREATE TABLE IF NOT EXISTS offsets (
         stage TEXT NOT NULL, producer TEXT NOT NULL, tile TEXT NOT NULL, seq INTEGER NOT NULL,
+        epoch INTEGER NOT NULL DEFAULT 0,
         PRIMARY KEY (stage, producer, tile)) WITHOUT ROWID;
     CREATE TABLE IF NOT EXISTS watermarks (
         stage TEXT NOT NULL, producer TEXT NOT NULL, gseq INTEGER NOT NULL,
+        epoch INTEGER NOT NULL DEFAULT 0, top INTEGER NOT NULL DEFAULT 0,
         PRIMARY KEY (stage, producer)) WITHOUT ROWID;
     """
 
@@ -227,12 +133,19 @@ class LogConsumer:
         """The last catch-up round was cut short (``limit``): the next round is due now."""
         self.generation = 0
         """Bumped by every rewind: a catch-up asked before it is stale."""
+        self._restarted_now: set[str] = set()
+        """Producers met restored in the answer being absorbed (their heads are not taken)."""
         conn.executescript(self.SCHEMA)
+        for table, col in (("offsets", "epoch"), ("watermarks", "epoch"), ("watermarks", "top")):
+            if col not in {r[1] for r in conn.execute(f"PRAGMA table_info({table})")}:
+                # a database from before epochs
+                conn.execute(f"ALTER TABLE {table} ADD COLUMN {col} INTEGER NOT NULL DEFAULT 0")
         self._committed: dict[tuple[str, str], int] = {}
         self._committed_wm: dict[str, int] = {}
         self._ahead: dict[tuple[str, str], dict[int, LogEntry]] = defaultdict(dict)
         self._pending_commit: dict[tuple[str, str], int] = {}
-        self._pending_wm: dict[str, int] = {}
+        self._pending_epochs: dict[tuple[str, str], int] = {}
+        self._pending_wm: dict[str, tuple[int, tuple[int, int]]] = {}
         self._seen: dict[tuple[str, str], int] = {}
         self.stats = ConsumerStats()
         self._rewind()
@@ -240,16 +153,21 @@ class LogConsumer:
     def _rewind(self) -> None:
         """Back to the committed state (start, rollback)."""
         rows = self._conn.execute(
-            "SELECT producer, tile, seq FROM offsets WHERE stage=?", (self.stage,)
+            "SELECT producer, tile, seq, epoch FROM offsets WHERE stage=?", (self.stage,)
         ).fetchall()
-        self._committed = {(p, t): s for p, t, s in rows}
-        self._committed_wm = dict(
-            self._conn.execute(
-                "SELECT producer, gseq FROM watermarks WHERE stage=?", (self.stage,)
-            ).fetchall()
-        )
+        self._committed = {(p, t): s for p, t, s, _e in rows}
+        self._committed_epochs = {(p, t): e for p, t, _s, e in rows}
+        marks = self._conn.execute(
+            "SELECT producer, gseq, epoch, top FROM watermarks WHERE stage=?", (self.stage,)
+        ).fetchall()
+        self._committed_wm = {p: g for p, g, _e, _t in marks}
+        self._committed_top = {p: (e, t) for p, _g, e, t in marks}
         self._delivered = dict(self._committed)
+        self._epochs = dict(self._committed_epochs)
+        """The epoch of each tile's last delivered entry."""
         self._watermark = dict(self._committed_wm)
+        self._top = dict(self._committed_top)
+        """Each producer's last entry delivered, as ``LogEntry.order`` (epoch, gseq)."""
         self._recent: dict[str, dict[str, tuple[int, int]]] = defaultdict(dict)
         """producer -> tile -> (delivered seq, its gseq) for deliveries past the watermark."""
         self._uncommitted: set[tuple[str, str]] = set()
@@ -268,6 +186,14 @@ class LogConsumer:
         if not in_region(entry.tile, self.prefixes):
             return []
         k = (entry.producer, entry.tile)
+        epoch = self._epochs.get(k, 0)
+        if 0 < entry.epoch < epoch:  # from a run older than the one the tile is at (0: none)
+            self.stats.duplicates += 1
+            return []
+        if entry.epoch > self._top.get(entry.producer, (0, 0))[0]:
+            self._check_run(entry.producer, entry.epoch, entry.gbase)
+        if entry.epoch > epoch and entry.base < self._delivered.get(k, 0):
+            self._resync(k, entry)
         if entry.seq > self._seen.get(k, 0):
             self._seen[k] = entry.seq
         last = self._delivered.get(k, 0)
@@ -286,9 +212,34 @@ class LogConsumer:
             del self._ahead[k]
             self._opened.pop(k, None)
         self._delivered[k] = out[-1].seq
+        self._epochs[k] = max(e.epoch for e in out)
+        self._top[k[0]] = max(self._top.get(k[0], (0, 0)), *(e.order for e in out))
         self._uncommitted.add(k)
         self._note(out[-1], out[-1].seq)
         return out
+
+    def _resync(self, k: tuple[str, str], entry: LogEntry) -> None:
+        """The producer's run of ``entry`` began below what this consumer has of the tile:
+        it was restored from an older state, and what the consumer applied past ``base``
+        is not in its log (it stays applied). The tile goes on from ``base``."""
+        log.warning(
+            "%s: producer %s restarted from an older state (epoch %d): tile %s goes on from "
+            "seq %d (had %d)",
+            self.stage,
+            k[0],
+            entry.epoch,
+            k[1],
+            entry.base,
+            self._delivered.get(k, 0),
+        )
+        self.stats.resyncs += 1
+        self._delivered[k] = entry.base
+        self._committed[k] = min(self._committed.get(k, 0), entry.base)
+        self._epochs[k] = entry.epoch
+        self._seen[k] = entry.base
+        self._ahead.pop(k, None)
+        self._opened.pop(k, None)
+        self._recent.get(k[0], {}).pop(k[1], None)
 
     def _hold(self, k: tuple[str, str], entry: LogEntry) -> None:
         """Keep a live entry behind its tile's gap (if the buffer has room); a new gap asks
@@ -364,37 +315,49 @@ class LogConsumer:
     def record(self, entries: Iterable[LogEntry]) -> None:
         """Write offsets for applied entries (inside the caller's transaction), and the
         watermarks if this transaction leaves nothing delivered uncommitted."""
-        latest: dict[tuple[str, str], int] = {}
+        last: dict[tuple[str, str], tuple[int, int]] = {}
         for e in entries:
             k = (e.producer, e.tile)
-            latest[k] = max(latest.get(k, 0), e.seq)
+            last[k] = max(last.get(k, (0, 0)), (e.epoch, e.seq))
         self._conn.executemany(
-            "INSERT OR REPLACE INTO offsets(stage, producer, tile, seq) VALUES (?, ?, ?, ?)",
-            [(self.stage, p, t, s) for (p, t), s in latest.items()],
+            "INSERT OR REPLACE INTO offsets(stage, producer, tile, seq, epoch) "
+            "VALUES (?, ?, ?, ?, ?)",
+            [(self.stage, p, t, s, ep) for (p, t), (ep, s) in last.items()],
         )
+        latest = {k: s for k, (_ep, s) in last.items()}
         self._pending_commit.update(latest)
+        self._pending_epochs = {k: ep for k, (ep, _s) in last.items()}
         done = self._committed
         self._uncommitted = {k for k in self._uncommitted if done.get(k, 0) < self._delivered[k]}
         if all(latest.get(k, 0) >= self._delivered[k] for k in self._uncommitted):
-            moved = {p: w for p, w in self._watermark.items() if w > self._committed_wm.get(p, 0)}
+            moved = {
+                p: (self._watermark.get(p, 0), self._top.get(p, (0, 0)))
+                for p in set(self._watermark) | set(self._top)
+                if (self._watermark.get(p, 0), self._top.get(p, (0, 0)))
+                != (self._committed_wm.get(p, 0), self._committed_top.get(p, (0, 0)))
+            }
             self._conn.executemany(
-                "INSERT OR REPLACE INTO watermarks(stage, producer, gseq) VALUES (?, ?, ?)",
-                [(self.stage, p, w) for p, w in moved.items()],
+                "INSERT OR REPLACE INTO watermarks(stage, producer, gseq, epoch, top) "
+                "VALUES (?, ?, ?, ?, ?)",
+                [(self.stage, p, w, t[0], t[1]) for p, (w, t) in moved.items()],
             )
             self._pending_wm = moved
 
     def on_commit(self) -> None:
         self.stats.applied += sum(
-            s - self._committed.get(k, 0) for k, s in self._pending_commit.items()
+            max(0, s - self._committed.get(k, 0)) for k, s in self._pending_commit.items()
         )
         self._committed.update(self._pending_commit)
-        self._committed_wm.update(self._pending_wm)
+        self._committed_epochs.update(self._pending_epochs)
+        self._committed_wm.update({p: w for p, (w, _r) in self._pending_wm.items()})
+        self._committed_top.update({p: t for p, (_w, t) in self._pending_wm.items()})
         for k, seq in self._pending_commit.items():
             if seq > self._delivered.get(k, 0):  # entries re-applied after a rollback
                 self._delivered[k] = seq
             if seq >= self._delivered.get(k, 0):
                 self._uncommitted.discard(k)
         self._pending_commit = {}
+        self._pending_epochs = {}
         self._pending_wm = {}
 
     def on_rollback(self) -> None:
@@ -455,15 +418,56 @@ class LogConsumer:
                 r.producer not in heads or r.through < heads[r.producer].through
             ):
                 heads[r.producer] = r
-        got.sort(key=lambda e: (e.producer, e.gseq))
+        got.sort(key=lambda e: (e.producer, e.order))
+        self._restarted_now: set[str] = set()
         out: list[LogEntry] = []
         for e in got:
             delivered = self.offer(e)
             self.stats.replayed += len(delivered)
             out += delivered
+        complete = True
         for p, h in heads.items():
+            if p in self._restarted_now or self._restored(h):
+                complete = False  # asked again from the lowered watermark
+                continue
             self._advance(p, h.through)
-        return out, all(h.complete for h in heads.values())
+            complete = complete and h.complete
+        return out, complete
+
+    def _restored(self, h: LogHead) -> bool:
+        """Whether ``h`` shows its producer restored from an older state
+        (:meth:`_check_run` on its first run newer than the last entry delivered)."""
+        top = self._top.get(h.producer, (0, 0))[0]
+        newer = [(e, g) for e, g in h.epochs if e > top]
+        return bool(newer) and self._check_run(h.producer, *newer[0])
+
+    def _check_run(self, producer: str, epoch: int, gbase: int) -> bool:
+        """The producer has a run ``epoch`` newer than the last entry delivered from it,
+        begun after its ``gseq`` ``gbase``. If that entry's ``gseq`` is past ``gbase`` it
+        was not written before the run began: it is from a run the producer lost (it was
+        restored from an older state), and the new run numbers its entries like the lost
+        ones. The watermark then goes back to ``gbase`` and the tiles past it are asked
+        for by ``gseq``, so that every entry of the new run is met (each tile resyncs on
+        its first, :meth:`_resync`). Whether it was so."""
+        top = self._top.get(producer, (0, 0))
+        if top[1] <= gbase:
+            return False
+        log.warning(
+            "%s: producer %s restarted from an older state (its run %d began after gseq %d, "
+            "this consumer had up to %d): asking again from there",
+            self.stage,
+            producer,
+            epoch,
+            gbase,
+            top[1],
+        )
+        self.stats.resyncs += 1
+        self._restarted_now.add(producer)
+        self._top[producer] = (epoch, gbase)
+        self._watermark[producer] = min(self._watermark.get(producer, 0), gbase)
+        self._recent.pop(producer, None)
+        self.need_catchup = True
+        return True
 
     def _advance(self, producer: str, through: int) -> None:
         """The producer's answer is delivered up to ``through``: raise its watermark there,
@@ -513,63 +517,3 @@ def fetch(
         for _key, ok, _err in query(session, sel, request, timeout=timeout)
         if ok is not None
     ]
-
-
-def rows_per_tile(conn: sqlite3.Connection, req: LogQuery, producer: str) -> list[Row]:
-    """The older form: every tile's entries after its listed seq (cost: every tile the
-    producer ever wrote)."""
-    offsets = req.offsets.get(producer, {})
-    heads = conn.execute("SELECT tile, seq FROM log_heads").fetchall()
-    rows: list[Row] = []
-    for tile, s in heads:
-        after = offsets.get(tile, 0)
-        if s > after and in_region(tile, req.prefixes):
-            rows += conn.execute(
-                "SELECT gseq, tile, seq, body FROM log_out WHERE tile=? AND seq>? "
-                "ORDER BY seq LIMIT ?",
-                (tile, after, req.limit),
-            ).fetchall()
-    rows.sort()
-    return rows[: req.limit]
-
-
-def rows_since(conn: sqlite3.Connection, req: LogQuery, producer: str) -> tuple[list[Row], LogHead]:
-    """Listed tiles after their seq, the others after the watermark; cost: the listed
-    tiles plus at most ``SCAN_FACTOR * limit`` entries read after the watermark."""
-    listed = {t: s for t, s in req.offsets.get(producer, {}).items() if in_region(t, req.prefixes)}
-    after = (req.after_gseq or {}).get(producer, 0)
-    head = conn.execute("SELECT COALESCE(MAX(gseq), 0) FROM log_out").fetchone()[0]
-    picked: list[int] = []
-    for tile, s in listed.items():
-        picked += [
-            g
-            for (g,) in conn.execute(
-                "SELECT gseq FROM log_out WHERE tile=? AND seq>? ORDER BY seq LIMIT ?",
-                (tile, s, req.limit),
-            )
-        ]
-    through = head
-    scanned = found = 0
-    cursor = conn.execute("SELECT gseq, tile FROM log_out WHERE gseq>? ORDER BY gseq", (after,))
-    for g, tile in cursor:
-        scanned += 1
-        if tile not in listed and in_region(tile, req.prefixes):
-            picked.append(g)
-            found += 1
-        if found >= req.limit or scanned >= SCAN_FACTOR * req.limit:
-            through = g  # the scan stops here: the rest of the log is not looked at
-            break
-    picked.sort()
-    if len(picked) >= req.limit:
-        picked = picked[: req.limit]
-        through = min(through, picked[-1])
-    picked = [g for g in picked if g <= through]
-    rows: list[Row] = []
-    for i in range(0, len(picked), 500):
-        chunk = picked[i : i + 500]
-        rows += conn.execute(
-            "SELECT gseq, tile, seq, body FROM log_out WHERE gseq IN "
-            f"({','.join('?' * len(chunk))}) ORDER BY gseq",
-            chunk,
-        ).fetchall()
-    return rows, LogHead(req.stage, producer, through, head)

@@ -49,10 +49,11 @@ import zenoh
 from hdmap.geo.signs import CATALOG, SignCatalog, SignCatalogError
 from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, route_rays
 from hdmap.runtime.config import ConfigError
+from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
-from hdmap.runtime.stream import STAGE_KEYS, LogServer, LogWriter
+from hdmap.runtime.stream import STAGE_KEYS
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys
 from schemas.codec import valid_id
 from schemas.messages import MAX_BATCH

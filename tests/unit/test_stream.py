@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.store import StorageError, connect, transaction
-from hdmap.runtime.stream import LogConsumer, LogServer, LogWriter
+from hdmap.runtime.stream import LogConsumer
 from schemas import LogEntry
 
 

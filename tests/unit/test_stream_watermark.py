@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import pytest
 
+from hdmap.runtime.log_out import SCAN_FACTOR, LogWriter, entries_of, rows_since
 from hdmap.runtime.store import StorageError, connect, transaction
-from hdmap.runtime.stream import SCAN_FACTOR, LogConsumer, LogWriter, rows_since
+from hdmap.runtime.stream import LogConsumer
 from schemas import LogEntry, LogHead, LogQuery
 
 PRODUCER = "ingest-x"
@@ -32,7 +33,7 @@ class Producer:
 
     def answer(self, req: LogQuery) -> list[bytes]:
         rows, head = rows_since(self.conn, LogQuery.from_bytes(req.to_bytes()), PRODUCER)
-        replies = [LogEntry("obs", PRODUCER, t, s, g, b).to_bytes() for g, t, s, b in rows]
+        replies = [e.to_bytes() for e in entries_of("obs", PRODUCER, rows)]
         return [*replies, head.to_bytes()]
 
 
