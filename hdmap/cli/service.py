@@ -36,6 +36,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="tiles this instance owns (repeatable; default: all)",
     )
     p.add_argument("--data-dir", default="var", help="state directory (default ./var)")
+    p.add_argument(
+        "--shard",
+        default="0/1",
+        metavar="I/N",
+        help="ingest only: serve the vehicles of shard I of N (by a hash of their id)",
+    )
     p.add_argument("--instance", help="stable instance id (default: kept in the data dir)")
     p.add_argument(
         "--sync",
@@ -60,6 +66,18 @@ def service_config(name: str, table: Mapping[str, Any]) -> tuple[Batching, Any]:
     return batching, from_mapping(getattr(importlib.import_module(module), cfg_name), own, name)
 
 
+def parse_shard(text: str) -> tuple[int, int]:
+    """``I/N`` as (I, N), with 0 <= I < N; else a :class:`ConfigError` naming it.
+
+    >>> parse_shard("1/2")
+    (1, 2)
+    """
+    i, sep, n = text.partition("/")
+    if sep and i.isdigit() and n.isdigit() and 0 <= int(i) < int(n) <= 1024:
+        return int(i), int(n)
+    raise ConfigError(f"--shard {text!r}: expected I/N with 0 <= I < N <= 1024")
+
+
 def gap_policy(name: str, table: Mapping[str, Any]) -> GapPolicy:
     """The ``[NAME.gaps]`` subtable of a service's table (:class:`GapPolicy`)."""
     return from_mapping(GapPolicy, table.get("gaps", {}), f"{name}.gaps")
@@ -72,6 +90,9 @@ def build(args: argparse.Namespace):
     module, cls_name, _cfg = SERVICES[args.name]
     table = load_toml(args.config).get(args.name, {}) if args.config else {}
     batching, config = service_config(args.name, table)
+    shard = parse_shard(args.shard)
+    if shard[1] > 1 and args.name != "ingest":
+        raise ConfigError(f"--shard {args.shard}: only ingest is sharded (the others by --region)")
     opts = ServiceOptions(
         batching=batching,
         gaps=gap_policy(args.name, table),
@@ -81,6 +102,7 @@ def build(args: argparse.Namespace):
         instance=args.instance,
         sync=args.sync,
         zoom=args.zoom,
+        shard=shard,
     )
     return getattr(importlib.import_module(module), cls_name)(opts, config)
 

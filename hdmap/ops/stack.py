@@ -30,6 +30,7 @@ from hdmap.geo.tiles import region_label
 from hdmap.runtime.bus import BusConfig, open_session
 from hdmap.runtime.config import EXIT_CONFIG
 from hdmap.runtime.orphan import PARENT_ENV
+from hdmap.runtime.service import shard_label
 from hdmap.runtime.store import EXIT_CORRUPT
 from schemas import keys
 
@@ -155,18 +156,28 @@ class Stack:
             time.sleep(0.05)
         raise TimeoutError(f"router not listening on {self.listen} after {timeout} s")
 
-    def service_key(self, name: str, region: tuple[str, ...] = ()) -> str:
-        return f"{name}-{region_label(region)}"
+    def service_key(
+        self, name: str, region: tuple[str, ...] = (), shard: tuple[int, int] = (0, 1)
+    ) -> str:
+        return f"{name}-{region_label(region)}{shard_label(shard)}"
 
-    def start_service(self, name: str, region: tuple[str, ...] = (), *extra: str) -> Proc:
+    def start_service(
+        self,
+        name: str,
+        region: tuple[str, ...] = (),
+        *extra: str,
+        shard: tuple[int, int] = (0, 1),
+    ) -> Proc:
         argv = self._cli(
             "service", name, "--connect", self.listen, "--data-dir", str(self.data_dir)
         )
         argv += self._zenoh_config(name)
         for r in region:
             argv += ["--region", r]
+        if shard[1] > 1:
+            argv += ["--shard", f"{shard[0]}/{shard[1]}"]
         argv += self.extra_service_args.get(name, []) + list(extra)
-        key = self.service_key(name, region)
+        key = self.service_key(name, region, shard)
         old = self.procs.get(key)
         p = Proc(
             key,

@@ -39,6 +39,7 @@ import sqlite3
 import threading
 import time
 import uuid
+import zlib
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -139,6 +140,10 @@ class ServiceOptions:
     inbox_size: int = 4096
     batching: Batching = field(default_factory=Batching)
     gaps: GapPolicy = field(default_factory=GapPolicy)
+    shard: tuple[int, int] = (0, 1)
+    """(index, count): this instance serves the keys of its shard only (ingest: vehicles
+    by :func:`shard_of` their id); part of the instance's label and data dir when count
+    is above 1."""
 
 
 @dataclass
@@ -233,7 +238,7 @@ class Service:
     def __init__(self, opts: ServiceOptions):
         self.opts = opts
         self.region = list(opts.region)
-        self.region_label = region_label(self.region)
+        self.region_label = region_label(self.region) + shard_label(opts.shard)
         self.data_dir = Path(opts.data_dir) / f"{self.name}-{self.region_label}"
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.db_path = self.data_dir / "state.sqlite"
@@ -402,10 +407,15 @@ class Service:
 
         self._declared.append(self.session.declare_subscriber(key, cb))
 
-    def serve(self, key: str, kind: str) -> None:
-        """A queryable whose queries the worker answers (then drops) later."""
+    def serve(self, key: str, kind: str, mine: Callable[[str], bool] | None = None) -> None:
+        """A queryable whose queries the worker answers (then drops) later; with ``mine``,
+        a query whose key it refuses is dropped unanswered at once (another instance's:
+        the querier gets that one's answer alone)."""
 
         def cb(q: zenoh.Query) -> None:
+            if mine is not None and not mine(str(q.key_expr)):
+                q.drop()
+                return
             payload = q.payload.to_bytes() if q.payload is not None else b""
             self.inbox.put(Item(kind, str(q.key_expr), payload, q))
 
@@ -548,6 +558,26 @@ class Service:
         if (lost := self._state_lost) is not None:
             log.error("%s: %s; exiting to be restarted (exit %d)", self.name, lost, EXIT_RESTART)
             raise SystemExit(EXIT_RESTART)
+
+
+def shard_label(shard: tuple[int, int]) -> str:
+    """The suffix a shard adds to an instance's label ('' for the only one).
+
+    >>> shard_label((0, 1)), shard_label((1, 3))
+    ('', '-s1of3')
+    """
+    i, n = shard
+    return "" if n == 1 else f"-s{i}of{n}"
+
+
+def shard_of(key: str, n: int) -> int:
+    """The shard (of ``n``) that serves ``key``: a stable hash (CRC-32), the same in
+    every process and on every host.
+
+    >>> shard_of("veh-0001", 1), shard_of("veh-0001", 2), shard_of("veh-0004", 2)
+    (0, 0, 1)
+    """
+    return zlib.crc32(key.encode()) % n if n > 1 else 0
 
 
 def _wire_number(v: float) -> float:

@@ -51,7 +51,7 @@ from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, route_rays
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S
-from hdmap.runtime.service import Item, Service, ServiceOptions
+from hdmap.runtime.service import Item, Service, ServiceOptions, shard_of
 from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
 from hdmap.runtime.stream import STAGE_KEYS
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys
@@ -137,7 +137,10 @@ class IngestService(Service):
         """Set once a transaction met corruption: nothing more is written, uploads refused."""
 
     def setup(self) -> None:
-        self.serve(keys.upload(keys.ANY), "upload")
+        i, n = self.opts.shard
+        self.serve(
+            keys.upload(keys.ANY), "upload", lambda key: shard_of(keys.last_chunk(key), n) == i
+        )
         self._log_server = LogServer(self.session, self.db_path, "obs", self.instance)
 
     def teardown(self) -> None:
