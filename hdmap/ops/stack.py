@@ -92,6 +92,13 @@ class Stack:
     procs: dict[str, Proc] = field(default_factory=dict)
     security: SecureDeployment | None = None
     """Secure mode: per-process Zenoh configs (TLS, auth, ACL) from hdmap.ops.security."""
+    netns: dict[str, str] = field(default_factory=dict)
+    """Process name (``router``, ``ingest-all``, ...) -> the network namespace it runs in
+    (``ip netns exec``): other hosts, as tests make them."""
+    connect_for: dict[str, str] = field(default_factory=dict)
+    """Process name -> the router endpoint it connects to (default :attr:`listen`)."""
+    router_listen: tuple[str, ...] = ()
+    """More endpoints the router listens on (one per network it is on)."""
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir)
@@ -122,8 +129,11 @@ class Stack:
         log = open(proc.log_path, "ab")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PARENT_ENV] = str(os.getpid())  # the child ends if this process dies
+        argv = proc.argv
+        if (ns := self.netns.get(proc.name)) is not None:
+            argv = ["ip", "netns", "exec", ns, *argv]  # execs: the same process, its pid
         proc.popen = subprocess.Popen(
-            proc.argv, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
+            argv, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
         )
         log.close()
         self.procs[proc.name] = proc
@@ -133,7 +143,11 @@ class Stack:
         p = self._spawn(
             Proc(
                 "router",
-                self._cli("router", "--listen", self.listen, *self._zenoh_config(None)),
+                self._cli(
+                    "router",
+                    *(a for e in (self.listen, *self.router_listen) for a in ("--listen", e)),
+                    *self._zenoh_config(None),
+                ),
                 self.data_dir / "logs" / "router.log",
             )
         )
@@ -168,16 +182,15 @@ class Stack:
         *extra: str,
         shard: tuple[int, int] = (0, 1),
     ) -> Proc:
-        argv = self._cli(
-            "service", name, "--connect", self.listen, "--data-dir", str(self.data_dir)
-        )
+        key = self.service_key(name, region, shard)
+        connect = self.connect_for.get(key, self.listen)
+        argv = self._cli("service", name, "--connect", connect, "--data-dir", str(self.data_dir))
         argv += self._zenoh_config(name)
         for r in region:
             argv += ["--region", r]
         if shard[1] > 1:
             argv += ["--shard", f"{shard[0]}/{shard[1]}"]
         argv += self.extra_service_args.get(name, []) + list(extra)
-        key = self.service_key(name, region, shard)
         old = self.procs.get(key)
         p = Proc(
             key,
