@@ -38,9 +38,11 @@ stops it (:mod:`hdmap.runtime.service`).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -114,9 +116,14 @@ class IngestService(Service):
 
     SCHEMA = """
     CREATE TABLE IF NOT EXISTS seen (
-        vehicle TEXT NOT NULL, obs_id INTEGER NOT NULL, PRIMARY KEY (vehicle, obs_id))
-        WITHOUT ROWID;
+        vehicle TEXT NOT NULL, obs_id INTEGER NOT NULL, t REAL NOT NULL DEFAULT 0,
+        PRIMARY KEY (vehicle, obs_id)) WITHOUT ROWID;
     """
+
+    PRUNE_EVERY_S = 60.0
+    """How often the ids past the admission window are forgotten (:meth:`prune_seen`)."""
+    PRUNE_CHUNK = 20_000
+    """Ids deleted per transaction (uploads are answered between them)."""
 
     def __init__(self, opts: ServiceOptions, config: IngestConfig | None = None):
         config = config or IngestConfig()
@@ -128,6 +135,12 @@ class IngestService(Service):
         if config.catalog:
             log.info("ingest: sign catalogue %s (%d classes)", config.catalog, len(catalog))
         self.db.executescript(self.SCHEMA)
+        if "t" not in {r[1] for r in self.db.execute("PRAGMA table_info(seen)")}:
+            # ids recorded before their times were: kept one admission window from now
+            self.db.execute(f"ALTER TABLE seen ADD COLUMN t REAL NOT NULL DEFAULT {time.time()}")
+        self.db.execute("CREATE INDEX IF NOT EXISTS seen_t ON seen(t)")
+        self.wall: Callable[[], float] = time.time
+        """The wall clock admission compares capture times with (injectable)."""
         self.writer = LogWriter(self.db, "obs", self.instance)
         self._log_server: LogServer | None = None
         self.limiter = VehicleLimiter(self.config.rate_limit)
@@ -142,6 +155,7 @@ class IngestService(Service):
             keys.upload(keys.ANY), "upload", lambda key: shard_of(keys.last_chunk(key), n) == i
         )
         self._log_server = LogServer(self.session, self.db_path, "obs", self.instance)
+        self.every(self.PRUNE_EVERY_S, lambda _now: self.prune_seen())
 
     def teardown(self) -> None:
         if self._log_server is not None:
@@ -275,7 +289,7 @@ class IngestService(Service):
             self.opts.zoom,
             self.config.default_range_m,
         )
-        keep, more = admit(batch.obs, self.config.policy, time.time(), all_tiles)
+        keep, more = admit(batch.obs, self.config.policy, self.wall(), all_tiles)
         obs = batch.obs.take(keep) if not keep.all() else batch.obs
         rejected += more
         for reason, n in Counter(r.field for r in rejected).items():
@@ -285,8 +299,13 @@ class IngestService(Service):
         dup = self._seen(batch.vehicle_id, ids)
         new = obs.take(~dup) if dup.any() else obs
         self.db.executemany(
-            "INSERT INTO seen(vehicle, obs_id) VALUES (?, ?)",
-            [(batch.vehicle_id, int(i)) for i in u64_to_i64(new.obs_id)],
+            "INSERT INTO seen(vehicle, obs_id, t) VALUES (?, ?, ?)",
+            zip(
+                itertools.repeat(batch.vehicle_id),
+                u64_to_i64(new.obs_id).tolist(),
+                new.t.tolist(),
+                strict=False,
+            ),
         )
         self.count("accepted", len(new))
         self.count("duplicates", int(dup.sum()))
@@ -321,6 +340,27 @@ class IngestService(Service):
         in the current transaction)."""
         row = self.db.execute("SELECT 1 FROM seen WHERE vehicle=? LIMIT 1", (vehicle,))
         return row.fetchone() is not None
+
+    def prune_seen(self) -> int:
+        """Forget the ids whose capture time is past the admission window (with a minute to
+        spare): an upload that sends one again is refused as too old before its ids are
+        looked up, so the dedup table stays one window deep whatever the fleet's history.
+        How many ids went (counted ``seen_pruned``)."""
+        pol = self.config.policy
+        before = self.wall() - pol.max_age_s - 60.0
+        gone = 0
+        for _ in range(10_000):  # bounded: PRUNE_CHUNK ids a transaction
+            with self.transaction():
+                n = self.db.execute(
+                    "DELETE FROM seen WHERE (vehicle, obs_id) IN "
+                    "(SELECT vehicle, obs_id FROM seen WHERE t < ? LIMIT ?)",
+                    (before, self.PRUNE_CHUNK),
+                ).rowcount
+                self.count("seen_pruned", n)
+            gone += n
+            if n < self.PRUNE_CHUNK:
+                break
+        return gone
 
     def _seen(self, vehicle: str, ids: np.ndarray) -> np.ndarray:
         if ids.size == 0:
