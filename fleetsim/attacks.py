@@ -283,7 +283,7 @@ class _Uploader(Attack):
                 keys.upload(self.vehicle_id),
                 batch.to_bytes(),
                 timeout=self.timeout_s,
-                target=zenoh.QueryTarget.BEST_MATCHING,
+                target=zenoh.QueryTarget.ALL,  # every ingest shard; its vehicle's answers
             )
         except zenoh.ZError:
             self._count(unanswered=1)

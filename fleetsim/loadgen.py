@@ -219,7 +219,7 @@ class Vehicle(threading.Thread):
                 keys.upload(self.vehicle_id),
                 payload,
                 timeout=self.cfg.upload_timeout_s,
-                target=zenoh.QueryTarget.BEST_MATCHING,
+                target=zenoh.QueryTarget.ALL,  # every ingest shard; its vehicle's answers
             )
         except zenoh.ZError:
             return None

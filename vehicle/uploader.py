@@ -247,7 +247,7 @@ class Uploader:
                 keys.upload(self.vehicle_id),
                 batch.to_bytes(),
                 timeout=timeout,
-                target=zenoh.QueryTarget.BEST_MATCHING,
+                target=zenoh.QueryTarget.ALL,  # every ingest shard; its vehicle's answers
             )
         except zenoh.ZError as exc:
             log.warning("%s: upload failed: %s", self.vehicle_id, exc)
