@@ -72,6 +72,20 @@ class LoadConfig:
     upload_timeout_s: float = 10.0
     max_attempts: int = 3
     """Attempts per upload (a timed-out or refused upload is resent, like a vehicle does)."""
+    event_start: float | None = None
+    """Capture time (Unix s) of the run's first observations; None: the wall clock (each
+    upload stamped a second before it is sent)."""
+    event_speedup: float = 1.0
+    """With ``event_start``: event seconds per wall second (a soak run covers hours of
+    traffic in minutes; capture times must stay inside ingest's admission window)."""
+    event_wall0: float = 0.0
+    """With ``event_start``: the wall time (Unix s) that stands for it."""
+
+    def capture_time(self, wall: float) -> float:
+        """The capture time of observations uploaded at wall time ``wall``."""
+        if self.event_start is None:
+            return wall - 1.0
+        return self.event_start + self.event_speedup * (wall - self.event_wall0)
 
 
 @dataclass
@@ -138,9 +152,13 @@ def town_tiles_with_halo(world: World) -> list[str]:
 
 
 def upload_payloads(
-    pool: list[list[Observations]], vehicle_id: str = "load-0", first_pass: int = 0
+    pool: list[list[Observations]],
+    vehicle_id: str = "load-0",
+    first_pass: int = 0,
+    capture_time=lambda wall: wall - 1.0,
 ):
-    """The upload payloads a vehicle sends, in order, with fresh ids (endless generator).
+    """The upload payloads a vehicle sends, in order, with fresh ids (endless generator);
+    ``capture_time(wall)``: the observations' time when sent at ``wall``.
 
     Yields (payload bytes, observation count)."""
     next_id, pass_id, batch_id, k = 1, 0, 0, first_pass
@@ -154,7 +172,8 @@ def upload_payloads(
             now = time.time()
             ids = np.arange(next_id, next_id + n, dtype=np.uint64)
             next_id += n
-            obs = Observations(**{**part.__dict__, "obs_id": ids, "t": np.full(n, now - 1.0)})
+            t = capture_time(now)
+            obs = Observations(**{**part.__dict__, "obs_id": ids, "t": np.full(n, t)})
             yield ObservationBatch(vehicle_id, pass_id, batch_id, now, obs).to_bytes(), n
 
 
@@ -183,7 +202,8 @@ class Vehicle(threading.Thread):
     def run(self) -> None:
         mean_batch = np.mean([len(p) for parts in self.pool for p in parts])
         due = time.monotonic() + (self.index / self.cfg.vehicles) * mean_batch * self.obs_period
-        for payload, n in upload_payloads(self.pool, self.vehicle_id, self.index):
+        payloads = upload_payloads(self.pool, self.vehicle_id, self.index, self.cfg.capture_time)
+        for payload, n in payloads:
             if self.stop.wait(max(0.0, due - time.monotonic())):
                 return
             due += n * self.obs_period
