@@ -143,6 +143,16 @@ def run(args: argparse.Namespace) -> dict:
     )
     with tempfile.TemporaryDirectory(prefix="soak-") as tmp:
         stack = Stack(Path(tmp) / "stack")
+        if args.retain_s > 0:  # every producer keeps its log this long past its consumers
+            cfg_file = Path(tmp) / "retention.toml"
+            cfg_file.write_text(
+                "".join(
+                    f"[{n}.retention]\nretain_s = {args.retain_s}\nevery_s = {args.truncate_s}\n"
+                    for n in ("ingest", "matcher", "solver")
+                )
+            )
+            for n in ("ingest", "matcher", "solver"):
+                stack.extra_service_args[n] = ["--config", str(cfg_file)]
         try:
             stack.start_all()
             with open_session(stack.bus) as session:
@@ -188,6 +198,7 @@ def run(args: argparse.Namespace) -> dict:
         "machine": machine(),
         "config": asdict(cfg),
         "speedup": args.speedup,
+        "retain_s": args.retain_s,
         "samples": samples,
         "after_drain": end,
         "drained": drained,
@@ -210,6 +221,13 @@ def main() -> int:
     ap.add_argument("--speedup", type=float, default=120.0)
     ap.add_argument("--days-back", type=float, default=29.0)
     ap.add_argument("--sample-s", type=float, default=30.0)
+    ap.add_argument(
+        "--retain-s",
+        type=float,
+        default=60.0,
+        help="[NAME.retention] retain_s of the producers (0: their default, one day)",
+    )
+    ap.add_argument("--truncate-s", type=float, default=10.0, help="[NAME.retention] every_s")
     ap.add_argument(
         "--quick", action="store_true", help="2 minutes, 500 obs/s, a sample every 10 s"
     )

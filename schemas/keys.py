@@ -110,6 +110,11 @@ def log(stage: str, producer: str, tile: str) -> str:
     return f"{ROOT}/log/{stage}/{producer}/{tile}"
 
 
+def mark(stage: str, producer: str, consumer: str) -> str:
+    """How far a consumer has applied a producer's log (:class:`schemas.LogMark`)."""
+    return f"{ROOT}/mark/{stage}/{producer}/{consumer}"
+
+
 def alive(service: str, region_label: str, instance: str) -> str:
     """Liveliness token of a running service instance."""
     return f"{ROOT}/alive/{service}/{region_label}/{instance}"

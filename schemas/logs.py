@@ -264,6 +264,44 @@ class LogHead(Message):
         return self.through >= self.head
 
 
+@dataclass(frozen=True, eq=False)
+class LogMark(Message):
+    """Consumer -> producer (``hdmap/v1/mark/<stage>/<producer>/<consumer>``): how far the
+    consumer has applied the producer's log. Every entry of the consumer's region with
+    ``gseq`` up to ``gseq`` is applied and committed, in the producer's run ``epoch``
+    (the run of the last entry it applied). A producer keeps its log above the smallest
+    mark of its consumers (and a retention floor) and deletes the rest; a mark in a run
+    the producer does not have (it was restored) is ignored.
+    """
+
+    TYPE: ClassVar[str] = "log_mark"
+    stage: str
+    producer: str
+    consumer: str
+    gseq: int
+    epoch: int
+
+    def _encode(self) -> dict[str, Any]:
+        return {
+            "stage": self.stage,
+            "producer": self.producer,
+            "consumer": self.consumer,
+            "gseq": int(self.gseq),
+            "epoch": int(self.epoch),
+        }
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> LogMark:
+        m = cls._open(data)
+        return cls(
+            stage=get_str(m, "stage", _STAGE_RE, _STAGE),
+            producer=get_str(m, "producer"),
+            consumer=get_str(m, "consumer"),
+            gseq=get_int(m, "gseq", 0, 2**63 - 1),
+            epoch=get_int(m, "epoch", 0, 2**63 - 1),
+        )
+
+
 def decode_replay(data: bytes) -> LogEntry | LogHead:
     """A reply to a :class:`LogQuery`: an entry, or the answer's closing head."""
     try:

@@ -12,7 +12,7 @@ from typing import Any
 from hdmap.cli.common import add_bus_arguments, bus_from_args, setup_logging
 from hdmap.geo.tiles import DEFAULT_ZOOM, valid_quadkey
 from hdmap.runtime.config import EXIT_CONFIG, ConfigError, from_mapping, load_toml
-from hdmap.runtime.gaps import GapPolicy
+from hdmap.runtime.log_policy import GapPolicy, RetentionPolicy
 from hdmap.runtime.service import Batching, ServiceOptions, run_until_signalled
 
 log = logging.getLogger(__name__)
@@ -62,6 +62,7 @@ def service_config(name: str, table: Mapping[str, Any]) -> tuple[Batching, Any]:
     own = dict(table)
     batching = from_mapping(Batching, own.pop("batching", {}), f"{name}.batching")
     own.pop("gaps", None)  # the runtime's too: gap_policy
+    own.pop("retention", None)  # and retention_policy
     module, _cls, cfg_name = SERVICES[name]
     return batching, from_mapping(getattr(importlib.import_module(module), cfg_name), own, name)
 
@@ -83,6 +84,11 @@ def gap_policy(name: str, table: Mapping[str, Any]) -> GapPolicy:
     return from_mapping(GapPolicy, table.get("gaps", {}), f"{name}.gaps")
 
 
+def retention_policy(name: str, table: Mapping[str, Any]) -> RetentionPolicy:
+    """The ``[NAME.retention]`` subtable of a service's table (:class:`RetentionPolicy`)."""
+    return from_mapping(RetentionPolicy, table.get("retention", {}), f"{name}.retention")
+
+
 def build(args: argparse.Namespace):
     for r in args.region:
         if not valid_quadkey(r):
@@ -96,6 +102,7 @@ def build(args: argparse.Namespace):
     opts = ServiceOptions(
         batching=batching,
         gaps=gap_policy(args.name, table),
+        retention=retention_policy(args.name, table),
         region=tuple(args.region),
         data_dir=Path(args.data_dir),
         bus=bus_from_args(args),

@@ -60,6 +60,11 @@ def attention(c: dict[str, float]) -> list[str]:
             f"gap in the input log open for {c.get('gap_oldest_s', 0):.1f} s "
             f"({int(c.get('entries_ahead', 0))} entries waiting behind it)"
         )
+    if c.get("replay_refused", 0):
+        out.append(
+            f"{int(c['replay_refused'])} catch-ups refused: a producer deleted entries this "
+            "consumer lacks (it must be rebuilt; see its log)"
+        )
     if c.get("gaps_expired", 0):
         out.append(
             f"{int(c['gaps_expired'])} gaps not filled in time (their waiting entries were "

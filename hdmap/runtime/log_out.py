@@ -18,6 +18,7 @@ import zenoh
 
 from hdmap.geo.tiles import in_region
 from hdmap.runtime.queries import QueryServer
+from hdmap.runtime.retention import truncated_through
 from schemas import DecodeError, ErrorReply, LogEntry, LogHead, LogQuery, keys
 from schemas.logs import MAX_EPOCHS
 
@@ -51,7 +52,10 @@ class LogWriter:
             if col not in columns:
                 conn.execute(f"ALTER TABLE log_out ADD COLUMN {col} INTEGER NOT NULL DEFAULT 0")
         self._heads = dict(conn.execute("SELECT tile, seq FROM log_heads").fetchall())
-        self._gseq = conn.execute("SELECT COALESCE(MAX(gseq), 0) FROM log_out").fetchone()[0]
+        self._gseq = max(
+            conn.execute("SELECT COALESCE(MAX(gseq), 0) FROM log_out").fetchone()[0],
+            truncated_through(conn),  # a log truncated whole still numbers on
+        )
         self.epoch = new_epoch(conn, self._gseq)
         self._gbase = self._gseq
         self._bases = dict(self._heads)
@@ -155,6 +159,20 @@ class LogServer(QueryServer):
             return
         conn.execute("BEGIN")  # one snapshot of the log for the whole answer
         try:
+            gone = truncated_through(conn)
+            after = (req.after_gseq or {}).get(self.producer, 0)
+            if gone and (req.after_gseq is None or after < gone):
+                q.reply_err(
+                    ErrorReply.of(
+                        DecodeError(
+                            "after_gseq",
+                            f"{self.producer} deleted its log through gseq {gone} (every "
+                            f"consumer it knew had applied it); this consumer is at {after}: "
+                            "it must be rebuilt (docs/operations.md, Retention)",
+                        )
+                    ).to_bytes()
+                )
+                return
             if req.after_gseq is None:
                 rows, head = rows_per_tile(conn, req, self.producer), None
             else:

@@ -53,7 +53,7 @@ import zenoh
 from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
 from hdmap.runtime.config import ConfigError
-from hdmap.runtime.gaps import GapPolicy
+from hdmap.runtime.log_policy import GapPolicy, RetentionPolicy
 from hdmap.runtime.store import (
     EXIT_CORRUPT,
     EXIT_RESTART,
@@ -140,6 +140,7 @@ class ServiceOptions:
     inbox_size: int = 4096
     batching: Batching = field(default_factory=Batching)
     gaps: GapPolicy = field(default_factory=GapPolicy)
+    retention: RetentionPolicy = field(default_factory=RetentionPolicy)
     shard: tuple[int, int] = (0, 1)
     """(index, count): this instance serves the keys of its shard only (ingest: vehicles
     by :func:`shard_of` their id); part of the instance's label and data dir when count

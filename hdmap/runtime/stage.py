@@ -39,6 +39,7 @@ import zenoh
 
 from hdmap.runtime.catchup import BackgroundCatchUp, Fetch, bus_fetch
 from hdmap.runtime.log_out import LogServer, LogWriter
+from hdmap.runtime.retention import LogRetention
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.store import DatabaseCorrupt, StorageError
 from hdmap.runtime.stream import STAGE_KEYS, LogConsumer
@@ -67,6 +68,11 @@ class StageService(Service):
             LogWriter(self.db, self.output_stage, self.instance) if self.output_stage else None
         )
         self._log_server: LogServer | None = None
+        self.retention = (
+            LogRetention(self.db, self.output_stage, self.instance, opts.retention)
+            if self.output_stage
+            else None
+        )
         self._outbox: list[LogEntry] = []
         self._deferred = 0
         """Live entries not taken while a storage failure is waited out (replayed later)."""
@@ -102,6 +108,8 @@ class StageService(Service):
             self._log_server = LogServer(
                 self.session, self.db_path, self.output_stage, self.instance
             )
+        if self.retention is not None:
+            self.retention.wire(self)
         if self.upstream:
 
             def on_alive(sample: zenoh.Sample) -> None:
@@ -114,6 +122,7 @@ class StageService(Service):
                 )
             )
         self.every(self.opts.catchup_interval_s, lambda _now: self._mark_catchup())
+        self.every(self.opts.catchup_interval_s, lambda _now: self.publish_marks())
         self.use_fetch(bus_fetch(self.session))
         self.inbox.put(Item("kick", "", b""))
 
@@ -122,6 +131,11 @@ class StageService(Service):
         if self.catchups is not None:
             self.catchups.close()
         self.catchups = BackgroundCatchUp(self.consumer, fetch_round, self._kick, executor=executor)
+
+    def publish_marks(self) -> None:
+        """Tell each producer how far this consumer has applied its log (its retention)."""
+        for m in self.consumer.marks(self.instance):
+            self.pubs.put(keys.mark(m.stage, m.producer, m.consumer), m.to_bytes())
 
     def _kick(self) -> None:
         """Wake the worker (a catch-up round's answers are in); a full inbox wakes it too."""
@@ -171,6 +185,8 @@ class StageService(Service):
                 deliver += self.consumer.offer(entry)
             elif it.kind == "producer_up":
                 self.consumer.need_catchup = True
+            elif it.kind == "mark" and self.retention is not None:
+                self.retention.take(self, [it])
             elif it.kind != "kick":
                 others.append(it)
         if not waiting:
@@ -298,6 +314,7 @@ class StageService(Service):
             "entries_replayed": s.replayed,
             "catchups": s.catchups,
             "resyncs": s.resyncs,
+            "replay_refused": s.replay_refused,
             "gaps_open": len(self.consumer._opened),
             "gap_oldest_s": self.consumer.oldest_gap_s(),
             "gaps_expired": s.gaps_expired,

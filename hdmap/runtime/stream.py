@@ -39,8 +39,17 @@ import zenoh
 
 from hdmap.geo.tiles import in_region
 from hdmap.runtime.bus import query
-from hdmap.runtime.gaps import GapPolicy
-from schemas import DecodeError, LogEntry, LogHead, LogQuery, decode_replay, keys
+from hdmap.runtime.log_policy import GapPolicy
+from schemas import (
+    DecodeError,
+    ErrorReply,
+    LogEntry,
+    LogHead,
+    LogMark,
+    LogQuery,
+    decode_replay,
+    keys,
+)
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +67,8 @@ class ConsumerStats:
     gaps: int = 0
     replayed: int = 0
     catchups: int = 0
+    replay_refused: int = 0
+    """Catch-up answers a producer refused (its log deleted below this consumer)."""
     resyncs: int = 0
     """Times a producer restored from an older state was met (a tile or its watermark)."""
     ahead_dropped: int = 0
@@ -265,6 +276,17 @@ class LogConsumer:
             return 0.0
         return max(0.0, (self.clock() if now is None else now) - min(self._opened.values()))
 
+    def marks(self, consumer: str) -> list[LogMark]:
+        """How far this consumer (instance ``consumer``) has applied each producer's log:
+        its committed watermark, in the run of the last entry it applied; none for a
+        producer with a gap open (its watermark does not cover the tile that waits)."""
+        gapped = {p for p, _t in self._ahead}
+        return [
+            LogMark(self.stage, p, consumer, g, self._committed_top.get(p, (0, 0))[0])
+            for p, g in sorted(self._committed_wm.items())
+            if g > 0 and p not in gapped
+        ]
+
     def wants_catchup(self, now: float) -> bool:
         """Whether a catch-up is due at ``now``: asked for (start, a new gap, a producer
         appearing, the periodic timer, a rollback), the rest of a cut-short one, or the
@@ -410,7 +432,7 @@ class LogConsumer:
             try:
                 r = decode_replay(data)
             except DecodeError:
-                log.warning("undecodable replay reply ignored")
+                self._refused(data)
                 continue
             if isinstance(r, LogEntry):
                 got.append(r)
@@ -433,6 +455,17 @@ class LogConsumer:
             self._advance(p, h.through)
             complete = complete and h.complete
         return out, complete
+
+    def _refused(self, data: bytes) -> None:
+        """A reply that is not an entry nor a head: a producer's refusal (counted and
+        logged: a log truncated below this consumer needs an operator), or garbage."""
+        try:
+            err = ErrorReply.from_bytes(data)
+        except DecodeError:
+            log.warning("undecodable replay reply ignored")
+            return
+        self.stats.replay_refused += 1
+        log.error("%s: catch-up refused: %s: %s", self.stage, err.field, err.reason)
 
     def _restored(self, h: LogHead) -> bool:
         """Whether ``h`` shows its producer restored from an older state
@@ -510,10 +543,11 @@ class LogConsumer:
 def fetch(
     session: zenoh.Session, selectors: list[str], request: bytes, timeout: float
 ) -> list[bytes]:
-    """One catch-up round: the producers' replies to ``request`` (error replies dropped)."""
-    return [
-        ok
-        for sel in selectors
-        for _key, ok, _err in query(session, sel, request, timeout=timeout)
-        if ok is not None
-    ]
+    """One catch-up round: the producers' replies to ``request``, their refusals
+    (:class:`~schemas.ErrorReply`) included."""
+    out = []
+    for sel in selectors:
+        for _key, ok, err in query(session, sel, request, timeout=timeout):
+            if ok is not None or err is not None:
+                out.append(ok if ok is not None else err)
+    return out

@@ -53,6 +53,7 @@ from hdmap.geo.tiles import DEFAULT_TARGET_RANGE_M, route_rays
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S
+from hdmap.runtime.retention import LogRetention
 from hdmap.runtime.service import Item, Service, ServiceOptions, shard_of
 from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
 from hdmap.runtime.stream import STAGE_KEYS
@@ -142,6 +143,7 @@ class IngestService(Service):
         self.wall: Callable[[], float] = time.time
         """The wall clock admission compares capture times with (injectable)."""
         self.writer = LogWriter(self.db, "obs", self.instance)
+        self.retention = LogRetention(self.db, "obs", self.instance, opts.retention)
         self._log_server: LogServer | None = None
         self.limiter = VehicleLimiter(self.config.rate_limit)
         self._admitted: list[str] = []
@@ -155,6 +157,7 @@ class IngestService(Service):
             keys.upload(keys.ANY), "upload", lambda key: shard_of(keys.last_chunk(key), n) == i
         )
         self._log_server = LogServer(self.session, self.db_path, "obs", self.instance)
+        self.retention.wire(self)
         self.every(self.PRUNE_EVERY_S, lambda _now: self.prune_seen())
 
     def teardown(self) -> None:
@@ -162,6 +165,8 @@ class IngestService(Service):
             self._log_server.close()
 
     def handle(self, items: list[Item]) -> None:
+        if self.corrupt is None:
+            self.retention.take(self, items)
         uploads = [it for it in items if it.kind == "upload" and it.query is not None]
         if self.corrupt is not None:
             self._refuse_corrupt(uploads)

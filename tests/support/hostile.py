@@ -28,6 +28,7 @@ from schemas import (
     Links,
     LogEntry,
     LogHead,
+    LogMark,
     LogQuery,
     MapDelta,
     MapSnapshot,
@@ -120,9 +121,10 @@ def valid_messages(now: float) -> dict[str, bytes]:
     msgs = [
         ObservationBatch("fz-0", 1, 2, now, observations(4)),
         UploadAck("fz-0", 2, ids, ids[:1], [Rejection(9, "obs.lat", "bad")], None, 0.0),
-        LogEntry("obs", "fz-producer", tile, 1, 1, group.to_bytes()),
+        LogEntry("obs", "fz-producer", tile, 2, 5, group.to_bytes(), 7, 1, 3),
         LogQuery("obs", {"fz-producer": {tile: 4}}, ["12"], 10, {"fz-producer": 3}),
-        LogHead("obs", "fz-producer", 3, 8),
+        LogHead("obs", "fz-producer", 3, 8, [(5, 0), (7, 3)]),
+        LogMark("obs", "fz-producer", "fz-consumer", 5, 7),
         group,
         assoc_group(now, 4)[1],
         LandmarkUpdates(lm, rem),
@@ -177,12 +179,18 @@ RELATED: dict[tuple[str, str], tuple[str, ...]] = {
     ("assoc_group", "n_obs"): ("links",),
     ("assoc_group", "links"): ("links",),
     ("assoc_group", "obs"): ("links",),
+    ("log_entry", "seq"): ("base",),  # base < seq
+    ("log_entry", "gseq"): ("gbase",),  # gbase < gseq
 }
 OPTIONAL = {
     ("upload_ack", "error"),
     ("assoc_group", "merged_into"),
     ("error", "retry_after_s"),
     ("log_query", "after_gseq"),
+    ("log_entry", "epoch"),  # producers from before epochs
+    ("log_entry", "base"),
+    ("log_entry", "gbase"),
+    ("log_head", "epochs"),
 }
 """Fields a message may lack (absent reads as a default)."""
 

@@ -17,6 +17,7 @@ from schemas import (
     LandmarkUpdates,
     LogEntry,
     LogHead,
+    LogMark,
     LogQuery,
     MapDelta,
     MapSnapshot,
@@ -35,7 +36,7 @@ from tests.support.hostile import (
 
 # --- decoders ---------------------------------------------------------------------------------
 
-MESSAGES = (ObservationBatch, UploadAck, LogEntry, LogQuery, LogHead, ObsGroup, AssocGroup)
+MESSAGES = (ObservationBatch, UploadAck, LogEntry, LogQuery, LogHead, LogMark, ObsGroup, AssocGroup)
 MESSAGES += (LandmarkUpdates, MapDelta, MapSnapshot, ErrorReply, Stats)
 DECODERS: dict[str, tuple[str, Callable[[bytes], Any]]] = {
     m.__name__: (m.TYPE, m.from_bytes) for m in MESSAGES

@@ -54,7 +54,7 @@ def test_deploy_file_batching_is_each_service_s_default() -> None:
 
 def test_deploy_file_gaps_are_the_defaults_and_a_bad_one_names_its_key() -> None:
     from hdmap.cli.service import gap_policy
-    from hdmap.runtime.gaps import GapPolicy
+    from hdmap.runtime.log_policy import GapPolicy
 
     with open(ROOT / "deploy" / "services.toml", "rb") as f:
         table = tomllib.load(f)

@@ -14,7 +14,7 @@ import pytest
 
 from hdmap.runtime.catchup import BackgroundCatchUp, InlineExecutor
 from hdmap.runtime.config import ConfigError
-from hdmap.runtime.gaps import GapPolicy
+from hdmap.runtime.log_policy import GapPolicy
 from hdmap.runtime.stream import LogConsumer
 from schemas import LogEntry
 
