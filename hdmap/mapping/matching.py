@@ -183,6 +183,23 @@ class MatchingConfig:
     merge_copy_max_m: float = 15.0
     merge_copy_max_deg: float = 45.0
     merge_copy_max_covis: float = 0.03
+    merge_apart_max_m: float = 8.0
+    """Copies seen from different passes (0: off): two landmarks of one class at most this
+    far apart, facing at most ``merge_copy_max_deg`` apart, each with
+    ``merge_apart_min_rays`` rays or more, and detected in one image in at most
+    ``merge_apart_max_covis`` of the smaller one's rays, are one sign whatever their
+    estimates and their passes say. Two signs that close facing one way are in one image
+    whenever a car sees either (0.16-0.51 of the rays of every such pair of distinct signs
+    over the fleet evaluation's four seeds on both noises); a sign seen from two routes
+    whose biases differ can end as two landmarks 3-7 m apart, each under a tight
+    covariance and with its own passes (co-visibility 0-0.04, co-passes 0.02-0.15: neither
+    the estimates' gate nor ``merge_copy_units`` joins them). Pitfall: a sign that hides
+    its neighbour from every road (a wall between two panels facing one way) would merge
+    too; the simulator has no occlusion (docs/experiments/2026-12-copies-apart.md)."""
+    merge_apart_max_covis: float = 0.05
+    merge_apart_min_rays: int = 100
+    """Fewer rays do not tell: two signs detected together in 16 % of the images would
+    show 5 or fewer shared images in 100 rays with probability about 0.001."""
     merge_min_passes: int = 2
     """Both landmarks need this many passes (a one-pass estimate carries its pass's whole
     bias). With onboard tracks, co-visibility tells two signs apart reliably, so two passes

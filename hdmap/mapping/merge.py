@@ -81,7 +81,8 @@ def merge_partner(m: Matching, lm: Landmark) -> Landmark | None:
         if _seen_together(m, lm, o) or not _same_side(m, lm, o):
             continue
         return o
-    return _copy_of(m, lm, cands, np.hypot(d[:, 0], d[:, 1]))
+    dist = np.hypot(d[:, 0], d[:, 1])
+    return _copy_of(m, lm, cands, dist) or _copy_apart(m, lm, cands, dist)
 
 
 def _copy_of(m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray) -> Landmark | None:
@@ -109,6 +110,33 @@ def _copy_of(m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray)
         return None
     m.tally("merged_copies", 1)
     return others[int(np.argmax(np.where(ok, n, -1)))]  # most co-passes (first on a tie)
+
+
+def _copy_apart(
+    m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray
+) -> Landmark | None:
+    """The candidate ``lm`` is a copy of seen from other passes
+    (``MatchingConfig.merge_apart_max_m``): same way, never in one image; the nearest."""
+    cfg = m.config
+    if cfg.merge_apart_max_m <= 0:
+        return None
+    near = np.flatnonzero(dist <= cfg.merge_apart_max_m)
+    if not near.size:
+        return None
+    others = [cands[k] for k in near.tolist()]
+    rays = m.sums.n_obs(np.array([lm.row] + [o.row for o in others], np.int64))
+    if rays[0] < cfg.merge_apart_min_rays:
+        return None
+    f = facings_of(m, [lm, *others])
+    covis = np.array([m.state.covis_count(lm.id, o.id) for o in others])
+    ok = rays[1:] >= cfg.merge_apart_min_rays
+    ok &= f.known[0] & f.known[1:]
+    ok &= angle_between(f.azimuth[0], f.azimuth[1:]) <= np.radians(cfg.merge_copy_max_deg)
+    ok &= covis <= cfg.merge_apart_max_covis * np.minimum(rays[0], rays[1:])
+    if not ok.any():
+        return None
+    m.tally("merged_apart", 1)
+    return others[int(np.argmin(np.where(ok, dist[near], np.inf)))]
 
 
 def _seen_together(m: Matching, a: Landmark, b: Landmark) -> bool:

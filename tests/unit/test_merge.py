@@ -147,7 +147,9 @@ def test_a_copy_linked_by_the_same_passes_merges_whatever_its_estimate(tmp_path,
 
     svc = matcher(tmp_path)
     if kind == "off":
-        svc.matching.config = dataclasses.replace(svc.matching.config, merge_copy_units=0)
+        svc.matching.config = dataclasses.replace(
+            svc.matching.config, merge_copy_units=0, merge_apart_max_m=0.0
+        )
     a, b = split_passes(svc, covisible=kind == "covisible", from_north_b=kind == "facing")
     assert svc.state.copass.get(a.id, b.id) == 12
     assert svc.state.covis_count(a.id, b.id) == (120 if kind == "covisible" else 0)
@@ -159,6 +161,54 @@ def test_a_copy_linked_by_the_same_passes_merges_whatever_its_estimate(tmp_path,
         svc.state.save(svc.sums.pack_rows)
     again = matcher(tmp_path)
     assert again.state.copass.counts == svc.state.copass.counts
+
+
+def apart_passes(svc: MatcherService, kind: str):
+    """Landmarks a and b of the one sign, passes 0-9 linked to a and 10-19 to b (no pass
+    links to both); then b's gating estimate moved 5 m along the road (9 m: ``far``), both
+    with tight covariances, as two routes with different biases give them. ``covisible``:
+    passes 0-9 also detected a second sign of the class in their images, linked to b;
+    ``facing``: b is seen from the opposite direction; ``few``: 6 rays a pass."""
+    rng = np.random.default_rng(6)
+    tile = tile_of(svc.opts.zoom)
+    frame = svc.frames(tile)
+    svc.matching.out = defaultdict(_Out)
+    off = SIGN + np.array([0.0, 9.0 if kind == "far" else 5.0, 0.0])
+    at = frame.to_ecef(np.array([SIGN, off]))
+    a = create(svc.matching, tile, CLS, at[0], np.eye(3) * 4.0)
+    b = create(svc.matching, tile, CLS, at[1], np.eye(3) * 4.0)
+    n = 6 if kind == "few" else 10
+    for p in range(20):
+        obs = sign_rays(frame, p, rng, from_north=kind == "facing" and p >= 10, n=n)
+        if kind == "covisible" and p < 10:
+            both = Observations.concat([obs, sign_rays(frame, p, rng, n=n, image0=500)])
+            both = Observations(**{**both.__dict__, "image": np.r_[obs.image, obs.image]})
+            link(svc.matching, both, [a] * n + [b] * n, "veh-1", p, time.time())
+        else:
+            link(svc.matching, obs, [a if p < 10 else b] * n, "veh-1", p, time.time())
+    refresh(svc.matching, [a.id, b.id])
+    a.cov, b.x, b.cov = np.eye(3) * 0.04, at[1], np.eye(3) * 0.04
+    return a, b
+
+
+@pytest.mark.parametrize("kind", ["apart", "covisible", "facing", "few", "far", "off"])
+def test_a_copy_seen_from_other_passes_merges_when_never_in_one_image(tmp_path, kind) -> None:
+    """No pass links both and the estimates are 5 m and 18 sigma apart: never in one image,
+    facing one way, each with 100 rays, b is a copy of a. In a's images, from the other
+    side, with 60 rays each, 9 m apart, or with the rule off, it stays apart."""
+    from hdmap.mapping.merge import merge_partner
+
+    svc = matcher(tmp_path)
+    if kind == "off":
+        svc.matching.config = dataclasses.replace(svc.matching.config, merge_apart_max_m=0.0)
+    a, b = apart_passes(svc, kind)
+    assert svc.state.copass.get(a.id, b.id) == (10 if kind == "covisible" else 0)
+    assert svc.state.covis_count(a.id, b.id) == (100 if kind == "covisible" else 0)
+    assert merge_partner(svc.matching, b) is (a if kind == "apart" else None)
+    before = svc.counters["merged_apart"]
+    merge_touched(svc.matching, [b.id])
+    assert sorted(svc.state.landmarks) == ([a.id] if kind == "apart" else sorted([a.id, b.id]))
+    assert svc.counters["merged_apart"] - before == (1 if kind == "apart" else 0)
 
 
 def test_solver_hands_the_sums_over_and_the_map_drops_the_retired(tmp_path: Path) -> None:
