@@ -30,7 +30,7 @@ from hdmap.geo.tiles import region_label
 from hdmap.runtime.bus import BusConfig, open_session
 from hdmap.runtime.config import EXIT_CONFIG
 from hdmap.runtime.orphan import PARENT_ENV
-from hdmap.runtime.service import shard_label
+from hdmap.runtime.shards import shard_label
 from hdmap.runtime.store import EXIT_CORRUPT
 from schemas import keys
 

@@ -39,7 +39,6 @@ import sqlite3
 import threading
 import time
 import uuid
-import zlib
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -54,6 +53,7 @@ from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.log_policy import GapPolicy, RetentionPolicy
+from hdmap.runtime.shards import shard_label
 from hdmap.runtime.store import (
     EXIT_CORRUPT,
     EXIT_RESTART,
@@ -559,26 +559,6 @@ class Service:
         if (lost := self._state_lost) is not None:
             log.error("%s: %s; exiting to be restarted (exit %d)", self.name, lost, EXIT_RESTART)
             raise SystemExit(EXIT_RESTART)
-
-
-def shard_label(shard: tuple[int, int]) -> str:
-    """The suffix a shard adds to an instance's label ('' for the only one).
-
-    >>> shard_label((0, 1)), shard_label((1, 3))
-    ('', '-s1of3')
-    """
-    i, n = shard
-    return "" if n == 1 else f"-s{i}of{n}"
-
-
-def shard_of(key: str, n: int) -> int:
-    """The shard (of ``n``) that serves ``key``: a stable hash (CRC-32), the same in
-    every process and on every host.
-
-    >>> shard_of("veh-0001", 1), shard_of("veh-0001", 2), shard_of("veh-0004", 2)
-    (0, 0, 1)
-    """
-    return zlib.crc32(key.encode()) % n if n > 1 else 0
 
 
 def _wire_number(v: float) -> float:

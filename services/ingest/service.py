@@ -54,7 +54,8 @@ from hdmap.runtime.config import ConfigError
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S
 from hdmap.runtime.retention import LogRetention
-from hdmap.runtime.service import Item, Service, ServiceOptions, shard_of
+from hdmap.runtime.service import Item, Service, ServiceOptions
+from hdmap.runtime.shards import shard_of
 from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
 from hdmap.runtime.stream import STAGE_KEYS
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys

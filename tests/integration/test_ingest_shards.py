@@ -19,7 +19,7 @@ from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import SERVICE_NAMES
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session
-from hdmap.runtime.service import shard_of
+from hdmap.runtime.shards import shard_of
 from tests.support.uploads import upload
 from vehicle.uploader import Uploader
 
