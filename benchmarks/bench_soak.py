@@ -150,6 +150,7 @@ def run(args: argparse.Namespace) -> dict:
                     f"[{n}.retention]\nretain_s = {args.retain_s}\nevery_s = {args.truncate_s}\n"
                     for n in ("ingest", "matcher", "solver")
                 )
+                + f"[ingest.policy]\nmax_lag_s = {args.max_lag_s}\n"
             )
             for n in ("ingest", "matcher", "solver"):
                 stack.extra_service_args[n] = ["--config", str(cfg_file)]
@@ -199,6 +200,7 @@ def run(args: argparse.Namespace) -> dict:
         "config": asdict(cfg),
         "speedup": args.speedup,
         "retain_s": args.retain_s,
+        "max_lag_s": args.max_lag_s,
         "samples": samples,
         "after_drain": end,
         "drained": drained,
@@ -228,6 +230,12 @@ def main() -> int:
         help="[NAME.retention] retain_s of the producers (0: their default, one day)",
     )
     ap.add_argument("--truncate-s", type=float, default=10.0, help="[NAME.retention] every_s")
+    ap.add_argument(
+        "--max-lag-s",
+        type=float,
+        default=3600.0,
+        help="[ingest.policy] max_lag_s: the event time ingest's dedup table holds",
+    )
     ap.add_argument(
         "--quick", action="store_true", help="2 minutes, 500 obs/s, a sample every 10 s"
     )

@@ -38,6 +38,13 @@ class AdmissionPolicy:
     """Observations older than this (capture time vs arrival) are refused."""
     max_future_s: float = 300.0
     """Clock skew tolerated for capture times ahead of the ingest clock."""
+    max_lag_s: float | None = None
+    """Observations captured more than this before the newest capture time ingest has
+    admitted (the fleet's own clock: :attr:`IngestService.horizon`) are refused; None:
+    ``max_age_s``. Ingest forgets the ids of what this refuses (its dedup table holds this
+    much of the fleet's time), so a smaller lag bounds that table where the fleet's time
+    runs ahead of the wall clock (a replay, an accelerated soak) at the cost of refusing
+    uploads later than it."""
     min_score: float = 0.0
     """Detections below this detector score are refused."""
     max_per_image: int = 64
@@ -54,11 +61,16 @@ class AdmissionPolicy:
 
 
 def admit(
-    obs: Observations, policy: AdmissionPolicy, now: float, tiles: np.ndarray
+    obs: Observations,
+    policy: AdmissionPolicy,
+    now: float,
+    tiles: np.ndarray,
+    horizon: float = -np.inf,
 ) -> tuple[np.ndarray, list[Rejection]]:
     """Which schema-valid observations are admitted (a mask; ``tiles``: each row's tile),
-    and the rejections of the others with reasons."""
-    too_old = obs.t < now - policy.max_age_s
+    and the rejections of the others with reasons (``horizon``: the newest capture time
+    admitted before)."""
+    too_old = obs.t < oldest_admitted(policy, now, horizon)
     future = obs.t > now + policy.max_future_s
     low = (obs.score < policy.min_score) & ~too_old & ~future
     crowded = _beyond_per_image(obs.image, policy.max_per_image) & ~too_old & ~future & ~low
@@ -70,7 +82,12 @@ def admit(
         return ~bad, []
     rejected: list[Rejection] = []
     for mask, field, reason in (
-        (too_old, "obs.t", f"older than {policy.max_age_s:g} s"),
+        (
+            too_old,
+            "obs.t",
+            f"older than {policy.max_age_s:g} s or than the fleet's "
+            f"newest observation by {lag_s(policy):g} s",
+        ),
         (future, "obs.t", f"more than {policy.max_future_s:g} s in the future"),
         (low, "obs.score", f"below the minimum score {policy.min_score:g}"),
         (crowded, "obs.image", f"more than {policy.max_per_image} detections in one image"),
@@ -78,6 +95,21 @@ def admit(
     ):
         rejected += [Rejection(int(i), field, reason) for i in obs.obs_id[mask]]
     return ~bad, rejected
+
+
+def lag_s(policy: AdmissionPolicy) -> float:
+    """How far behind the newest capture time an observation may be."""
+    return policy.max_age_s if policy.max_lag_s is None else policy.max_lag_s
+
+
+def oldest_admitted(policy: AdmissionPolicy, now: float, horizon: float) -> float:
+    """The oldest capture time admitted at wall time ``now`` after the newest admitted
+    ``horizon``: older ones are refused, so their ids need not be remembered.
+
+    >>> oldest_admitted(AdmissionPolicy(max_age_s=100.0, max_lag_s=10.0), 1000.0, 995.0)
+    985.0
+    """
+    return max(now - policy.max_age_s, horizon - lag_s(policy))
 
 
 def _beyond_first_tiles(tiles: np.ndarray, limit: int) -> np.ndarray:

@@ -56,12 +56,12 @@ from hdmap.runtime.ratelimit import MAX_RETRY_AFTER_S
 from hdmap.runtime.retention import LogRetention
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.shards import shard_of
-from hdmap.runtime.store import DatabaseCorrupt, StorageError, u64_to_i64
+from hdmap.runtime.store import DatabaseCorrupt, Meta, StorageError, u64_to_i64
 from hdmap.runtime.stream import STAGE_KEYS
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys
 from schemas.codec import valid_id
 from schemas.messages import MAX_BATCH
-from services.ingest.admission import AdmissionPolicy, admit, check_header
+from services.ingest.admission import AdmissionPolicy, admit, check_header, oldest_admitted
 from services.ingest.ratelimit import RateLimit, VehicleLimiter
 
 log = logging.getLogger(__name__)
@@ -112,6 +112,31 @@ class _Pending:
     ack: UploadAck
 
 
+class _Horizon:
+    """The newest capture time admitted (the fleet's own clock, meta ``horizon``), kept
+    with the transaction that admitted it."""
+
+    def __init__(self, meta: Meta):
+        self._meta = meta
+        got = meta.get("horizon")
+        self.value = float(got) if got is not None else -float("inf")
+        self._staged: float | None = None
+
+    def admitted(self, t: float) -> None:
+        """Observations captured up to ``t`` were admitted (inside the transaction)."""
+        if t > (self.value if self._staged is None else self._staged):
+            self._meta.set("horizon", repr(t))
+            self._staged = t
+
+    def on_commit(self) -> None:
+        if self._staged is not None:
+            self.value = self._staged
+        self._staged = None
+
+    def on_rollback(self) -> None:
+        self._staged = None
+
+
 class IngestService(Service):
     name = "ingest"
     stops_on_corruption = False  # it refuses uploads as permanent instead (module docstring)
@@ -143,6 +168,7 @@ class IngestService(Service):
         self.db.execute("CREATE INDEX IF NOT EXISTS seen_t ON seen(t)")
         self.wall: Callable[[], float] = time.time
         """The wall clock admission compares capture times with (injectable)."""
+        self._horizon = _Horizon(Meta(self.db))
         self.writer = LogWriter(self.db, "obs", self.instance)
         self.retention = LogRetention(self.db, "obs", self.instance, opts.retention)
         self._log_server: LogServer | None = None
@@ -176,7 +202,7 @@ class IngestService(Service):
         entries = []
         self._admitted = []
         try:
-            with self.transaction([self.writer]):
+            with self.transaction(self.participants):
                 for it in uploads:
                     ack, new_entries = self._stage(it)
                     staged.append(_Pending(it, ack))
@@ -295,7 +321,7 @@ class IngestService(Service):
             self.opts.zoom,
             self.config.default_range_m,
         )
-        keep, more = admit(batch.obs, self.config.policy, self.wall(), all_tiles)
+        keep, more = admit(batch.obs, self.config.policy, self.wall(), all_tiles, self.horizon)
         obs = batch.obs.take(keep) if not keep.all() else batch.obs
         rejected += more
         for reason, n in Counter(r.field for r in rejected).items():
@@ -313,6 +339,8 @@ class IngestService(Service):
                 strict=False,
             ),
         )
+        if len(new):
+            self._horizon.admitted(float(new.t.max()))
         self.count("accepted", len(new))
         self.count("duplicates", int(dup.sum()))
         if len(new):
@@ -347,13 +375,22 @@ class IngestService(Service):
         row = self.db.execute("SELECT 1 FROM seen WHERE vehicle=? LIMIT 1", (vehicle,))
         return row.fetchone() is not None
 
+    @property
+    def horizon(self) -> float:
+        """The newest capture time admitted (committed)."""
+        return self._horizon.value
+
+    @property
+    def participants(self) -> list:
+        """What follows an upload transaction's outcome: the log writer, the horizon."""
+        return [self.writer, self._horizon]
+
     def prune_seen(self) -> int:
         """Forget the ids whose capture time is past the admission window (with a minute to
         spare): an upload that sends one again is refused as too old before its ids are
         looked up, so the dedup table stays one window deep whatever the fleet's history.
         How many ids went (counted ``seen_pruned``)."""
-        pol = self.config.policy
-        before = self.wall() - pol.max_age_s - 60.0
+        before = oldest_admitted(self.config.policy, self.wall(), self.horizon) - 60.0
         gone = 0
         for _ in range(10_000):  # bounded: PRUNE_CHUNK ids a transaction
             with self.transaction():

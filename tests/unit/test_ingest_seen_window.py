@@ -24,7 +24,7 @@ def send(svc: IngestService, first: int, t: float, n: int = 10):
     obs = make_observations(n, t=t)
     obs.obs_id[:] = np.arange(first, first + n, dtype=np.uint64)
     data = ObservationBatch("veh-1", 1, first, t, obs).to_bytes()
-    with svc.transaction([svc.writer]):
+    with svc.transaction(svc.participants):
         ack, _entries = svc._stage(Item("upload", keys.upload("veh-1"), data))
     return ack
 
@@ -71,3 +71,30 @@ def test_a_dedup_table_from_before_times_keeps_its_ids_one_window(tmp_path: Path
         assert t > NOW - 1e8
     finally:
         svc.db.close()
+
+
+def test_with_a_lag_the_table_follows_the_fleets_own_clock(tmp_path: Path):
+    """An accelerated stream (a replay, a soak): capture times run ahead of the wall
+    clock, well inside the 30-day age window. ``max_lag_s`` refuses what is more than an
+    hour behind the newest observation admitted, so ids older than that are forgotten
+    while the wall clock stands still; the newest capture time survives a restart."""
+    pol = AdmissionPolicy(max_lag_s=HOUR)
+    svc = IngestService(ServiceOptions(data_dir=tmp_path), IngestConfig(policy=pol))
+    t0 = NOW - 20 * 24 * HOUR
+    try:
+        svc.wall = lambda: NOW
+        for k in range(3):  # two hours of the fleet's time between uploads
+            assert len(send(svc, 100 * k, t0 + 2 * k * HOUR).accepted) == 10
+        assert svc.horizon == t0 + 4 * HOUR
+        assert svc.prune_seen() == 20  # the first two uploads' ids
+        late = send(svc, 0, t0)  # sent again: refused, not recorded twice
+        assert len(late.accepted) == 0 and {r.field for r in late.rejected} == {"obs.t"}
+        assert "newest observation" in late.rejected[0].reason
+        assert len(send(svc, 200, t0 + 4 * HOUR).duplicates) == 10
+    finally:
+        svc.db.close()
+    again = IngestService(ServiceOptions(data_dir=tmp_path), IngestConfig(policy=pol))
+    try:
+        assert again.horizon == t0 + 4 * HOUR
+    finally:
+        again.db.close()
