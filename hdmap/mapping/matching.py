@@ -198,8 +198,9 @@ class MatchingConfig:
     too; the simulator has no occlusion (docs/experiments/2026-12-copies-apart.md)."""
     merge_apart_max_covis: float = 0.05
     merge_apart_min_rays: int = 100
-    """Fewer rays do not tell: two signs detected together in 16 % of the images would
-    show 5 or fewer shared images in 100 rays with probability about 0.001."""
+    """Fewer rays do not tell: two signs detected together in 16 % of the images (the
+    fewest of any pair within 8 m) show 5 or fewer shared images in 100 rays with
+    binomial probability 0.0007."""
     merge_min_passes: int = 2
     """Both landmarks need this many passes (a one-pass estimate carries its pass's whole
     bias). With onboard tracks, co-visibility tells two signs apart reliably, so two passes

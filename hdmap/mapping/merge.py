@@ -100,12 +100,8 @@ def _copy_of(m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray)
     n = n[n >= cfg.merge_copy_units]
     rows = np.array([lm.row] + [o.row for o in others], np.int64)
     passes, rays = m.sums.n_passes(rows), m.sums.n_obs(rows)
-    f = facings_of(m, [lm, *others])
-    covis = np.array([m.state.covis_count(lm.id, o.id) for o in others])
     ok = n >= cfg.merge_copy_share * np.minimum(passes[0], passes[1:])
-    ok &= f.known[0] & f.known[1:]
-    ok &= angle_between(f.azimuth[0], f.azimuth[1:]) <= np.radians(cfg.merge_copy_max_deg)
-    ok &= covis <= cfg.merge_copy_max_covis * np.maximum(np.minimum(rays[0], rays[1:]), 1)
+    ok &= _one_way_never_together(m, lm, others, rays, cfg.merge_copy_max_covis)
     if not ok.any():
         return None
     m.tally("merged_copies", 1)
@@ -127,16 +123,25 @@ def _copy_apart(
     rays = m.sums.n_obs(np.array([lm.row] + [o.row for o in others], np.int64))
     if rays[0] < cfg.merge_apart_min_rays:
         return None
-    f = facings_of(m, [lm, *others])
-    covis = np.array([m.state.covis_count(lm.id, o.id) for o in others])
     ok = rays[1:] >= cfg.merge_apart_min_rays
-    ok &= f.known[0] & f.known[1:]
-    ok &= angle_between(f.azimuth[0], f.azimuth[1:]) <= np.radians(cfg.merge_copy_max_deg)
-    ok &= covis <= cfg.merge_apart_max_covis * np.minimum(rays[0], rays[1:])
+    ok &= _one_way_never_together(m, lm, others, rays, cfg.merge_apart_max_covis)
     if not ok.any():
         return None
     m.tally("merged_apart", 1)
     return others[int(np.argmin(np.where(ok, dist[near], np.inf)))]
+
+
+def _one_way_never_together(
+    m: Matching, lm: Landmark, others: list[Landmark], rays: np.ndarray, max_covis: float
+) -> np.ndarray:
+    """Which of ``others`` face the way ``lm`` does (both facings known, within
+    ``merge_copy_max_deg``) and were detected in one image with it in at most
+    ``max_covis`` of the smaller one's rays (``rays``: ``lm``'s, then the others')."""
+    f = facings_of(m, [lm, *others])
+    covis = np.array([m.state.covis_count(lm.id, o.id) for o in others])
+    ok = f.known[0] & f.known[1:]
+    ok &= angle_between(f.azimuth[0], f.azimuth[1:]) <= np.radians(m.config.merge_copy_max_deg)
+    return ok & (covis <= max_covis * np.maximum(np.minimum(rays[0], rays[1:]), 1))
 
 
 def _seen_together(m: Matching, a: Landmark, b: Landmark) -> bool:

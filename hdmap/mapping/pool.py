@@ -13,6 +13,27 @@ from numpy.typing import NDArray
 from schemas.ids import pass_key
 
 
+class _Column:
+    """A column of :class:`PendingTile` (stored as ``_<name>``), read once the queued rows
+    are concatenated onto it; ``writable``: assignable too (as a bool array)."""
+
+    def __init__(self, writable: bool = False) -> None:
+        self.writable = writable
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.attr = f"_{name}"
+
+    def __get__(self, obj: PendingTile | None, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        return getattr(obj._columns(), self.attr)
+
+    def __set__(self, obj: PendingTile, value: Any) -> None:
+        if not self.writable:
+            raise AttributeError(f"{self.attr[1:]} is read only")
+        setattr(obj._columns(), self.attr, np.asarray(value, bool))
+
+
 class PendingTile:
     """Rays routed to one tile that wait for a landmark (columnar).
 
@@ -118,49 +139,19 @@ class PendingTile:
             self._flush()
         return self
 
-    @property
-    def obs(self) -> Any:
-        return self._columns()._obs
-
-    @property
-    def vehicle(self) -> NDArray[Any]:
-        return self._columns()._vehicle
-
-    @property
-    def pass_id(self) -> NDArray[np.int64]:
-        return self._columns()._pass_id
-
-    @property
-    def added_at(self) -> NDArray[np.float64]:
-        return self._columns()._added_at
-
-    @property
-    def received_at(self) -> NDArray[np.float64]:
-        return self._columns()._received_at
-
-    @property
-    def key(self) -> NDArray[np.int64]:
-        return self._columns()._key
-
-    @property
-    def tried(self) -> NDArray[np.bool_]:
-        return self._columns()._tried
-
-    @tried.setter
-    def tried(self, value: NDArray[np.bool_]) -> None:
-        self._columns()._tried = np.asarray(value, bool)
-
-    @property
-    def saved(self) -> NDArray[np.bool_]:
-        return self._columns()._saved
-
-    @property
-    def local(self) -> NDArray[np.float64]:
-        """(n, 6): each ray's origin and direction in the tile's frame, NaN where not
-        computed yet (:func:`hdmap.mapping.pending.pool_rays` fills it in: a conversion's
-        rows do not depend on the rows converted with them, so a kept row is the one a
-        conversion anew gives)."""
-        return self._columns()._local
+    obs = _Column()
+    vehicle = _Column()
+    pass_id = _Column()
+    added_at = _Column()
+    received_at = _Column()
+    key = _Column()
+    tried = _Column(writable=True)
+    saved = _Column()
+    local = _Column()
+    """(n, 6): each ray's origin and direction in the tile's frame, NaN where not computed
+    yet (:func:`hdmap.mapping.pending.pool_rays` fills it in: a conversion's rows do not
+    depend on the rows converted with them, so a kept row is the one a conversion anew
+    gives)."""
 
     def keep(self, mask: NDArray[np.bool_]) -> None:
         """Keep only the rows ``mask`` marks."""

@@ -86,8 +86,7 @@ class BackgroundCatchUp:
         except (zenoh.ZError, OSError) as exc:
             log.warning("catch-up failed: %s", exc)
             self.failures += 1
-            self.consumer.more = False
-            self.consumer.end_round(True, now)
+            self.consumer.end_round(True, now)  # not cut short: a gap retries later
             return []
         if generation != self.consumer.generation:  # asked before a rollback: stale
             return []

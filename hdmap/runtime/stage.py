@@ -315,7 +315,7 @@ class StageService(Service):
             "catchups": s.catchups,
             "resyncs": s.resyncs,
             "replay_refused": s.replay_refused,
-            "gaps_open": len(self.consumer._opened),
+            "gaps_open": self.consumer.gaps_open,
             "gap_oldest_s": self.consumer.oldest_gap_s(),
             "gaps_expired": s.gaps_expired,
             "entries_ahead": self.consumer.ahead_entries,

@@ -266,6 +266,11 @@ class LogConsumer:
         self._ahead[k][entry.seq] = entry
 
     @property
+    def gaps_open(self) -> int:
+        """Tiles with live entries waiting behind a gap."""
+        return len(self._opened)
+
+    @property
     def ahead_entries(self) -> int:
         """Live entries waiting behind gaps."""
         return sum(len(b) for b in self._ahead.values())

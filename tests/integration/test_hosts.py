@@ -49,6 +49,8 @@ class Hosts:
     """role (r, a, b) -> namespace."""
     addr: dict[str, str]
     """role (a, b, host) -> the router's address on that link; ``<role>-peer``: theirs."""
+    router_if: dict[str, str]
+    """role (a, b, host) -> the router's end of the link (in namespace ``r``)."""
 
 
 def _can_make_namespaces() -> str:
@@ -81,6 +83,7 @@ def hosts() -> Iterator[Hosts]:
             made.append(ns)
             ip("link", "set", "lo", "up", ns=ns)
         addr: dict[str, str] = {}
+        router_if: dict[str, str] = {}
         for role, k in links.items():
             r_if, o_if = f"hr{tag}{k}", f"ho{tag}{k}"
             ip("link", "add", r_if, "type", "veth", "peer", "name", o_if)
@@ -94,9 +97,10 @@ def hosts() -> Iterator[Hosts]:
                 ip("link", "set", o_if, "netns", other)
             ip("addr", "add", f"10.{net}.{k}.2/30", "dev", o_if, ns=other)
             ip("link", "set", o_if, "up", ns=other)
+            router_if[role] = r_if
             addr[role] = f"10.{net}.{k}.1"
             addr[f"{role}-peer"] = f"10.{net}.{k}.2"
-        yield Hosts(names, addr)
+        yield Hosts(names, addr, router_if)
     finally:
         for link in host_links:  # the host's end (the rest goes with the namespaces)
             subprocess.run(["ip", "link", "del", link], capture_output=True, timeout=20)
@@ -138,7 +142,7 @@ def test_the_pipeline_across_hosts_survives_a_cut_link(hosts, tmp_path):
                 acked += N
             assert wait_until(lambda: matcher_received(s) == acked, 60.0)
 
-            r_if = f"hr{hosts.names['r'][2:-1]}2"  # the router's end of the link to b
+            r_if = hosts.router_if["b"]
             ip("link", "set", r_if, "down", ns=hosts.names["r"])
             try:
                 for k in range(10, 30):  # b is cut off; a still takes uploads

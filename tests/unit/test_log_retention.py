@@ -14,7 +14,7 @@ from hdmap.runtime.log_policy import RetentionPolicy
 from hdmap.runtime.retention import LogRetention, truncated_through
 from hdmap.runtime.store import connect, transaction
 from hdmap.runtime.stream import LogConsumer
-from schemas import DecodeError, LogMark
+from schemas import DecodeError, LogEntry, LogHead, LogMark
 
 P = "ingest-x"
 DAY = 86_400.0
@@ -93,8 +93,6 @@ def test_a_mark_for_another_log_or_a_run_the_producer_lost_is_refused(tmp_path):
 def test_a_consumer_marks_its_committed_watermark_but_not_across_a_gap(tmp_path):
     conn = connect(tmp_path / "c.sqlite")
     c = LogConsumer(conn, "obs", [])
-    from schemas import LogEntry, LogHead
-
     es = [LogEntry("obs", P, "1203", s, s, b"x", 7, 0, 0) for s in (1, 2, 3)]
     got, _ = c.absorb([e.to_bytes() for e in es] + [LogHead("obs", P, 3, 3).to_bytes()])
     with transaction(conn, [c]):
