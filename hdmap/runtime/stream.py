@@ -353,7 +353,7 @@ class LogConsumer:
         )
         latest = {k: s for k, (_ep, s) in last.items()}
         self._pending_commit.update(latest)
-        self._pending_epochs = {k: ep for k, (ep, _s) in last.items()}
+        self._pending_epochs.update({k: ep for k, (ep, _s) in last.items()})
         done = self._committed
         self._uncommitted = {k for k in self._uncommitted if done.get(k, 0) < self._delivered[k]}
         if all(latest.get(k, 0) >= self._delivered[k] for k in self._uncommitted):
