@@ -34,7 +34,7 @@ from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.facing import Facing, facing_from_sums
 from hdmap.mapping.initiation import InitConfig
 from hdmap.mapping.landmarks import Landmark, LandmarkTable
-from hdmap.mapping.quiet import QuietPasses, SweepPeriods, note_open
+from hdmap.mapping.quiet import QuietPasses, SweepPeriods, compact_rows, note_open
 from hdmap.mapping.sightings import SightingConfig
 from hdmap.mapping.trust import FleetOffsets, TrustConfig, VehicleTrust
 
@@ -105,6 +105,12 @@ class MatchingConfig:
     """Close a pass in the gating sums once no ray of it has been linked for this long
     (event time, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above
     ``pending_ttl_s``: a pending ray can still be linked until it expires."""
+    compact_min_rows: int = 1024
+    """The gating sums drop the rows of retired and merged landmarks once this many (and
+    as many as live landmarks) have piled up, after a transaction's save
+    (:func:`hdmap.mapping.quiet.compact_rows`, counted ``sums_rows_dropped``): memory
+    follows the live map, not every landmark ever made. The map is the same to the bit
+    whatever the value."""
     sweep_every_s: float = 60.0
     """Expiry, forgotten budgets and pass closing run when the matcher's clock enters a new
     period of this length (event time; :func:`hdmap.mapping.event_time.advance`): at the
@@ -350,10 +356,31 @@ class Matching:
         one per unit, for one call's fixed cost. Reading :attr:`sums` flushes first (a
         re-solve, the facings, a merge, a settlement, closing quiet passes, saving the
         state all do), so nothing sees the sums without the links made before."""
-        parts, self.unsummed, self.unsummed_ids = self.unsummed, [], []
-        if parts:
+        parts, ids = self.unsummed, self.unsummed_ids
+        self.unsummed, self.unsummed_ids = [], []
+        if parts:  # a store empties its held links: the rows they went to are written
             self.held_saved, self.held_flushed = 0, True
+            lms = self.state.landmarks
+            self.state.mark_changed(sorted({i for i in np.concatenate(ids).tolist() if i in lms}))
         self._sums.accumulate_parts(parts)
+
+    def compact_rows(self) -> int:
+        """Drop the gating sums' rows of gone landmarks once they pile up
+        (:func:`hdmap.mapping.quiet.compact_rows`), the held links' rows renumbered with
+        them. Returns the rows
+        dropped; the map is the same to the bit."""
+        n = len(self._sums)
+        if self.unsummed_ids:
+            held = np.concatenate(self.unsummed_ids)
+            if not np.isin(held, np.fromiter(self.state.landmarks, np.uint64)).all():
+                return 0  # not after a save (held_to_save flushes those): wait for one
+        new_of = compact_rows(
+            self.quiet, self._sums, self.state.landmarks.values(), self.config.compact_min_rows
+        )
+        if new_of is None:
+            return 0
+        self.unsummed = [(new_of[r], *rest) for r, *rest in self.unsummed]
+        return n - len(self._sums)
 
     def hold_link(self, item: tuple[Any, Any, Rays, Any], ids: np.ndarray) -> None:
         """Hold one link call's rays for the gating sums (:meth:`flush_links`): (rows, pass

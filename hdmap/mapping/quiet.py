@@ -29,6 +29,8 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
+import numpy as np
+
 from hdmap.mapping.estimator import LandmarkSums
 
 
@@ -81,6 +83,17 @@ class QuietPasses:
 
     def clear(self) -> None:
         self._open.clear()
+
+    def renumber(self, new_of: np.ndarray) -> None:
+        """The sums rows were renumbered (:meth:`LandmarkSums.compact`): members follow,
+        those of gone rows are forgotten (and passes left with none), times kept."""
+        for key in list(self._open):
+            at, mine = self._open[key]
+            kept = {(lid, int(new_of[row])) for lid, row in mine if new_of[row] >= 0}
+            if kept:
+                self._open[key] = (at, kept)
+            else:
+                del self._open[key]
 
 
 class SweepPeriods:
@@ -148,6 +161,36 @@ def merge_rows(
     sums.merge_rows(keep.row, drop.row, rotation, translation)
     for c in moved:
         quiet.extend(c, [(keep.id, keep.row)])
+
+
+COMPACT_MIN_ROWS = 1024
+"""Gone landmarks' rows a service's sums keep before :func:`compact_rows` drops them (and
+at least as many as there are live ones: amortised O(1) a row)."""
+
+
+def compact_rows(
+    quiet: QuietPasses,
+    sums: LandmarkSums,
+    landmarks: Iterable[Any],
+    minimum: int = COMPACT_MIN_ROWS,
+    share: float = 1.0,
+) -> np.ndarray | None:
+    """Drop the rows of ``sums`` no landmark of ``landmarks`` (each with ``.row``, which is
+    renumbered in place) holds, once there are ``minimum`` of them and ``share`` times as
+    many as live rows; ``quiet`` follows. Returns the renumbering (old row -> new, -1:
+    gone) or None.
+    Nothing else may hold rows across the call (flush held links first, or renumber them
+    with the result). Without it a long run's memory grows with every landmark ever
+    retired or merged; with it, the results are the same to the bit."""
+    lms = list(landmarks)
+    dead = len(sums) - len(lms)
+    if dead <= 0 or dead < max(share * len(lms), minimum):
+        return None
+    new_of = sums.compact(np.array([lm.row for lm in lms], np.int64))
+    for lm in lms:
+        lm.row = int(new_of[lm.row])
+    quiet.renumber(new_of)
+    return new_of
 
 
 def close_quiet(quiet: QuietPasses, sums: LandmarkSums, state: _State) -> int:

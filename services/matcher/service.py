@@ -255,6 +255,7 @@ class MatcherService(StageService):
             )
         held_links.save(self.db, *self.matching.held_to_save())
         self.state.save(self.matching.sums_as_held.pack_rows)
+        self.count("sums_rows_dropped", self.matching.compact_rows())
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
 

@@ -27,7 +27,14 @@ from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.estimator.provisional import usable
 from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.facing import FacingConfig, to_wire
-from hdmap.mapping.quiet import QuietPasses, SweepPeriods, close_quiet, merge_rows, note_open
+from hdmap.mapping.quiet import (
+    QuietPasses,
+    SweepPeriods,
+    close_quiet,
+    compact_rows,
+    merge_rows,
+    note_open,
+)
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.stage import StageService
 from schemas import (
@@ -80,6 +87,12 @@ class SolverConfig:
     do not average away. Measured from a truth-referenced error log of the fleet's
     receivers by ``hdmap calibrate-gnss`` (:mod:`hdmap.mapping.gnss_floor`); 0 without
     one. Must be positive semi-definite (ConfigError naming the field)."""
+    compact_min_rows: int = 1024
+    """The sums drop the rows of retired and merged landmarks once this many (and
+    as many as live landmarks) have piled up, after a transaction's save
+    (:func:`hdmap.mapping.quiet.compact_rows`, counted ``sums_rows_dropped``): memory
+    follows the live map, not every landmark ever made. The map is the same to the bit
+    whatever the value."""
     close_passes_after_s: float = 7200.0
     """Close a pass (``LandmarkSums.close_passes``) once no ray of it has come for this long
     (event time: the solver's clock, :meth:`SolverService.group_time`;
@@ -269,6 +282,10 @@ class SolverService(StageService):
         for lid in touched:  # their sums changed, published or not: save them
             self.state.put(self.state.landmarks[lid])
         self.state.save(self.sums.pack_rows)
+        lms = self.state.landmarks.values()
+        new_of = compact_rows(self._quiet, self.sums, lms, self.config.compact_min_rows)
+        if new_of is not None:
+            self.count("sums_rows_dropped", int((new_of < 0).sum()))
 
     def _apply_group(self, g: AssocGroup) -> set[int]:
         touched: set[int] = set()

@@ -17,7 +17,7 @@ from schemas import AssocGroup, LandmarkUpdates, Links, LogEntry, NewLandmarks, 
 from services.matcher import replay
 from services.matcher.replay import open_matcher
 from services.matcher.service import MatcherService
-from services.solver.service import SolverService
+from services.solver.service import SolverConfig, SolverService
 
 CLS = 7
 
@@ -61,8 +61,8 @@ def matcher(path: Path) -> MatcherService:
     return svc
 
 
-def solver(path: Path) -> SolverService:
-    svc = SolverService(ServiceOptions(data_dir=path))
+def solver(path: Path, config: SolverConfig | None = None) -> SolverService:
+    svc = SolverService(ServiceOptions(data_dir=path), config)
     svc.pubs = Sink()  # type: ignore[assignment]
     return svc
 

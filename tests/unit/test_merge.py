@@ -23,6 +23,7 @@ from hdmap.mapping.merge import merge_touched
 from hdmap.runtime.service import ServiceOptions
 from schemas import Links, NewLandmarks, Observations
 from services.matcher.service import MatcherService
+from services.solver.service import SolverConfig
 from tests.support.services import (
     CLS,
     SIGN,
@@ -263,6 +264,21 @@ def test_solver_hands_the_sums_over_and_the_map_drops_the_retired(tmp_path: Path
     np.testing.assert_allclose(u.landmarks.lat, ref.landmarks.lat, rtol=0, atol=1e-11)
     np.testing.assert_allclose(u.landmarks.lon, ref.landmarks.lon, rtol=0, atol=1e-11)
     np.testing.assert_allclose(u.landmarks.cov, ref.landmarks.cov, rtol=1e-8, atol=1e-12)
+    # the solver's sums drop the merged row at the save (compact_min_rows 1) or keep it
+    # (the default); more rays then give the same bits
+    small = solver(tmp_path / "c", SolverConfig(compact_min_rows=1))
+    last = []
+    for svc in (s, small):
+        if svc is small:
+            svc._apply_in_transaction(
+                [assoc_entry(1, tile, created=created, **links([ida] * 6 + [idb] * 6, range(12)))]
+            )
+            svc._apply_in_transaction([assoc_entry(2, tile, retired=[idb], merged_into=[ida])])
+        assert len(svc.sums) == (1 if svc is small else 2)
+        svc._apply_in_transaction([assoc_entry(3, tile, **links([ida] * 3, range(9, 12)))])
+        last.append(updates(svc)[-1].landmarks)
+    assert last[0].lat.tobytes() == last[1].lat.tobytes()
+    assert last[0].cov.tobytes() == last[1].cov.tobytes()
     # after a restart the retired landmark is gone for good; unknown ids are rejected
     again = solver(tmp_path / "s")
     assert sorted(again.state.landmarks) == [ida]
@@ -323,3 +339,27 @@ def test_landmarks_seen_from_streets_at_right_angles_merge_only_at_one_place(
     svc.matching.config = config  # the default: one place, one sign
     merge_touched(svc.matching, [a.id, b.id])
     assert len(svc.state.landmarks) == 1
+
+
+def test_the_merged_landmarks_row_is_dropped_and_the_map_is_the_same(tmp_path: Path) -> None:
+    """After a merge the matcher's sums hold a dead row; dropped at the next save
+    (``compact_min_rows`` 1) or kept (the default), later rays give the same bits."""
+    blobs = []
+    for min_rows, dropped in ((1, 1), (1024, 0)):
+        svc = matcher(tmp_path / f"m{min_rows}")
+        svc.matching.config = dataclasses.replace(svc.config, compact_min_rows=min_rows)
+        a, b = two_copies(svc)
+        merge_touched(svc.matching, [b.id])
+        with svc.transaction([svc]):
+            svc.state.save(svc.sums.pack_rows)
+        assert svc.matching.compact_rows() == dropped
+        assert len(svc.sums) == 2 - dropped and a.row == (0 if dropped else a.row)
+        frame = svc.frames(tile_of(svc.opts.zoom))
+        rng = np.random.default_rng(11)
+        for p in range(12, 16):
+            link(svc.matching, sign_rays(frame, p, rng), [a] * 10, "veh-2", p, time.time())
+        svc.sums.close_passes(clusters=svc.sums.open_clusters(a.row)[:3])
+        refresh(svc.matching, [a.id])
+        blobs.append((svc.sums.pack_rows([a.row])[0], a.x.tobytes(), a.cov.tobytes()))
+        svc.db.close()
+    assert blobs[0] == blobs[1]

@@ -168,6 +168,16 @@ class OpenPasses:
         if not mine:
             del self.row_slots[row]
 
+    def renumber(self, new_of: IntArray) -> None:
+        """Rows renumbered (``new_of[old]``, -1: the row is gone with its open passes; the
+        order of the rows kept must not change, :meth:`canonical` relies on it)."""
+        live = np.flatnonzero(self.row[: self.hi] >= 0)
+        self.release(self.canonical(live[new_of[self.row[live]] < 0]))
+        live = np.flatnonzero(self.row[: self.hi] >= 0)
+        self.row[live] = new_of[self.row[live]]
+        self.slot = {(int(new_of[r]), c): s for (r, c), s in self.slot.items()}
+        self.row_slots = {int(new_of[r]): mine for r, mine in self.row_slots.items()}
+
     def free_slots(self, slots: IntArray) -> None:
         """Put detached slots on the free list, in order."""
         for s in slots.tolist():

@@ -199,6 +199,26 @@ class LandmarkSums:
         self._n += k
         return rows
 
+    def compact(self, keep: ArrayLike) -> IntArray:
+        """Keep only rows ``keep``, renumbered 0.. in ascending order of their old numbers
+        (every other row's sums and open passes go; capacity shrinks to twice what is
+        kept). Returns each old row's new number (-1: gone). Rows are never reused, so the
+        rows of retired and merged landmarks pile up until compacted; an ascending
+        renumbering keeps every result bit for bit (sums are per row and open passes are
+        ordered by (row, cluster), :meth:`OpenPasses.canonical`)."""
+        keep = np.unique(self._check_rows(keep))
+        new_of = np.full(self._n, -1, np.int64)
+        new_of[keep] = np.arange(keep.size)
+        cap = max(2 * keep.size, 16)
+        for name in _ROW_ARRAYS:
+            old = getattr(self, name)
+            arr = np.zeros((cap, *old.shape[1:]), old.dtype)
+            arr[: keep.size] = old[keep]
+            setattr(self, name, arr)
+        self._n = int(keep.size)
+        self._open.renumber(new_of)
+        return new_of
+
     def _check_rows(self, rows: ArrayLike) -> IntArray:
         r = np.asarray(rows, np.int64).reshape(-1)
         if r.size and (r.min() < 0 or r.max() >= self._n):
