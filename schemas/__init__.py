@@ -1,13 +1,14 @@
 """Wire schemas (version 1) and the codec that validates them at the boundary.
 
 See ``schemas/README.md`` for every message, field by field. The messages live by concern
-in :mod:`schemas.upload`, :mod:`schemas.logs`, :mod:`schemas.map` and
-:mod:`schemas.control` (on the shared base :mod:`schemas.messages`), the tables they carry
+in :mod:`schemas.upload`, :mod:`schemas.logs`, :mod:`schemas.map`, :mod:`schemas.control`
+and :mod:`schemas.handover` (on the shared base :mod:`schemas.messages`), the tables they carry
 in :mod:`schemas.tables`; every name is importable from here.
 """
 
 from schemas.codec import VERSION, DecodeError
 from schemas.control import ErrorReply, Stats
+from schemas.handover import HandoverReply, HandoverRequest
 from schemas.logs import (
     AssocGroup,
     LandmarkUpdates,
@@ -46,6 +47,8 @@ __all__ = [
     "AssocGroup",
     "DecodeError",
     "ErrorReply",
+    "HandoverReply",
+    "HandoverRequest",
     "LandmarkUpdates",
     "Landmarks",
     "Links",

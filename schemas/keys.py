@@ -125,6 +125,11 @@ def stats(service: str, region_label: str, instance: str) -> str:
     return f"{ROOT}/stats/{service}/{region_label}/{instance}"
 
 
+def handover(service: str, region_label: str) -> str:
+    """Handover queryable of a region's matcher or solver (:mod:`schemas.handover`)."""
+    return f"{ROOT}/handover/{service}/{region_label}"
+
+
 def last_chunk(key: str) -> str:
     return key.rsplit("/", 1)[-1]
 

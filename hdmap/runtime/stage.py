@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import queue
+import threading
 import time
 from collections import defaultdict
 from itertools import pairwise
@@ -38,6 +39,7 @@ from itertools import pairwise
 import zenoh
 
 from hdmap.runtime.catchup import BackgroundCatchUp, Fetch, bus_fetch
+from hdmap.runtime.handover import Handover
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.retention import LogRetention
 from hdmap.runtime.service import Item, Service, ServiceOptions
@@ -73,6 +75,16 @@ class StageService(Service):
             if self.output_stage
             else None
         )
+        self.handover = Handover(
+            self.name,
+            self.instance,
+            self.region_label,
+            self.db,
+            self.data_dir,
+            lambda: self.writer.gseq if self.writer else 0,
+        )
+        self._paused_dropped = 0
+        """Live entries dropped while paused for a handover (the producers' logs keep them)."""
         self._outbox: list[LogEntry] = []
         self._deferred = 0
         """Live entries not taken while a storage failure is waited out (replayed later)."""
@@ -91,6 +103,10 @@ class StageService(Service):
 
     def after_commit(self) -> None:
         """Publish derived state after a successful apply (beyond the output log)."""
+
+    def before_handover(self) -> None:
+        """Make the database the whole state before a handover's checkpoint (inside a
+        transaction; :mod:`hdmap.runtime.handover`)."""
 
     def handle_other(self, items: list[Item]) -> None:
         """Items that are not stage entries (queries of this service)."""
@@ -121,6 +137,7 @@ class StageService(Service):
                     keys.alive(self.upstream, "*", "*"), on_alive
                 )
             )
+        self.serve(self.handover.key(), "handover")
         self.every(self.opts.catchup_interval_s, lambda _now: self._mark_catchup())
         self.every(self.opts.catchup_interval_s, lambda _now: self.publish_marks())
         self.use_fetch(bus_fetch(self.session))
@@ -141,6 +158,22 @@ class StageService(Service):
         """Wake the worker (a catch-up round's answers are in); a full inbox wakes it too."""
         with contextlib.suppress(queue.Full):
             self.inbox.put_nowait(Item("kick", "", b""))
+
+    def run(self, stop: threading.Event) -> None:
+        self.handover.stop = stop  # a handover's last request stops the process
+        super().run(stop)
+
+    def _handover(self, it: Item, deliver: list[LogEntry]) -> None:
+        """Apply what came before a handover request, then serve it."""
+        if not self.handover.paused and not self.backoff.waiting(self.clock()):
+            self._deliver(deliver)
+        deliver.clear()
+
+        def prepare() -> None:
+            with self.transaction(self.participants()):
+                self.before_handover()
+
+        self.handover.answer(it, prepare, self.reject)
 
     def teardown(self) -> None:
         if self.catchups is not None:
@@ -182,14 +215,19 @@ class StageService(Service):
                 if waiting:  # the rollback rewound the consumer: the retry replays it
                     self._deferred += 1
                     continue
+                if self.handover.paused:  # handed over: the producer's log keeps it
+                    self._paused_dropped += 1
+                    continue
                 deliver += self.consumer.offer(entry)
+            elif it.kind == "handover":
+                self._handover(it, deliver)
             elif it.kind == "producer_up":
                 self.consumer.need_catchup = True
             elif it.kind == "mark" and self.retention is not None:
                 self.retention.take(self, [it])
             elif it.kind != "kick":
                 others.append(it)
-        if not waiting:
+        if not waiting and not self.handover.paused:
             self._deliver(deliver)
         if others:
             self.handle_other(others)
@@ -218,6 +256,9 @@ class StageService(Service):
         deliver = self._unapplied(in_producer_order(deliver))
         if deliver:
             self._apply_and_publish(deliver)
+        elif self.consumer.marks_behind:  # a quiet producer's head: its marks reach it
+            with self.transaction([self.consumer]):
+                self.consumer.record([])
 
     def _unapplied(self, entries: list[LogEntry]) -> list[LogEntry]:
         """Entries above the committed offsets. A batch that failed and was applied entry
@@ -322,6 +363,8 @@ class StageService(Service):
             "entries_ahead_dropped": s.ahead_dropped,
             "entries_deferred": self._deferred,
             "inbox_overflows": self._dropped_batches,
+            "handover_paused": float(self.handover.paused),
+            "entries_paused_dropped": self._paused_dropped,
         }
 
 

@@ -540,6 +540,16 @@ class LogConsumer:
         return dict(self._committed)
 
     @property
+    def marks_behind(self) -> bool:
+        """A catch-up raised a watermark that no transaction has committed yet (nothing to
+        apply came with it): :meth:`record` with no entries commits it."""
+        return not self._uncommitted and any(
+            (self._watermark.get(p, 0), self._top.get(p, (0, 0)))
+            != (self._committed_wm.get(p, 0), self._committed_top.get(p, (0, 0)))
+            for p in set(self._watermark) | set(self._top)
+        )
+
+    @property
     def watermarks(self) -> dict[str, int]:
         """Committed watermarks per producer."""
         return dict(self._committed_wm)

@@ -181,3 +181,22 @@ def test_codec_round_trips():
     assert LogQuery.from_bytes(LogQuery("obs", {}, [], 10).to_bytes()).after_gseq is None
     h = LogHead.from_bytes(LogHead("obs", "p", 3, 9).to_bytes())
     assert (h.through, h.head, h.complete) == (3, 9, False)
+
+
+def test_a_quiet_producers_head_reaches_the_mark_without_new_entries(tmp_path, prod) -> None:
+    """Entries applied live, then the producer falls quiet: the next catch-up's head raises
+    the watermark, and an empty record commits it, so the mark reaches the producer's head
+    (a paused region's consumers drain it: hdmap region split)."""
+    conn = connect(tmp_path / "c.sqlite")
+    c = LogConsumer(conn, "obs", [])
+    live = prod.write(["0", "1", "0"])
+    for e in live:
+        apply(conn, c, c.offer(e))
+    assert c.marks("me") == []  # live entries alone raise no watermark
+    assert catch_up(c, prod) == []  # nothing missing; the head says 3
+    assert c.marks_behind
+    apply(conn, c, [])
+    assert not c.marks_behind
+    assert [(m.producer, m.gseq) for m in c.marks("me")] == [(PRODUCER, 3)]
+    again = LogConsumer(conn, "obs", [])  # committed: a restart keeps it
+    assert again.watermarks == {PRODUCER: 3}

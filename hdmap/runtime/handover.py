@@ -1,0 +1,154 @@
+"""A stage service's side of handing its region over (``hdmap region split`` / ``merge``,
+:mod:`hdmap.ops.region`): pause, report, hand out a checkpoint, stop.
+
+On ``hdmap/v1/handover/<service>/<region>`` (:func:`schemas.keys.handover`) the worker
+answers :class:`schemas.HandoverRequest`:
+
+- ``pause``: at a batch boundary, the service's ``before_handover`` hook runs in one
+  transaction (the matcher adds its held links to its sums, so the database alone is its
+  state), the database is copied (SQLite's backup API) to ``handover.sqlite`` in the data
+  dir, and from then on no input entry is applied: live entries are dropped (their
+  producer's log keeps them for whoever takes the region over) and no catch-up runs. The
+  service still serves its own log and takes its consumers' marks, so they drain it.
+- ``status``: paused or not, the output log's head and the consumers' marks (from
+  ``log_marks``, with their age).
+- ``state``: ``CHUNK_BYTES`` of the checkpoint from ``offset`` (paused only).
+- ``resume``: the handover is called off; the service applies its input again (a
+  catch-up fetches what it dropped while paused).
+- ``stop``: the process exits (after answering).
+
+Invariant: the checkpoint is the state after the last transaction before the pause and
+nothing is applied after it, so an instance started from it and from the producers' logs
+after its offsets neither loses nor applies twice an entry. A bad request is answered with
+an :class:`schemas.ErrorReply` naming the field and counted (``rejected[handover.<field>]``).
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+
+from hdmap.runtime.service import Item
+from schemas import DecodeError, ErrorReply, HandoverReply, HandoverRequest, keys
+from schemas.handover import CHUNK_BYTES
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT = "handover.sqlite"
+"""The checkpoint's file name in the data dir."""
+
+
+class Handover:
+    """The pause flag and the checkpoint of one stage service (worker thread only)."""
+
+    def __init__(
+        self,
+        name: str,
+        instance: str,
+        region_label: str,
+        db: sqlite3.Connection,
+        data_dir: Path,
+        head: Callable[[], int],
+    ):
+        self.name, self.instance, self.region_label = name, instance, region_label
+        self.db = db
+        self.path = Path(data_dir) / CHECKPOINT
+        self.head = head
+        """The output log's last ``gseq`` (0: no output log)."""
+        self.paused = False
+        self.stop: threading.Event | None = None
+        """Set by ``stop`` (the service's run loop watches it)."""
+
+    def key(self) -> str:
+        return keys.handover(self.name, self.region_label)
+
+    def answer(self, it: Item, prepare: Callable[[], None], reject: Callable[[str], None]) -> None:
+        """Serve one request (``prepare``: the service's ``before_handover`` in a
+        transaction; ``reject``: count a refused request by field)."""
+        q = it.query
+        if q is None:
+            return
+        try:
+            req = HandoverRequest.from_bytes(it.payload)
+            reply = self._serve(req, prepare)
+        except DecodeError as exc:
+            reject(f"handover.{exc.field}")
+            _send_err(q, ErrorReply.of(exc))
+            return
+        try:
+            q.reply(q.key_expr, reply.to_bytes())
+        except zenoh.ZError as exc:
+            log.warning("%s: handover reply not sent: %s", self.name, exc)
+        finally:
+            q.drop()
+        if req.op == "stop" and self.stop is not None:
+            log.info("%s %s: stopped for a handover", self.name, self.instance)
+            self.stop.set()
+
+    def _serve(self, req: HandoverRequest, prepare: Callable[[], None]) -> HandoverReply:
+        if req.op == "pause" and not self.paused:
+            prepare()
+            self._checkpoint()
+            self.paused = True
+            log.info("%s %s: paused for a handover (log head %d)", self.name, self.instance,
+                     self.head())  # fmt: skip
+        elif req.op == "resume" and self.paused:
+            self.paused = False
+            self.path.unlink(missing_ok=True)
+            log.info("%s %s: handover called off, applying again", self.name, self.instance)
+        elif req.op in ("state", "stop") and not self.paused:
+            raise DecodeError("op", f"{req.op}: not paused (pause first)")
+        size = self.path.stat().st_size if self.paused else 0
+        data = b""
+        if req.op == "state":
+            if req.offset > size:
+                raise DecodeError("offset", f"{req.offset} is past the checkpoint ({size} bytes)")
+            with self.path.open("rb") as f:
+                f.seek(req.offset)
+                data = f.read(CHUNK_BYTES)
+        return HandoverReply(
+            self.name,
+            self.instance,
+            self.region_label,
+            self.paused,
+            self.head(),
+            self.marks(),
+            size,
+            req.offset,
+            data,
+        )
+
+    def marks(self) -> tuple[tuple[str, int, float], ...]:
+        """Every consumer's last mark on this log: (consumer, gseq, seconds since)."""
+        try:
+            rows = self.db.execute("SELECT consumer, gseq, at FROM log_marks ORDER BY consumer")
+        except sqlite3.OperationalError:  # no output log: no consumers
+            return ()
+        now = time.time()
+        return tuple((str(c), int(g), max(0.0, now - float(at))) for c, g, at in rows)
+
+    def _checkpoint(self) -> None:
+        """Copy the database as it is now (between transactions) to :attr:`path`."""
+        tmp = self.path.with_suffix(".tmp")
+        tmp.unlink(missing_ok=True)
+        dst = sqlite3.connect(tmp)
+        try:
+            self.db.backup(dst)
+        finally:
+            dst.close()
+        tmp.replace(self.path)
+
+
+def _send_err(q: zenoh.Query, err: ErrorReply) -> None:
+    try:
+        q.reply_err(err.to_bytes())
+    except zenoh.ZError as exc:
+        log.warning("handover: error reply not sent: %s", exc)
+    finally:
+        q.drop()

@@ -1,0 +1,19 @@
+"""The solver's tables cut by region or joined (:mod:`hdmap.runtime.partition`):
+landmarks by the region of their home tile, their views with them; the event-time clock
+copied (joined: the latest)."""
+
+from __future__ import annotations
+
+from hdmap.runtime.partition import Rules
+
+RULES = Rules(
+    service="solver",
+    split=(
+        "DELETE FROM landmarks WHERE NOT in_region(home)",
+        "DELETE FROM views WHERE id NOT IN (SELECT id FROM landmarks)",
+    ),
+    merge={
+        "clock": "INSERT INTO clock SELECT * FROM b.clock WHERE true "
+        "ON CONFLICT(name) DO UPDATE SET t = MAX(t, excluded.t)",
+    },
+)

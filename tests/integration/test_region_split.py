@@ -1,0 +1,202 @@
+"""Rescaling a live region (issue 20 point 4): ``hdmap region split`` and ``merge`` under
+load, with a router, ingest, matcher, solver and publisher as processes on 127.0.0.1.
+
+Two towns on one region (``all``): the demo town's passes near Helsinki (quadkey 1...)
+and the same passes 60 degrees of longitude west (0..., a rotation about the Earth's
+axis: the same streets and signs in every local frame), uploaded alternately by one
+vehicle per town with fixed capture times, each upload sent again until acknowledged.
+
+Under that load the region is split into ``1`` and ``0+2+3`` (the command as an operator
+runs it, then a matcher and a solver started per sub-region); in the merge test the two
+are then merged back into ``all``. Acknowledged == applied: ingest's accepted count
+equals what the matchers received, summed; and the final map (the publisher's
+snapshots) is the one a run of the same uploads without a split publishes: the same
+landmarks, ids and positions.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from fleetsim.loadgen import LoadConfig, build_pool, town_tiles_with_halo
+from hdmap.geo.tiles import neighbours, quadkeys_of
+from hdmap.ops.quiesce import totals, wait_quiet
+from hdmap.ops.stack import Stack
+from hdmap.ops.status import collect
+from hdmap.runtime.bus import open_session, query
+from schemas import Landmarks, MapSnapshot, ObservationBatch, UploadAck, keys
+from tests.support import wait_until
+
+pytestmark = pytest.mark.integration
+
+SHIFT_DEG = -60.0
+"""Town B's longitude offset (into quadrant 0)."""
+PARTS = (("1",), ("0", "2", "3"))
+
+
+def payloads(n_uploads: int) -> tuple[list[tuple[str, bytes, int]], list[str]]:
+    """(vehicle, upload, observations) in sending order, and the towns' tiles."""
+    cfg = LoadConfig(pool_passes=30, n_signs=60, n_blocks=4, seed=3)
+    world, pool = build_pool(cfg)
+    tiles_a = town_tiles_with_halo(world)
+    t0 = time.time() - 3600.0
+    out: list[tuple[str, bytes, int]] = []
+    next_id = {"veh-a": 1, "veh-b": 1}
+    batch = {"veh-a": 0, "veh-b": 0}
+    k = 0
+    while len(out) < n_uploads:
+        for v in ("veh-a", "veh-b"):
+            parts = pool[(k // 2) % len(pool)]
+            for part in parts:
+                n = len(part)
+                batch[v] += 1
+                ids = np.arange(next_id[v], next_id[v] + n, dtype=np.uint64)
+                next_id[v] += n
+                lon = part.lon + (SHIFT_DEG if v == "veh-b" else 0.0)
+                t = np.full(n, t0 + 2.0 * len(out))
+                obs = type(part)(**{**part.__dict__, "obs_id": ids, "t": t, "lon": lon})
+                body = ObservationBatch(v, k // 2 + 1, batch[v], time.time(), obs).to_bytes()
+                out.append((v, body, n))
+            k += 1
+    lat, lon, _ = world.signs_geodetic()
+    b = set(quadkeys_of(lat, lon + SHIFT_DEG).tolist())
+    tiles_b = sorted(b | {n for t in b for n in neighbours(t)})
+    return out[:n_uploads], tiles_a + tiles_b
+
+
+class Uploader(threading.Thread):
+    """Sends the uploads in order, each until acknowledged, ``pace_s`` apart."""
+
+    def __init__(self, session, uploads, pace_s: float) -> None:
+        super().__init__(daemon=True)
+        self.s, self.uploads, self.pace_s = session, uploads, pace_s
+        self.acked = 0
+        self.sent = 0
+        self.resent = 0
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        for v, body, _n in self.uploads:
+            while not self.stop.is_set():
+                got = [ok for _k, ok, _e in query(self.s, keys.upload(v), body, 10.0) if ok]
+                if got and UploadAck.from_bytes(got[0]).error is None:
+                    ack = UploadAck.from_bytes(got[0])
+                    self.acked += len(ack.accepted) + len(ack.duplicates)
+                    break
+                self.resent += 1
+                time.sleep(0.2)
+            self.sent += 1
+            time.sleep(self.pace_s)
+
+
+def final_map(session, tiles: list[str]) -> dict[int, tuple]:
+    rows = []
+    for t in tiles:
+        for _k, ok, _e in query(session, keys.map_snapshot(t), timeout=5.0):
+            if ok is not None:
+                rows.append(MapSnapshot.from_bytes(ok).landmarks)
+    lm = Landmarks.concat(rows) if rows else None
+    if lm is None:
+        return {}
+    return {
+        int(i): (float(lm.lat[k]), float(lm.lon[k]), float(lm.h[k]), int(lm.n_obs[k]))
+        for k, i in enumerate(lm.id.tolist())
+    }
+
+
+def region_cmd(stack, *args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "hdmap.cli", "region", *args, "--data-dir",
+           str(stack.data_dir), "--connect", stack.listen]  # fmt: skip
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+
+def start_parts(stack, parts) -> None:
+    for part in parts:
+        stack.start_service("matcher", part)
+        stack.start_service("solver", part)
+    names = [stack.service_key(s, p) for p in parts for s in ("matcher", "solver")]
+    stack.wait_ready(names, 60.0)
+
+
+def run(stack, uploads, tiles, rescale=None) -> tuple[dict, dict, float]:
+    """The uploads through a fresh stack (``rescale(stack, uploader)`` meanwhile); the
+    final map, the summed counters and how many were acknowledged."""
+    stack.start_all()
+    with open_session(stack.bus) as s:
+        up = Uploader(s, uploads, 0.12 if rescale else 0.0)
+        up.start()
+        try:
+            if rescale is not None:
+                rescale(stack, up)
+            up.join(300)
+            assert not up.is_alive()
+            assert wait_quiet(s, 120.0)
+            t = totals(collect(s, 2.0))
+            return final_map(s, tiles), t, up.acked
+        finally:
+            up.stop.set()
+            up.join(30)
+            stack.stop_all()
+
+
+def split_midway(stack, up) -> None:
+    assert wait_until(lambda: up.sent >= len(up.uploads) // 4, 120.0)
+    at = up.sent
+    r = region_cmd(stack, "split", "all", "--into", "1", "--into", "0+2+3")
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert "paused" in r.stdout and "stopped" in r.stdout
+    assert up.sent > at  # uploads went on during the pause
+    stack.procs["matcher-all"].popen.wait(30)  # the handover stopped them
+    stack.procs["solver-all"].popen.wait(30)
+    start_parts(stack, PARTS)
+
+
+def merge_back(stack, up) -> None:
+    """Split at a quarter of the uploads, merge back into one region at half of them."""
+    split_midway(stack, up)
+    assert wait_until(lambda: up.sent >= len(up.uploads) // 2, 120.0)
+    at = up.sent
+    r = region_cmd(stack, "merge", "--from", "1", "--from", "0+2+3", "--into", "all")
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert up.sent > at
+    for part in PARTS:
+        for svc in ("matcher", "solver"):
+            stack.procs[stack.service_key(svc, part)].popen.wait(30)
+    stack.start_service("matcher")
+    stack.start_service("solver")
+    stack.wait_ready(["matcher-all", "solver-all"], 60.0)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The uploads, the towns' tiles, and the map and acknowledged count of a run of the
+    uploads without a split."""
+    uploads, tiles = payloads(360)
+    with Stack(tmp_path_factory.mktemp("unsplit") / "stack") as st:
+        want, _, acked = run(st, uploads, tiles)
+    assert len(want) >= 40
+    return uploads, tiles, want, acked
+
+
+@pytest.mark.parametrize("rescale", [split_midway, merge_back], ids=["split", "split_merge"])
+def test_a_region_rescaled_under_load_loses_nothing_and_maps_as_unsplit(
+    tmp_path, reference, rescale
+) -> None:
+    uploads, tiles, want, acked0 = reference
+    with Stack(tmp_path / "stack") as st:
+        got, t, acked = run(st, uploads, tiles, rescale)
+    assert acked == acked0 == t["ingest"]["accepted"]
+    assert t["matcher"]["received"] == t["ingest"]["accepted"]  # acknowledged == applied
+    assert t["matcher"].get("entries_failed", 0) == 0
+    assert sorted(got) == sorted(want)
+    worst = max(
+        max(abs(got[i][0] - want[i][0]), abs(got[i][1] - want[i][1])) * 111_000 for i in want
+    )
+    print(f"{len(want)} landmarks; largest difference from the unsplit map {worst:.2e} m")
+    assert got == want, f"positions differ by up to {worst:.2e} m"

@@ -1,0 +1,165 @@
+"""A region's matcher and solver state cut into sub-regions and joined again
+(:mod:`hdmap.runtime.partition`, the rules in ``services/*/partition.py``): each part
+holds its region's landmarks, pending rays and offsets, and goes on exactly as the whole
+would have. Two towns in different quadrants of the world (Helsinki, quadkey 1...; and the
+same streets at 60 S, 3...), passes of four vehicles at two signs each; the whole state
+after the first half of the log, cut, and the second half fed to the parts by tile, gives
+the landmarks (packed sums, bytes) the whole gets from the whole log; joined back, the
+same."""
+
+from __future__ import annotations
+
+import sqlite3
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdmap.geo.tiles import quadkeys_of, region_label
+from hdmap.runtime.partition import merge, split
+from hdmap.runtime.service import ServiceOptions
+from schemas import LogEntry, ObsGroup
+from services.matcher.partition import RULES as MATCHER
+from services.matcher.replay import Sink, open_matcher, read_log, replay
+from services.matcher.service import MatcherService
+from services.solver.partition import RULES as SOLVER
+from services.solver.service import SolverService
+from tests.support.services import SIGN, sign_rays
+
+T0 = 1.7e9
+TOWNS = {"1": (60.17, 24.94), "3": (-60.17, 24.94)}  # quadrant -> (lat, lon)
+OTHER = SIGN + np.array([-8.0, 6.0, 0.0])
+PARTS = (["1"], ["0", "2", "3"])
+
+
+def tile(quadrant: str, zoom: int) -> str:
+    lat, lon = TOWNS[quadrant]
+    return str(quadkeys_of(np.array([lat]), np.array([lon]), zoom)[0])
+
+
+def traffic(m: MatcherService) -> list[LogEntry]:
+    """40 passes alternating between the towns, vehicles 0-1 in one, 2-3 in the other;
+    each pass also sees a stray sign no other pass does (its rays stay pending)."""
+    out = []
+    for k in range(40):
+        q = "1" if k % 2 == 0 else "3"
+        t = tile(q, m.opts.zoom)
+        frame = m.frames(t)
+        rng = np.random.default_rng(k)
+        obs = sign_rays(frame, k + 1, rng)
+        o2 = sign_rays(frame, k + 1, rng, at=OTHER, image0=50)
+        o2 = replace(o2, obs_id=o2.obs_id + 500, sign_class=o2.sign_class + 1)
+        stray = SIGN + np.array([40.0, -20.0 + 7.0 * (k % 6), 0.0])  # one pass each: pending
+        o3 = sign_rays(frame, k + 1, rng, n=3, at=stray, image0=80)
+        o3 = replace(o3, obs_id=o3.obs_id + 800, sign_class=o3.sign_class + 5)
+        obs = type(obs).concat([obs, o2, o3])
+        at = T0 + 5.0 * k
+        obs = replace(obs, t=at - np.linspace(2.0, 0.0, len(obs)))
+        vehicle = f"veh-{(k // 2) % 2 + (0 if q == '1' else 2)}"
+        body = ObsGroup(vehicle, k + 1, k + 1, at + 1.0, obs).to_bytes()
+        out.append(LogEntry("obs", "ingest-t", t, k // 2 + 1, k + 1, body))
+    return out
+
+
+def landmarks(svc) -> dict[int, bytes]:
+    """Every landmark's packed sums (the bytes) by id."""
+    lms = svc.state.landmarks
+    ids = sorted(lms)
+    return dict(zip(ids, svc.sums.pack_rows(np.array([lms[i].row for i in ids])), strict=True))
+
+
+def checkpoint(svc, path: Path) -> Path:
+    """What a paused instance hands out: ``before_handover`` then a copy of its database."""
+    with svc.transaction(svc.participants()):
+        svc.before_handover()
+    dst = sqlite3.connect(path)
+    svc.db.backup(dst)
+    dst.close()
+    return path
+
+
+def in_part(e: LogEntry, part: list[str]) -> bool:
+    return any(e.tile.startswith(p) for p in part)
+
+
+@pytest.fixture
+def logs(tmp_path: Path):
+    m = open_matcher(tmp_path / "gen")
+    entries = traffic(m)
+    m.db.close()
+    return entries
+
+
+def open_part(cls, root: Path, part: list[str]):
+    """A service of region ``part`` on ``root`` (its data dir named for the region)."""
+    svc = cls(ServiceOptions(data_dir=root, region=tuple(part)))
+    svc.pubs = Sink(keep=True)  # type: ignore[assignment]
+    return svc
+
+
+def db_of(cls, root: Path, part: list[str]) -> Path:
+    return root / f"{cls.name}-{region_label(part)}" / "state.sqlite"
+
+
+def test_a_matcher_cut_in_two_goes_on_as_the_whole_and_joins_back(tmp_path, logs) -> None:
+    half = len(logs) // 2
+    whole = open_matcher(tmp_path / "whole")
+    replay(whole, logs[:half], 4)
+    cp = checkpoint(whole, tmp_path / "m.sqlite")
+    pending = whole.state.pending_count()
+    replay(whole, logs[half:], 4)
+    want = landmarks(whole)
+    assert len(want) == 4  # two signs in each town
+    got: dict[int, bytes] = {}
+    applied, pendings = [], []
+    cps = []
+    for i, part in enumerate(PARTS):
+        split(cp, db_of(MatcherService, tmp_path, part), part, MATCHER, first=i == 0)
+        svc = open_part(MatcherService, tmp_path, part)
+        assert svc.instance != whole.instance  # a new producer
+        assert read_log(svc.db_path, "assoc") == []
+        pendings.append(svc.state.pending_count())
+        tiles = svc.db.execute("SELECT DISTINCT tile FROM pending").fetchall()
+        assert all(in_part(LogEntry("obs", "x", t, 1, 1, b""), part) for (t,) in tiles)
+        replay(svc, [e for e in logs[half:] if in_part(e, part)], 4)
+        got.update(landmarks(svc))
+        applied.append(svc.counters.get("entries_applied", 0))
+        cps.append(checkpoint(svc, tmp_path / f"part{i}.sqlite"))
+        svc.db.close()
+    assert got == want  # the same landmarks, the same sums to the bit
+    assert sum(pendings) == pending > 0 and min(pendings) > 0
+    assert sum(applied) == whole.counters["entries_applied"]  # counters in the first part
+    # joined back: the whole's landmarks, and it goes on like the whole
+    merge(cps, db_of(MatcherService, tmp_path / "joined", []), MATCHER)
+    joined = open_part(MatcherService, tmp_path / "joined", [])
+    assert landmarks(joined) == want
+    assert joined.counters["entries_applied"] == whole.counters["entries_applied"]
+
+
+def test_a_solver_cut_in_two_publishes_what_the_whole_does(tmp_path, logs) -> None:
+    m = open_matcher(tmp_path / "m")
+    replay(m, logs, 4)
+    assoc = read_log(m.db_path, "assoc")
+    m.db.close()
+    half = len(assoc) // 2
+    whole = open_part(SolverService, tmp_path / "whole", [])
+    replay(whole, assoc[:half], 3)  # type: ignore[arg-type]
+    cp = checkpoint(whole, tmp_path / "s.sqlite")
+    replay(whole, assoc[half:], 3)  # type: ignore[arg-type]
+    want = landmarks(whole)
+    assert len(want) == 4
+    got: dict[int, bytes] = {}
+    cps = []
+    for i, part in enumerate(PARTS):
+        split(cp, db_of(SolverService, tmp_path, part), part, SOLVER, first=i == 0)
+        svc = open_part(SolverService, tmp_path, part)
+        assert all(in_part(LogEntry("obs", "x", lm.home, 1, 1, b""), part)
+                   for lm in svc.state.landmarks.values())  # fmt: skip
+        replay(svc, [e for e in assoc[half:] if in_part(e, part)], 3)  # type: ignore[arg-type]
+        got.update(landmarks(svc))
+        cps.append(checkpoint(svc, tmp_path / f"s{i}.sqlite"))
+        svc.db.close()
+    assert got == want
+    merge(cps, db_of(SolverService, tmp_path / "joined", []), SOLVER)
+    assert landmarks(open_part(SolverService, tmp_path / "joined", [])) == want
