@@ -173,7 +173,10 @@ class StageService(Service):
             with self.transaction(self.participants()):
                 self.before_handover()
 
+        was_paused = self.handover.paused
         self.handover.answer(it, prepare, self.reject)
+        if was_paused and not self.handover.paused:  # resumed: fetch what was dropped
+            self.consumer.need_catchup = True
 
     def teardown(self) -> None:
         if self.catchups is not None:

@@ -27,11 +27,21 @@ import pytest
 from fleetsim.loadgen import LoadConfig, build_pool, town_tiles_with_halo
 from hdmap.geo.tiles import neighbours, quadkeys_of
 from hdmap.ops.quiesce import totals, wait_quiet
+from hdmap.ops.region import HandoverError, ask
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session, query
-from schemas import Landmarks, MapSnapshot, ObservationBatch, UploadAck, keys
+from schemas import (
+    ErrorReply,
+    HandoverRequest,
+    Landmarks,
+    MapSnapshot,
+    ObservationBatch,
+    UploadAck,
+    keys,
+)
 from tests.support import wait_until
+from tests.support.uploads import upload
 
 pytestmark = pytest.mark.integration
 
@@ -200,3 +210,39 @@ def test_a_region_rescaled_under_load_loses_nothing_and_maps_as_unsplit(
     )
     print(f"{len(want)} landmarks; largest difference from the unsplit map {worst:.2e} m")
     assert got == want, f"positions differ by up to {worst:.2e} m"
+
+
+def test_a_paused_region_refuses_bad_requests_and_resumes_without_loss(stack) -> None:
+    """Pause the matcher, upload (acknowledged, not applied), refuse malformed and
+    out-of-order requests by field, resume: the matcher receives every observation."""
+    stack.start_all()
+    with open_session(stack.bus) as s:
+        for b in range(3):
+            assert upload(s, "veh-1", b + 1, 100 * b, 20).error is None
+        assert wait_until(lambda: totals(collect(s, 2.0))["matcher"].get("received") == 60)
+        r = ask(s, "matcher", "all", "pause")
+        assert r.paused and r.size > 0 and r.instance.startswith("matcher-all")
+        for b in range(3, 6):
+            assert upload(s, "veh-1", b + 1, 100 * b, 20).error is None
+        time.sleep(1.0)
+        m = totals(collect(s, 2.0))["matcher"]
+        assert m["received"] == 60 and m["handover_paused"] == 1
+        assert m["entries_paused_dropped"] >= 1
+        bad = [
+            (b"\x00garbage", "message"),
+            (HandoverRequest("pause").to_bytes().replace(b"pause", b"pouse"), "op"),
+        ]
+        for payload, field in bad:
+            ((_k, ok, err),) = query(s, keys.handover("matcher", "all"), payload, 5.0)
+            assert ok is None and ErrorReply.from_bytes(err).field == field
+        with pytest.raises(HandoverError, match="offset"):
+            ask(s, "matcher", "all", "state", offset=r.size + 1)
+        chunk = ask(s, "matcher", "all", "state")
+        assert chunk.data[:15] == b"SQLite format 3"
+        assert not ask(s, "matcher", "all", "resume").paused
+        with pytest.raises(HandoverError, match="not paused"):
+            ask(s, "matcher", "all", "stop")
+        assert wait_until(lambda: totals(collect(s, 2.0))["matcher"].get("received") == 120)
+        stats = next(x for x in collect(s, 2.0) if x.service == "matcher")
+        want = {"handover.message": 1, "handover.op": 2, "handover.offset": 1}
+        assert {k: v for k, v in stats.rejected.items() if k.startswith("handover")} == want
