@@ -60,6 +60,12 @@ class LogEntry(Message):
     one whose last entry of the producer is past ``gbase`` asks again from there
     (:class:`hdmap.runtime.stream.LogConsumer`).
     Optional on the wire (absent = 0: a producer from before epochs).
+
+    ``checkpoint``: the entry is the producer's state of the tile as of ``seq`` (its
+    entries up to ``seq`` folded into one), standing for all of them: what a producer
+    sends a consumer that asks for entries it has deleted, on a log whose entries are
+    states (the update log: the latest row of each landmark and every removal). Optional
+    on the wire (absent: an ordinary entry).
     """
 
     TYPE: ClassVar[str] = "log_entry"
@@ -73,6 +79,7 @@ class LogEntry(Message):
     base: int = 0
     gbase: int = 0
     """The producer's ``gseq`` when the entry's run began."""
+    checkpoint: bool = False
 
     def _encode(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -86,6 +93,8 @@ class LogEntry(Message):
         if self.epoch:
             out["epoch"], out["base"] = int(self.epoch), int(self.base)
             out["gbase"] = int(self.gbase)
+        if self.checkpoint:
+            out["checkpoint"] = 1
         return out
 
     @classmethod
@@ -106,6 +115,7 @@ class LogEntry(Message):
             epoch=epoch,
             base=base,
             gbase=gbase,
+            checkpoint=bool(get_int(m, "checkpoint", 0, 1)) if "checkpoint" in m else False,
         )
 
     @property

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import sqlite3
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import zenoh
 
 from hdmap.geo.tiles import in_region
+from hdmap.runtime.log_checkpoint import checkpoint_entries
 from hdmap.runtime.queries import QueryServer
 from hdmap.runtime.retention import truncated_through
 from schemas import DecodeError, ErrorReply, LogEntry, LogHead, LogQuery, keys
@@ -143,8 +145,17 @@ watermark (entries of other regions included) before it stops with ``through``."
 class LogServer(QueryServer):
     """Producer side: answers replay queries (``hdmap/v1/log/<stage>/<producer>/*``)."""
 
-    def __init__(self, session: zenoh.Session, db_path: str | Path, stage: str, producer: str):
-        self.stage, self.producer = stage, producer
+    def __init__(
+        self,
+        session: zenoh.Session,
+        db_path: str | Path,
+        stage: str,
+        producer: str,
+        checkpoints: bool = False,
+    ):
+        """``checkpoints``: a query below what retention deleted is answered with the
+        tiles' checkpoints and the tail (:mod:`hdmap.runtime.log_checkpoint`)."""
+        self.stage, self.producer, self.checkpoints = stage, producer, checkpoints
         super().__init__(
             session, keys.log(stage, producer, keys.ANY), db_path, self._reply, f"log-{stage}"
         )
@@ -159,25 +170,12 @@ class LogServer(QueryServer):
             return
         conn.execute("BEGIN")  # one snapshot of the log for the whole answer
         try:
-            gone = truncated_through(conn)
-            after = (req.after_gseq or {}).get(self.producer, 0)
-            if gone and (req.after_gseq is None or after < gone):
-                q.reply_err(
-                    ErrorReply.of(
-                        DecodeError(
-                            "after_gseq",
-                            f"{self.producer} deleted its log through gseq {gone} (every "
-                            f"consumer it knew had applied it); this consumer is at {after}: "
-                            "it must be rebuilt (docs/operations.md, Retention)",
-                        )
-                    ).to_bytes()
-                )
+            try:
+                entries, head = answer(conn, req, self.producer, self.checkpoints)
+            except DecodeError as exc:
+                q.reply_err(ErrorReply.of(exc).to_bytes())
                 return
-            if req.after_gseq is None:
-                rows, head = rows_per_tile(conn, req, self.producer), None
-            else:
-                rows, head = rows_since(conn, req, self.producer)
-            for entry in entries_of(self.stage, self.producer, rows):
+            for entry in entries:
                 q.reply(keys.log(self.stage, self.producer, entry.tile), entry.to_bytes())
         finally:
             conn.execute("COMMIT")
@@ -185,6 +183,33 @@ class LogServer(QueryServer):
             q.reply(
                 keys.log(self.stage, self.producer, _head_chunk(str(q.key_expr))), head.to_bytes()
             )
+
+
+def answer(
+    conn: sqlite3.Connection, req: LogQuery, producer: str, checkpoints: bool = False
+) -> tuple[list[LogEntry], LogHead | None]:
+    """A producer's answer to a replay query (inside one read transaction): the entries
+    and, for a query by watermark, the closing head. Below what retention deleted: with
+    ``checkpoints``, the tiles' checkpoints and then the tail; else a :class:`DecodeError`
+    naming ``after_gseq``."""
+    gone = truncated_through(conn)
+    after = (req.after_gseq or {}).get(producer, 0)
+    cps: list[LogEntry] = []
+    if gone and checkpoints and after < gone:  # the tiles' states, then the tail
+        cps = checkpoint_entries(conn, req.stage, producer, req)
+        req = replace(req, after_gseq={**(req.after_gseq or {}), producer: gone})
+    elif gone and (req.after_gseq is None or after < gone):
+        raise DecodeError(
+            "after_gseq",
+            f"{producer} deleted its log through gseq {gone} (every consumer it knew had "
+            f"applied it); this consumer is at {after}: it must be rebuilt "
+            "(docs/operations.md, Retention)",
+        )
+    if req.after_gseq is None:
+        rows, head = rows_per_tile(conn, req, producer), None
+    else:
+        rows, head = rows_since(conn, req, producer)
+    return [*cps, *entries_of(req.stage, producer, rows)], head
 
 
 def _head_chunk(selector: str) -> str:

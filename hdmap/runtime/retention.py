@@ -8,7 +8,9 @@ entries at or below the smallest mark that are older than the floor
 :attr:`RetentionPolicy.retain_s` (:meth:`LogRetention.truncate`); how far it deleted is
 kept (meta ``log_truncated_through``), and a replay query that asks for less is refused
 with an error naming ``after_gseq`` (the entries are gone: the consumer must be rebuilt),
-instead of an answer that silently lacks them.
+instead of an answer that silently lacks them; on a log whose entries are states (the
+update log) the deleted entries are folded into per-tile checkpoints first, which answer
+such a query instead (:mod:`hdmap.runtime.log_checkpoint`).
 
 Invariants: an entry goes only when every consumer that sent a mark in the last
 ``forget_after_s`` has applied it (a mark says that of every entry of its region up to
@@ -17,8 +19,9 @@ its ``gseq``) and it is older than the floor. A mark in a run the producer does 
 its ``gseq`` counts entries the producer lost, and would delete new ones.
 
 Pitfalls: a consumer that has never sent a mark (a new region's) is protected only by the
-floor; one silent longer than ``forget_after_s`` no longer holds the log. Both must then
-start from a checkpoint, which does not exist yet (docs/operations.md, "Retention").
+floor; one silent longer than ``forget_after_s`` no longer holds the log. On the obs and
+assoc logs both must then start from a checkpoint of their own state (a backup, or a
+region's handover: docs/operations.md, "Retention").
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from hdmap.runtime.log_checkpoint import SCHEMA as CHECKPOINT_SCHEMA
+from hdmap.runtime.log_checkpoint import Fold, fold_rows
 from hdmap.runtime.log_policy import RetentionPolicy
 from hdmap.runtime.store import Meta
 from schemas import DecodeError, LogMark, keys
@@ -69,10 +74,15 @@ class LogRetention:
         producer: str,
         policy: RetentionPolicy,
         wall: Callable[[], float] = time.time,
+        fold: Fold | None = None,
     ):
+        """``fold``: the log's entries are states, folded into checkpoints before they go."""
         self.conn, self.stage, self.producer, self.policy = conn, stage, producer, policy
         self.wall = wall
+        self.fold = fold
         conn.executescript(self.SCHEMA)
+        if fold is not None:
+            conn.executescript(CHECKPOINT_SCHEMA)
 
     def on_mark(self, mark: LogMark) -> None:
         """Keep a consumer's mark (inside the caller's transaction); a mark for another
@@ -116,9 +126,19 @@ class LogRetention:
             ).fetchall()
             if not rows:
                 break
+            span = (rows[0][0], rows[-1][0], before)
+            if self.fold is not None:
+                fold_rows(
+                    self.conn,
+                    self.conn.execute(
+                        "SELECT tile, seq, gseq, body, epoch, base, gbase FROM log_out "
+                        "WHERE gseq >= ? AND gseq <= ? AND created_at < ? ORDER BY gseq",
+                        span,
+                    ).fetchall(),
+                    self.fold,
+                )
             self.conn.execute(
-                "DELETE FROM log_out WHERE gseq >= ? AND gseq <= ? AND created_at < ?",
-                (rows[0][0], rows[-1][0], before),
+                "DELETE FROM log_out WHERE gseq >= ? AND gseq <= ? AND created_at < ?", span
             )
             gone += len(rows)
             top = max(top, int(rows[-1][0]))

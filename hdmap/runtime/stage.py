@@ -40,6 +40,7 @@ import zenoh
 
 from hdmap.runtime.catchup import BackgroundCatchUp, Fetch, bus_fetch
 from hdmap.runtime.handover import Handover
+from hdmap.runtime.log_checkpoint import Fold
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.retention import LogRetention
 from hdmap.runtime.service import Item, Service, ServiceOptions
@@ -58,6 +59,9 @@ class StageService(Service):
     upstream: str = ""
     """Name of the service producing ``input_stage`` (its liveliness triggers catch-up)."""
     output_stage: str | None = None
+    output_fold: Fold | None = None
+    """Set when the output log's entries are states: retention folds what it deletes into
+    per-tile checkpoints that answer catch-ups from below (:mod:`hdmap.runtime.log_checkpoint`)."""
 
     def __init__(self, opts: ServiceOptions):
         super().__init__(opts)
@@ -71,7 +75,9 @@ class StageService(Service):
         )
         self._log_server: LogServer | None = None
         self.retention = (
-            LogRetention(self.db, self.output_stage, self.instance, opts.retention)
+            LogRetention(
+                self.db, self.output_stage, self.instance, opts.retention, fold=self.output_fold
+            )
             if self.output_stage
             else None
         )
@@ -122,7 +128,11 @@ class StageService(Service):
             self.subscribe(key, "entry", drop_when_full=True)
         if self.output_stage:
             self._log_server = LogServer(
-                self.session, self.db_path, self.output_stage, self.instance
+                self.session,
+                self.db_path,
+                self.output_stage,
+                self.instance,
+                checkpoints=self.output_fold is not None,
             )
         if self.retention is not None:
             self.retention.wire(self)
@@ -359,6 +369,7 @@ class StageService(Service):
             "catchups": s.catchups,
             "resyncs": s.resyncs,
             "replay_refused": s.replay_refused,
+            "checkpoints_taken": s.checkpoints,
             "gaps_open": self.consumer.gaps_open,
             "gap_oldest_s": self.consumer.oldest_gap_s(),
             "gaps_expired": s.gaps_expired,

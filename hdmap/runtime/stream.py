@@ -75,6 +75,8 @@ class ConsumerStats:
     """Live entries not held behind a gap (the buffer was full); replayed later."""
     gaps_expired: int = 0
     """Gaps not filled within ``GapPolicy.timeout_s`` (their waiting entries dropped)."""
+    checkpoints: int = 0
+    """Producer checkpoints taken in place of deleted entries (``hdmap.runtime.log_checkpoint``)."""
 
 
 LAG_CAP = 1_000_000
@@ -212,6 +214,11 @@ class LogConsumer:
             self.stats.duplicates += 1
             self._note(entry, last)
             return []
+        if entry.checkpoint:  # the tile's state as of its seq: stands for the entries before
+            self.stats.checkpoints += 1
+            last = entry.seq - 1
+            for s in [s for s in self._ahead.get(k, {}) if s <= entry.seq]:
+                del self._ahead[k][s]
         if entry.seq > last + 1:
             self._hold(k, entry)
             return []

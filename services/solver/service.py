@@ -50,6 +50,7 @@ from schemas import (
 )
 from schemas.ids import hold_key, home_tile, pass_key
 from schemas.map import MapLandmarks
+from services.solver.checkpoint import fold_updates
 from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
@@ -196,6 +197,7 @@ class SolverService(StageService):
     input_stage = "assoc"
     upstream = "matcher"
     output_stage = "update"
+    output_fold = staticmethod(fold_updates)  # a new publisher starts from the checkpoints
 
     def __init__(self, opts, config: SolverConfig | None = None):
         super().__init__(opts)

@@ -1,0 +1,50 @@
+"""The solver's update log folded into per-tile checkpoints as retention deletes it
+(:mod:`hdmap.runtime.log_checkpoint`): each landmark's last published row, and the
+removals. A new or rebuilt publisher that asks for entries the solver has deleted gets
+the tiles' checkpoints and then the log's tail, and holds the map it would hold had it
+read the whole log.
+
+A checkpoint keeps the newest :data:`MAX_REMOVALS` removals of its tile: a consumer
+restored from a backup older than that many removals may keep a landmark the map has
+since removed (a fresh consumer never holds one).
+
+>>> from schemas.tables import Landmarks, Removals
+>>> import numpy as np
+>>> def upd(ids, gone=()):
+...     n = len(ids)
+...     lm = Landmarks(np.array(ids, np.uint64), np.zeros(n, np.uint16), np.full(n, 60.0),
+...                    np.full(n, 24.0), np.zeros(n), np.zeros((n, 6)), np.ones(n, np.uint8),
+...                    np.ones(n, np.uint32), np.ones(n, np.uint32), np.array(ids, np.uint64),
+...                    np.full(n, 1.7e9), np.full(n, 1.7e9))
+...     rm = Removals(np.array(gone, np.uint64), np.array(gone, np.uint64))
+...     return LandmarkUpdates(lm, rm).to_bytes()
+>>> cp = LandmarkUpdates.from_bytes(fold_updates(None, [upd([1, 2]), upd([3], gone=[2])]))
+>>> cp.landmarks.id.tolist(), cp.removed.id.tolist()
+([1, 3], [2])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from schemas import LandmarkUpdates
+from schemas.tables import Landmarks, Removals
+
+MAX_REMOVALS = 4096
+"""Removals a tile's checkpoint keeps (the newest)."""
+
+
+def fold_updates(checkpoint: bytes | None, bodies: Sequence[bytes]) -> bytes:
+    """The tile's checkpoint after ``bodies`` (update entries, in log order)."""
+    parts = [LandmarkUpdates.from_bytes(b) for b in ([checkpoint] if checkpoint else [])]
+    parts += [LandmarkUpdates.from_bytes(b) for b in bodies]
+    rows = Landmarks.concat([p.landmarks for p in parts])
+    removed = Removals.concat([p.removed for p in parts])
+    ids = np.asarray(rows.id)
+    _u, first_from_end = np.unique(ids[::-1], return_index=True)
+    last = np.sort(len(ids) - 1 - first_from_end)  # each id's last row, in log order
+    last = last[~np.isin(ids[last], np.asarray(removed.id))]
+    keep = np.arange(max(0, len(removed) - MAX_REMOVALS), len(removed))
+    return LandmarkUpdates(rows.take(last), removed.take(keep)).to_bytes()
