@@ -9,13 +9,16 @@ answers :class:`schemas.HandoverRequest`:
   state), the database is copied (SQLite's backup API) to ``handover.sqlite`` in the data
   dir, and from then on no input entry is applied: live entries are dropped (their
   producer's log keeps them for whoever takes the region over) and no catch-up runs. The
-  service still serves its own log and takes its consumers' marks, so they drain it.
+  service still serves its own log and takes its consumers' marks, so they drain it; its
+  own marks on its producers' logs stay where they were.
 - ``status``: paused or not, the output log's head and the consumers' marks (from
   ``log_marks``, with their age).
 - ``state``: ``CHUNK_BYTES`` of the checkpoint from ``offset`` (paused only).
 - ``resume``: the handover is called off; the service applies its input again (a
   catch-up fetches what it dropped while paused).
-- ``stop``: the process exits (after answering).
+- ``stop``: the process exits (after answering), telling its producers it has left
+  (a mark at ``gseq`` 0: it no longer holds their logs; the instances that took its
+  region over mark for themselves).
 
 Invariant: the checkpoint is the state after the last transaction before the pause and
 nothing is applied after it, so an instance started from it and from the producers' logs

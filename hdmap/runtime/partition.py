@@ -97,9 +97,8 @@ def _as_new_producer(conn: sqlite3.Connection) -> None:
         conn.execute(f"DELETE FROM meta WHERE key IN ({marks})", NEW_PRODUCER_META)
 
 
-def split(checkpoint: Path, out: Path, prefixes: Sequence[str], rules: Rules, first: bool) -> None:
-    """Write ``out``: the checkpoint's rows of region ``prefixes`` (``first``: with the
-    counters and dead letters)."""
+def _copy(checkpoint: Path, out: Path, rules: Rules) -> None:
+    """``out`` (which must not exist) as a copy of a checkpoint the service has made whole."""
     if out.exists():
         raise FileExistsError(f"{out}: a data dir is there already")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -111,6 +110,12 @@ def split(checkpoint: Path, out: Path, prefixes: Sequence[str], rules: Rules, fi
         dst.close()
     finally:
         src.close()
+
+
+def split(checkpoint: Path, out: Path, prefixes: Sequence[str], rules: Rules, first: bool) -> None:
+    """Write ``out``: the checkpoint's rows of region ``prefixes`` (``first``: with the
+    counters and dead letters)."""
+    _copy(checkpoint, out, rules)
     conn = _open(out, prefixes)
     try:
         conn.execute("BEGIN")
@@ -132,19 +137,9 @@ def split(checkpoint: Path, out: Path, prefixes: Sequence[str], rules: Rules, fi
 
 def merge(checkpoints: Sequence[Path], out: Path, rules: Rules) -> None:
     """Write ``out``: the union of the checkpoints (regions that do not overlap)."""
-    if out.exists():
-        raise FileExistsError(f"{out}: a data dir is there already")
     if len(checkpoints) < 2:
         raise ValueError("merge: at least two parts")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    src = sqlite3.connect(checkpoints[0])
-    try:
-        _check_empty(src, rules)
-        dst = sqlite3.connect(out)
-        src.backup(dst)
-        dst.close()
-    finally:
-        src.close()
+    _copy(checkpoints[0], out, rules)
     conn = _open(out, [])
     try:
         _as_new_producer(conn)

@@ -87,9 +87,14 @@ class LogRetention:
     def on_mark(self, mark: LogMark) -> None:
         """Keep a consumer's mark (inside the caller's transaction); a mark for another
         log or in a run this producer does not have is a :class:`DecodeError` naming the
-        field."""
+        field. A mark at ``gseq`` 0 is a consumer leaving for good (its region handed
+        over: the instances that took it over mark for themselves): its mark is
+        forgotten at once rather than holding the log for ``forget_after_s``."""
         if mark.stage != self.stage or mark.producer != self.producer:
             raise DecodeError("producer", f"{mark.stage}/{mark.producer} is not this log")
+        if mark.gseq == 0:
+            self.conn.execute("DELETE FROM log_marks WHERE consumer=?", (mark.consumer,))
+            return
         known = self.conn.execute(
             "SELECT 1 FROM log_epochs WHERE epoch=?", (mark.epoch,)
         ).fetchone()

@@ -52,6 +52,7 @@ import zenoh
 from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
 from hdmap.runtime.config import ConfigError
+from hdmap.runtime.heap import TRIM_EVERY_S, trim_heap
 from hdmap.runtime.log_policy import GapPolicy, RetentionPolicy
 from hdmap.runtime.shards import shard_label
 from hdmap.runtime.store import (
@@ -478,6 +479,7 @@ class Service:
                         keys.alive(self.name, self.region_label, self.instance)
                     )
                 )
+                self.every(TRIM_EVERY_S, lambda _now: trim_heap())  # RSS follows what is held
                 log.info("%s %s ready (region %s)", self.name, self.instance, self.region_label)
                 self._loop(stop)
             finally:

@@ -46,7 +46,7 @@ from hdmap.runtime.retention import LogRetention
 from hdmap.runtime.service import Item, Service, ServiceOptions
 from hdmap.runtime.store import DatabaseCorrupt, StorageError
 from hdmap.runtime.stream import STAGE_KEYS, LogConsumer
-from schemas import DecodeError, LogEntry, keys
+from schemas import DecodeError, LogEntry, LogMark, keys
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,10 @@ class StageService(Service):
         self.catchups = BackgroundCatchUp(self.consumer, fetch_round, self._kick, executor=executor)
 
     def publish_marks(self) -> None:
-        """Tell each producer how far this consumer has applied its log (its retention)."""
+        """Tell each producer how far this consumer has applied its log (its retention);
+        not while paused for a handover (the mark stays; a stopped one has left)."""
+        if self.handover.paused:
+            return
         for m in self.consumer.marks(self.instance):
             self.pubs.put(keys.mark(m.stage, m.producer, m.consumer), m.to_bytes())
 
@@ -187,6 +190,12 @@ class StageService(Service):
         self.handover.answer(it, prepare, self.reject)
         if was_paused and not self.handover.paused:  # resumed: fetch what was dropped
             self.consumer.need_catchup = True
+        if self.handover.stop is not None and self.handover.stop.is_set():
+            for producer in sorted(self.consumer.watermarks):  # no longer hold their logs
+                leave = LogMark(self.input_stage, producer, self.instance, 0, 0)
+                self.pubs.put(
+                    keys.mark(self.input_stage, producer, self.instance), leave.to_bytes()
+                )
 
     def teardown(self) -> None:
         if self.catchups is not None:

@@ -16,6 +16,8 @@ landmarks, ids and positions.
 
 from __future__ import annotations
 
+import re
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -165,6 +167,18 @@ def split_midway(stack, up) -> None:
     stack.procs["matcher-all"].popen.wait(30)  # the handover stopped them
     stack.procs["solver-all"].popen.wait(30)
     start_parts(stack, PARTS)
+    # the stopped matcher no longer holds ingest's log (its leaving mark)
+    old = re.search(r"matcher all \((matcher-all-[0-9a-f]+)\) paused", r.stdout).group(1)
+    assert wait_until(lambda: old not in marks_on(stack.data_dir / "ingest-all"), 30.0)
+
+
+def marks_on(data_dir) -> set[str]:
+    """The consumers a producer keeps marks of (its SQLite file, read only)."""
+    conn = sqlite3.connect(f"file:{data_dir / 'state.sqlite'}?mode=ro", uri=True)
+    try:
+        return {c for (c,) in conn.execute("SELECT consumer FROM log_marks")}
+    finally:
+        conn.close()
 
 
 def merge_back(stack, up) -> None:

@@ -127,3 +127,20 @@ def test_a_consumer_behind_a_truncated_log_is_refused_naming_after_gseq(tmp_path
     finally:
         server.close()
         conn.close()
+
+
+def test_a_consumer_leaving_for_good_no_longer_holds_the_log(tmp_path):
+    """A mark at gseq 0 (an instance stopped by a region's handover) forgets the consumer
+    at once; the others' marks decide alone."""
+    wall = Wall()
+    conn, w, r = producer(tmp_path / "p.sqlite", wall, retain_s=1.0)
+    write(conn, w, 20)
+    wall.t += 10.0
+    with transaction(conn):
+        r.on_mark(mark("matcher-old", 5, w))
+        r.on_mark(mark("matcher-new", 20, w))
+    assert r.through() == 5
+    with transaction(conn):
+        r.on_mark(mark("matcher-old", 0, w))
+        assert r.through() == 20 and r.truncate() == 20
+    conn.close()
