@@ -59,6 +59,9 @@ class StageService(Service):
     upstream: str = ""
     """Name of the service producing ``input_stage`` (its liveliness triggers catch-up)."""
     output_stage: str | None = None
+    hands_over: bool = False
+    """Owns its region's state and hands it over on request (matcher, solver:
+    :mod:`hdmap.runtime.handover`)."""
     output_fold: Fold | None = None
     """Set when the output log's entries are states: retention folds what it deletes into
     per-tile checkpoints that answer catch-ups from below (:mod:`hdmap.runtime.log_checkpoint`)."""
@@ -147,7 +150,8 @@ class StageService(Service):
                     keys.alive(self.upstream, "*", "*"), on_alive
                 )
             )
-        self.serve(self.handover.key(), "handover")
+        if self.hands_over:
+            self.serve(self.handover.key(), "handover")
         self.every(self.opts.catchup_interval_s, lambda _now: self._mark_catchup())
         self.every(self.opts.catchup_interval_s, lambda _now: self.publish_marks())
         self.use_fetch(bus_fetch(self.session))

@@ -160,6 +160,7 @@ class MatcherService(StageService):
     input_stage = "obs"
     upstream = "ingest"
     output_stage = "assoc"
+    hands_over = True
 
     def __init__(self, opts: ServiceOptions, config: MatcherConfig | None = None):
         super().__init__(opts)

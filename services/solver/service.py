@@ -197,6 +197,7 @@ class SolverService(StageService):
     input_stage = "assoc"
     upstream = "matcher"
     output_stage = "update"
+    hands_over = True
     output_fold = staticmethod(fold_updates)  # a new publisher starts from the checkpoints
 
     def __init__(self, opts, config: SolverConfig | None = None):

@@ -52,6 +52,8 @@ from schemas import (
     AssocGroup,
     DecodeError,
     ErrorReply,
+    HandoverReply,
+    HandoverRequest,
     LandmarkUpdates,
     LogEntry,
     LogQuery,
@@ -493,9 +495,31 @@ def test_fuzz_query_endpoints(live) -> None:
         if service in SERVICE_NAMES:
             assert len(replies) == 1
 
+    @FUZZ
+    @given(
+        st.sampled_from(["matcher", "solver", "*"]),
+        st.sampled_from(["all", "*", "12", "0+1"]),
+        st.one_of(
+            st.none(),
+            st.binary(max_size=64),
+            st.just(HandoverRequest("status").to_bytes().replace(b"status", b"stotus")),
+            st.just(HandoverRequest("status", 2**51).to_bytes()),
+        ),
+    )
+    def handovers(service: str, region: str, payload: bytes | None) -> None:
+        """Never a valid pause or stop (the stack must go on): each answer names a field."""
+        replies = _replies(s, keys.handover(service, region), payload)
+        for _k, ok, err in replies or []:
+            assert ok is None, (service, region, payload)
+            assert ErrorReply.from_bytes(err).field in ("message", "v", "type", "op", "offset")
+
     snapshots()
     replays()
     stats()
+    handovers()
+    for svc in ("matcher", "solver"):  # still applying: the fuzz paused nothing
+        ((_k, ok, _e),) = query(s, keys.handover(svc, "all"), HandoverRequest("status").to_bytes())
+        assert not HandoverReply.from_bytes(ok).paused
 
     # named cases, each with the error it must get
     ingest = producers["ingest"]
