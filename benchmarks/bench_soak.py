@@ -20,7 +20,8 @@ per service against event hours.
 
 JSON: ``samples: [{wall_s, event_time_s, disk_bytes, rss_bytes, p99_s, landmarks,
 disk_by_service, rss_by_service}]``, ``disk``, ``rss`` (``first_half``,
-``second_half``: growth in bytes; ``ratio``; ``plateau``; ``per_event_hour``),
+``second_half``: growth in bytes; ``quarters``: the growth of each quarter; ``ratio``;
+``plateau``; ``per_event_hour``),
 ``landmarks`` (start, end), ``config``, ``machine``, ``command``.
 """
 
@@ -92,9 +93,11 @@ def growth(samples: list[dict], key: str) -> dict:
     first, second = m - a, b - m
     hours = (samples[-1]["event_time_s"] - samples[0]["event_time_s"]) / 3600.0
     ratio = second / first if first > 0 else None
+    at = [samples[round(i * (len(samples) - 1) / 4)][key] for i in range(5)]
     return {
         "first_half": first,
         "second_half": second,
+        "quarters": [at[i + 1] - at[i] for i in range(4)],
         "ratio": ratio,
         "plateau": bool(ratio is not None and ratio < 0.05),
         "per_event_hour": (b - a) / hours if hours > 0 else None,
