@@ -65,6 +65,11 @@ def attention(c: dict[str, float]) -> list[str]:
             f"{int(c['replay_refused'])} catch-ups refused: a producer deleted entries this "
             "consumer lacks (it must be rebuilt; see its log)"
         )
+    if c.get("handover_paused", 0):
+        out.append(
+            "paused for a region handover (hdmap region split/merge): applying nothing; "
+            "it resumes by itself if the tool is silent for a while"
+        )
     if c.get("gaps_expired", 0):
         out.append(
             f"{int(c['gaps_expired'])} gaps not filled in time (their waiting entries were "

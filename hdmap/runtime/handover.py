@@ -15,7 +15,8 @@ answers :class:`schemas.HandoverRequest`:
   ``log_marks``, with their age).
 - ``state``: ``CHUNK_BYTES`` of the checkpoint from ``offset`` (paused only).
 - ``resume``: the handover is called off; the service applies its input again (a
-  catch-up fetches what it dropped while paused).
+  catch-up fetches what it dropped while paused). It also resumes by itself when no
+  request has come for :data:`LEASE_S` (the tool died half-way).
 - ``stop``: the process exits (after answering), telling its producers it has left
   (a mark at ``gseq`` 0: it no longer holds their logs; the instances that took its
   region over mark for themselves).
@@ -45,6 +46,10 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT = "handover.sqlite"
 """The checkpoint's file name in the data dir."""
+LEASE_S = 300.0
+"""A paused instance resumes by itself when no handover request has come for this long
+(the tool died half-way): a region is never left stalled. The tool asks every half
+second while it waits; cutting a checkpoint takes seconds per 100 MB."""
 
 
 class Handover:
@@ -58,6 +63,7 @@ class Handover:
         db: sqlite3.Connection,
         data_dir: Path,
         head: Callable[[], int],
+        clock: Callable[[], float] = time.monotonic,
     ):
         self.name, self.instance, self.region_label = name, instance, region_label
         self.db = db
@@ -65,6 +71,9 @@ class Handover:
         self.head = head
         """The output log's last ``gseq`` (0: no output log)."""
         self.paused = False
+        self.clock = clock
+        self.asked_at = 0.0
+        """When the last handover request came (the pause's lease)."""
         self.stop: threading.Event | None = None
         """Set by ``stop`` (the service's run loop watches it)."""
 
@@ -77,6 +86,7 @@ class Handover:
         q = it.query
         if q is None:
             return
+        self.asked_at = self.clock()
         try:
             req = HandoverRequest.from_bytes(it.payload)
             reply = self._serve(req, prepare)
@@ -126,6 +136,17 @@ class Handover:
             req.offset,
             data,
         )
+
+    def lease_over(self) -> bool:
+        """Paused, and no request for :data:`LEASE_S`: the tool is gone; the caller
+        resumes (a warning, counted ``handover_expired``)."""
+        if self.paused and self.clock() - self.asked_at > LEASE_S:
+            self.paused = False
+            self.path.unlink(missing_ok=True)
+            log.warning("%s %s: no handover request for %g s: resuming", self.name,
+                        self.instance, LEASE_S)  # fmt: skip
+            return True
+        return False
 
     def marks(self) -> tuple[tuple[str, int, float], ...]:
         """Every consumer's last mark on this log: (consumer, gseq, seconds since)."""

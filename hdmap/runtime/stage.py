@@ -208,6 +208,8 @@ class StageService(Service):
             self._log_server.close()
 
     def _mark_catchup(self) -> None:
+        if self.handover.lease_over():  # the handover tool is gone: apply again
+            self.count("handover_expired")
         # on the worker thread: a blocking put into its own full inbox would never return
         self.consumer.need_catchup = True
         with contextlib.suppress(queue.Full):
