@@ -11,17 +11,16 @@ has no ``malloc_trim`` (musl, macOS).
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 
 TRIM_EVERY_S = 60.0
 
 
 def _load_libc() -> ctypes.CDLL | None:
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
+    """The symbols the process already has (the C library among them). Pitfall:
+    ``ctypes.util.find_library`` runs ``ldconfig`` in a subprocess, a fork of the service
+    that process supervisors see as a second instance of it."""
     try:
-        lib = ctypes.CDLL(name)
+        lib = ctypes.CDLL(None)
     except OSError:
         return None
     return lib if hasattr(lib, "malloc_trim") else None
