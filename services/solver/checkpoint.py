@@ -21,6 +21,9 @@ since removed (a fresh consumer never holds one).
 >>> cp = LandmarkUpdates.from_bytes(fold_updates(None, [upd([1, 2]), upd([3], gone=[2])]))
 >>> cp.landmarks.id.tolist(), cp.removed.id.tolist()
 ([1, 3], [2])
+>>> back = fold_updates(cp.to_bytes(), [upd([], gone=[1]), upd([1])])  # 1 left, came back
+>>> LandmarkUpdates.from_bytes(back).landmarks.id.tolist()
+[3, 1]
 """
 
 from __future__ import annotations
@@ -42,9 +45,32 @@ def fold_updates(checkpoint: bytes | None, bodies: Sequence[bytes]) -> bytes:
     parts += [LandmarkUpdates.from_bytes(b) for b in bodies]
     rows = Landmarks.concat([p.landmarks for p in parts])
     removed = Removals.concat([p.removed for p in parts])
-    ids = np.asarray(rows.id)
+    # a landmark leaves a tile and may come back (its estimate moved): whichever of its
+    # last row and its last removal came later decides
+    row_at = np.repeat(np.arange(len(parts)), [len(p.landmarks) for p in parts])
+    gone_at = np.repeat(np.arange(len(parts)), [len(p.removed) for p in parts])
+    rows_last = _last_of_each(np.asarray(rows.id))
+    gone_last = _last_of_each(np.asarray(removed.id))
+    rid, gid = np.asarray(rows.id)[rows_last], np.asarray(removed.id)[gone_last]
+    when_gone = dict(zip(gid.tolist(), gone_at[gone_last].tolist(), strict=True))
+    when_row = dict(zip(rid.tolist(), row_at[rows_last].tolist(), strict=True))
+    keep_rows = rows_last[
+        [
+            when_gone.get(i, -1) < w
+            for i, w in zip(rid.tolist(), row_at[rows_last].tolist(), strict=True)
+        ]
+    ]
+    keep_gone = gone_last[
+        [
+            when_row.get(i, -1) < w
+            for i, w in zip(gid.tolist(), gone_at[gone_last].tolist(), strict=True)
+        ]
+    ]
+    keep_gone = keep_gone[max(0, len(keep_gone) - MAX_REMOVALS) :]
+    return LandmarkUpdates(rows.take(keep_rows), removed.take(keep_gone)).to_bytes()
+
+
+def _last_of_each(ids: np.ndarray) -> np.ndarray:
+    """Index of each id's last occurrence, in order of occurrence."""
     _u, first_from_end = np.unique(ids[::-1], return_index=True)
-    last = np.sort(len(ids) - 1 - first_from_end)  # each id's last row, in log order
-    last = last[~np.isin(ids[last], np.asarray(removed.id))]
-    keep = np.arange(max(0, len(removed) - MAX_REMOVALS), len(removed))
-    return LandmarkUpdates(rows.take(last), removed.take(keep)).to_bytes()
+    return np.sort(len(ids) - 1 - first_from_end).astype(np.int64)

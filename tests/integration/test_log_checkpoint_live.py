@@ -81,8 +81,22 @@ def test_a_publisher_started_after_the_solver_deleted_its_log_gets_the_whole_map
         def maps() -> list[list[dict]]:
             return [list(by.values()) for by in snapshots(s, town_a).values()]
 
-        # the new publisher publishes what it applied at its next flush (interval_s)
-        assert wait_until(lambda: all(len(m) == 2 and m[0] == m[1] for m in maps()), 30.0)
+        def agree() -> bool:
+            ms = maps()  # every tile with landmarks answered by both, the same
+            return bool(ms) and all(len(m) == 2 and m[0] == m[1] for m in ms)
+
+        # the new publisher publishes what it applied at its next flush (interval_s); polled
+        # once a second: the anonymous snapshot budget refuses faster polling
+        if not wait_until(agree, 60.0, 1.0):
+            diff = {
+                t: [sorted(set(a.items()) ^ set(b.items())) if len(m) == 2 else len(m)]
+                for t, by in snapshots(s, town_a).items()
+                for m in [list(by.values())]
+                for a, b in [m if len(m) == 2 else ({}, {})]
+            }
+            raise AssertionError(
+                f"the publishers' maps differ: {diff}; {[x.counters for x in pubs()]}"
+            )
         n = sum(len(m[0]) for m in maps())
-        assert n >= 20 and len(maps()) == len(snapshots(s, town_a))
+        assert n >= 20
         print(f"{n} landmarks; checkpoints taken {new.counters['checkpoints_taken']}")

@@ -163,3 +163,47 @@ def test_without_checkpoints_the_same_query_is_refused_naming_after_gseq(tmp_pat
     with pytest.raises(DecodeError) as err:
         answer(conn, LogQuery.from_bytes(c.query(50).to_bytes()), P, checkpoints=False)
     assert err.value.field == "after_gseq"
+
+
+def lm_update(ids: list[int], gone: list[int], rev: int) -> bytes:
+    n = len(ids)
+    lm = Landmarks(
+        np.array(ids, np.uint64), np.zeros(n, np.uint16), np.full(n, 60.0 + rev * 1e-6),
+        np.full(n, 24.9), np.zeros(n), np.tile([1.0, 0, 0, 1.0, 0, 1.0], (n, 1)),
+        np.ones(n, np.uint8), np.ones(n, np.uint32), np.ones(n, np.uint32),
+        np.full(n, rev, np.uint64), np.full(n, 1.7e9), np.full(n, 1.7e9),
+    )  # fmt: skip
+    return LandmarkUpdates(
+        lm, Removals(np.array(gone, np.uint64), np.full(len(gone), rev, np.uint64))
+    ).to_bytes()
+
+
+def test_a_landmark_that_moves_to_another_tile_and_back_is_where_it_ended(tmp_path) -> None:
+    """Its estimate moved: removed from tile A with an upsert in B, later back in A. A
+    tile's checkpoint keeps the row when the row came after the removal."""
+    wall = Wall()
+    conn = connect(tmp_path / "p.sqlite")
+    w = LogWriter(conn, "update", P)
+    r = LogRetention(conn, "update", P, RetentionPolicy(retain_s=60.0), wall, fold=fold_updates)
+    steps = [("1202", [1, 2], []), ("1203", [1], []), ("1202", [2], [1]), ("1202", [1], []),
+             ("1203", [], [1])]  # fmt: skip
+    with transaction(conn, [w]):
+        for k, (tile, ids, gone) in enumerate(steps):
+            w.append(tile, lm_update(ids, gone, k + 1))
+    full = [
+        LogEntry("update", P, t, s, g, bytes(b))
+        for t, s, g, b in conn.execute("SELECT tile, seq, gseq, body FROM log_out ORDER BY gseq")
+    ]
+    with transaction(conn, []):
+        r.on_mark(LogMark("update", P, "publisher-a", len(steps), w.epoch))
+    wall.t += 3600.0
+    with transaction(conn, []):
+        assert r.truncate() == len(steps)
+    per_tile: dict[str, dict[int, tuple]] = {}
+    for e in full:  # the publisher's view: a map per tile
+        apply(per_tile.setdefault(e.tile, {}), [e])
+    c = LogConsumer(connect(tmp_path / "c.sqlite"), "update", [])
+    got: dict[str, dict[int, tuple]] = {}
+    for e in catch_up(c, conn, checkpoints=True):
+        apply(got.setdefault(e.tile, {}), [e])
+    assert got == per_tile and sorted(got["1202"]) == [1, 2] and got["1203"] == {}
