@@ -163,6 +163,7 @@ def split_midway(stack, up) -> None:
     r = region_cmd(stack, "split", "all", "--into", "1", "--into", "0+2+3")
     assert r.returncode == 0, r.stderr + r.stdout
     assert "paused" in r.stdout and "stopped" in r.stdout
+    print(next(line for line in r.stdout.splitlines() if line.startswith("paused for")))
     assert up.sent > at  # uploads went on during the pause
     stack.procs["matcher-all"].popen.wait(30)  # the handover stopped them
     stack.procs["solver-all"].popen.wait(30)
