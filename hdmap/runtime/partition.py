@@ -33,8 +33,9 @@ from pathlib import Path
 
 from hdmap.geo.tiles import in_region
 
-LOG_TABLES = ("log_out", "log_heads", "log_epochs", "log_marks")
-"""A producer's output log: a part starts a new one."""
+LOG_TABLES = ("log_out", "log_heads", "log_epochs", "log_marks", "log_checkpoint")
+"""A producer's output log and its checkpoints: a part starts a new one (the old
+producer's checkpoints are numbered in its log and hold other parts' tiles)."""
 NEW_PRODUCER_META = ("instance", "log_truncated_through")
 """Meta keys of the old producer's identity and log."""
 
