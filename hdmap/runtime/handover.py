@@ -87,20 +87,23 @@ class Handover:
         if q is None:
             return
         self.asked_at = self.clock()
+        req: HandoverRequest | None = None
         try:
             req = HandoverRequest.from_bytes(it.payload)
-            reply = self._serve(req, prepare)
+            out, err = self._serve(req, prepare).to_bytes(), None
         except DecodeError as exc:
             reject(f"handover.{exc.field}")
-            _send_err(q, ErrorReply.of(exc))
-            return
+            out, err = None, ErrorReply.of(exc).to_bytes()
         try:
-            q.reply(q.key_expr, reply.to_bytes())
-        except zenoh.ZError as exc:
+            if err is None:
+                q.reply(q.key_expr, out)
+            else:
+                q.reply_err(err)
+        except zenoh.ZError as exc:  # the tool is gone: nothing to tell
             log.warning("%s: handover reply not sent: %s", self.name, exc)
         finally:
             q.drop()
-        if req.op == "stop" and self.stop is not None:
+        if err is None and req is not None and req.op == "stop" and self.stop is not None:
             log.info("%s %s: stopped for a handover", self.name, self.instance)
             self.stop.set()
 
@@ -112,9 +115,7 @@ class Handover:
             log.info("%s %s: paused for a handover (log head %d)", self.name, self.instance,
                      self.head())  # fmt: skip
         elif req.op == "resume" and self.paused:
-            self.paused = False
-            self.path.unlink(missing_ok=True)
-            log.info("%s %s: handover called off, applying again", self.name, self.instance)
+            self._resume("handover called off")
         elif req.op in ("state", "stop") and not self.paused:
             raise DecodeError("op", f"{req.op}: not paused (pause first)")
         size = self.path.stat().st_size if self.paused else 0
@@ -141,12 +142,14 @@ class Handover:
         """Paused, and no request for :data:`LEASE_S`: the tool is gone; the caller
         resumes (a warning, counted ``handover_expired``)."""
         if self.paused and self.clock() - self.asked_at > LEASE_S:
-            self.paused = False
-            self.path.unlink(missing_ok=True)
-            log.warning("%s %s: no handover request for %g s: resuming", self.name,
-                        self.instance, LEASE_S)  # fmt: skip
+            self._resume(f"no handover request for {LEASE_S:g} s", logging.WARNING)
             return True
         return False
+
+    def _resume(self, why: str, level: int = logging.INFO) -> None:
+        self.paused = False
+        self.path.unlink(missing_ok=True)
+        log.log(level, "%s %s: %s: applying again", self.name, self.instance, why)
 
     def marks(self) -> tuple[tuple[str, int, float], ...]:
         """Every consumer's last mark on this log: (consumer, gseq, seconds since)."""
@@ -167,12 +170,3 @@ class Handover:
         finally:
             dst.close()
         tmp.replace(self.path)
-
-
-def _send_err(q: zenoh.Query, err: ErrorReply) -> None:
-    try:
-        q.reply_err(err.to_bytes())
-    except zenoh.ZError as exc:
-        log.warning("handover: error reply not sent: %s", exc)
-    finally:
-        q.drop()
