@@ -34,7 +34,13 @@ from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.facing import Facing, facing_from_sums
 from hdmap.mapping.initiation import InitConfig
 from hdmap.mapping.landmarks import Landmark, LandmarkTable
-from hdmap.mapping.quiet import QuietPasses, SweepPeriods, compact_rows, note_open
+from hdmap.mapping.quiet import (
+    COMPACT_MIN_ROWS,
+    QuietPasses,
+    SweepPeriods,
+    compact_rows,
+    note_open,
+)
 from hdmap.mapping.sightings import SightingConfig
 from hdmap.mapping.trust import FleetOffsets, TrustConfig, VehicleTrust
 
@@ -105,7 +111,7 @@ class MatchingConfig:
     """Close a pass in the gating sums once no ray of it has been linked for this long
     (event time, :mod:`hdmap.mapping.quiet`; 0: open until evicted). Above
     ``pending_ttl_s``: a pending ray can still be linked until it expires."""
-    compact_min_rows: int = 1024
+    compact_min_rows: int = COMPACT_MIN_ROWS
     """The gating sums drop the rows of retired and merged landmarks once this many (and
     as many as live landmarks) have piled up, after a transaction's save
     (:func:`hdmap.mapping.quiet.compact_rows`, counted ``sums_rows_dropped``): memory
@@ -367,9 +373,7 @@ class Matching:
     def compact_rows(self) -> int:
         """Drop the gating sums' rows of gone landmarks once they pile up
         (:func:`hdmap.mapping.quiet.compact_rows`), the held links' rows renumbered with
-        them. Returns the rows
-        dropped; the map is the same to the bit."""
-        n = len(self._sums)
+        them. Returns the rows dropped; the map is the same to the bit."""
         if self.unsummed_ids:
             held = np.concatenate(self.unsummed_ids)
             if not np.isin(held, np.fromiter(self.state.landmarks, np.uint64)).all():
@@ -380,7 +384,7 @@ class Matching:
         if new_of is None:
             return 0
         self.unsummed = [(new_of[r], *rest) for r, *rest in self.unsummed]
-        return n - len(self._sums)
+        return int((new_of < 0).sum())
 
     def hold_link(self, item: tuple[Any, Any, Rays, Any], ids: np.ndarray) -> None:
         """Hold one link call's rays for the gating sums (:meth:`flush_links`): (rows, pass

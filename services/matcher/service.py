@@ -254,16 +254,19 @@ class MatcherService(StageService):
                 len(late),
                 max(late) - self.matching.now,
             )
+        self._save()
+        self.count("sums_rows_dropped", self.matching.compact_rows())
+
+    def _save(self) -> None:
+        """Write the held links and what changed (inside the transaction)."""
         held_links.save(self.db, *self.matching.held_to_save())
         self.state.save(self.matching.sums_as_held.pack_rows)
-        self.count("sums_rows_dropped", self.matching.compact_rows())
 
     def before_handover(self) -> None:
         """The held links go into the sums and the rows they touched are written: the
         database is then the whole state (a handover's checkpoint)."""
         self.matching.flush_links()
-        held_links.save(self.db, *self.matching.held_to_save())
-        self.state.save(self.matching.sums_as_held.pack_rows)
+        self._save()
 
     # -- single domain steps (each as ``apply`` runs it) -------------------------------------
 

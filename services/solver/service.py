@@ -28,6 +28,7 @@ from hdmap.mapping.estimator.provisional import usable
 from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.facing import FacingConfig, to_wire
 from hdmap.mapping.quiet import (
+    COMPACT_MIN_ROWS,
     QuietPasses,
     SweepPeriods,
     close_quiet,
@@ -88,7 +89,7 @@ class SolverConfig:
     do not average away. Measured from a truth-referenced error log of the fleet's
     receivers by ``hdmap calibrate-gnss`` (:mod:`hdmap.mapping.gnss_floor`); 0 without
     one. Must be positive semi-definite (ConfigError naming the field)."""
-    compact_min_rows: int = 1024
+    compact_min_rows: int = COMPACT_MIN_ROWS
     """The sums drop the rows of retired and merged landmarks once this many (and
     as many as live landmarks) have piled up, after a transaction's save
     (:func:`hdmap.mapping.quiet.compact_rows`, counted ``sums_rows_dropped``): memory
