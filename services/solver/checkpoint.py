@@ -52,20 +52,9 @@ def fold_updates(checkpoint: bytes | None, bodies: Sequence[bytes]) -> bytes:
     rows_last = _last_of_each(np.asarray(rows.id))
     gone_last = _last_of_each(np.asarray(removed.id))
     rid, gid = np.asarray(rows.id)[rows_last], np.asarray(removed.id)[gone_last]
-    when_gone = dict(zip(gid.tolist(), gone_at[gone_last].tolist(), strict=True))
-    when_row = dict(zip(rid.tolist(), row_at[rows_last].tolist(), strict=True))
-    keep_rows = rows_last[
-        [
-            when_gone.get(i, -1) < w
-            for i, w in zip(rid.tolist(), row_at[rows_last].tolist(), strict=True)
-        ]
-    ]
-    keep_gone = gone_last[
-        [
-            when_row.get(i, -1) < w
-            for i, w in zip(gid.tolist(), gone_at[gone_last].tolist(), strict=True)
-        ]
-    ]
+    r_at, g_at = row_at[rows_last], gone_at[gone_last]
+    keep_rows = rows_last[_after(rid, r_at, gid, g_at)]
+    keep_gone = gone_last[_after(gid, g_at, rid, r_at)]
     keep_gone = keep_gone[max(0, len(keep_gone) - MAX_REMOVALS) :]
     return LandmarkUpdates(rows.take(keep_rows), removed.take(keep_gone)).to_bytes()
 
@@ -74,3 +63,16 @@ def _last_of_each(ids: np.ndarray) -> np.ndarray:
     """Index of each id's last occurrence, in order of occurrence."""
     _u, first_from_end = np.unique(ids[::-1], return_index=True)
     return np.sort(len(ids) - 1 - first_from_end).astype(np.int64)
+
+
+def _after(ids: np.ndarray, at: np.ndarray, other: np.ndarray, other_at: np.ndarray) -> np.ndarray:
+    """Whether each ``ids[k]`` at ``at[k]`` comes later than the same id in ``other``
+    (unique ids, at ``other_at``); True where ``other`` does not have it."""
+    order = np.argsort(other, kind="stable")
+    o_ids, o_at = other[order], other_at[order]
+    k = np.minimum(np.searchsorted(o_ids, ids), max(len(o_ids) - 1, 0))
+    before = np.full(len(ids), -1, np.int64)
+    if len(o_ids):
+        hit = o_ids[k] == ids
+        before[hit] = o_at[k[hit]]
+    return at > before
