@@ -68,9 +68,6 @@ class Timing:
 class Report:
     """What a split or merge did (for the command's output and tests)."""
 
-    paused: dict[str, str] = field(default_factory=dict)
-    """instance -> its service."""
-    heads: dict[str, int] = field(default_factory=dict)
     data_dirs: list[Path] = field(default_factory=list)
     pause_s: float = 0.0
 
@@ -196,10 +193,8 @@ def handover(
     for svc, rules in SERVICES:
         for label in labels:
             r = ask(session, svc, label, "pause", timeout=timing.reply_s)
-            report.paused[r.instance] = svc
             progress(f"{svc} {label} ({r.instance}) paused at log head {r.head}")
-            d = wait_drained(session, svc, label, timing, need_consumer=svc == "matcher")
-            report.heads[r.instance] = d.head
+            wait_drained(session, svc, label, timing, need_consumer=svc == "matcher")
             progress(f"{svc} {label}: its consumers have applied its log")
         parts = []
         for label in labels:
@@ -221,6 +216,8 @@ def handover(
                 raise HandoverError(f"{svc}: cannot cut its checkpoint: {exc}") from exc
             report.data_dirs.append(out.parent)
             progress(f"{svc} {region_label(r)}: data dir {out.parent}")
+        for cp in parts:  # cut: the copies are spent
+            cp.unlink()
     for svc, _ in SERVICES:
         for label in labels:
             r = ask(session, svc, label, "stop", timeout=timing.reply_s)
