@@ -1,7 +1,8 @@
 """Soak: steady load over hours of event time, every service's disk, RSS and the p99.
 
 A router and the four services (hdmap.ops.stack.Stack, on 127.0.0.1) take a simulated
-fleet (:mod:`fleetsim.loadgen`: the demo town's passes replayed with fresh ids) at a
+fleet (:mod:`fleetsim.loadgen`: ``--pool-passes`` of the demo town's passes replayed with
+fresh ids and fresh GNSS biases, false positives and multipath jumps) at a
 steady rate for ``--minutes`` of wall time, the observations' capture times running
 ``--speedup`` times faster than the wall clock (default 120: 15 minutes cover 30 hours of
 traffic on the same town), starting ``--days-back`` days ago so that they stay inside
@@ -12,9 +13,11 @@ the matcher's landmark count.
 
 What a run that operators can leave alone looks like (issue 20's target): disk and RSS
 plateau, growth in the second half of the run under 5 % of the first half's, while the
-map keeps its landmarks. The JSON says whether each did (``disk.plateau``,
-``rss.plateau``) and the disk's growth per hour of event time; the PNG plots disk and RSS
-per service against event hours.
+map keeps its landmarks. After the drain a map client following the town reads the
+published map and scores it against the town's truth (``map``: found, false, duplicated,
+mean error, 95 % coverage; all landmarks and the confirmed ones). The JSON says whether
+each did (``disk.plateau``, ``rss.plateau``) and the disk's growth per hour of event
+time; the PNG plots disk and RSS per service against event hours.
 
     .venv/bin/python benchmarks/bench_soak.py [--quick] [--json FILE] [--png FILE]
 
@@ -22,7 +25,8 @@ JSON: ``samples: [{wall_s, event_time_s, disk_bytes, rss_bytes, p99_s, landmarks
 disk_by_service, rss_by_service}]``, ``disk``, ``rss`` (``first_half``,
 ``second_half``: growth in bytes; ``quarters``: the growth of each quarter; ``ratio``;
 ``plateau``; ``per_event_hour``),
-``landmarks`` (start, end), ``config``, ``machine``, ``command``.
+``landmarks`` (start, end: the matcher's, candidates included), ``map`` (``all``,
+``confirmed``: :class:`fleetsim.score.MapScore`), ``config``, ``machine``, ``command``.
 """
 
 from __future__ import annotations
@@ -35,6 +39,8 @@ import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
@@ -49,10 +55,14 @@ from fleetsim.loadgen import (
     percentiles,
     town_tiles_with_halo,
 )
+from fleetsim.score import score
+from fleetsim.town_run import follow_town
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import SERVICE_NAMES, Stack
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session
+from schemas.tables import STATUS_CONFIRMED
+from vehicle.mapclient import MapClient
 
 DAY = 86_400.0
 
@@ -139,6 +149,7 @@ def run(args: argparse.Namespace) -> dict:
         rate=args.rate,
         duration_s=args.minutes * 60.0,
         subscribers=1,
+        pool_passes=args.pool_passes,
         run_id=new_run_id(),
         event_start=wall0 - args.days_back * DAY,
         event_speedup=args.speedup,
@@ -195,6 +206,7 @@ def run(args: argparse.Namespace) -> dict:
                     drained = wait_quiet(session, timeout=120.0)
                     reader.close()
                 end, _ = sample(stack, session, t0, cfg, counters, seen)
+                scores = score_map(session, world)
         finally:
             stack.stop_all()
     return {
@@ -215,7 +227,22 @@ def run(args: argparse.Namespace) -> dict:
             "start": samples[0]["landmarks"] if samples else None,
             "end": end["landmarks"],
         },
+        "map": scores,
     }
+
+
+def score_map(session, world) -> dict:
+    """The published map as a vehicle following the town reads it, scored against the
+    town's signs: all landmarks, and the confirmed ones."""
+    client = MapClient(session, radius_m=0.0)
+    try:
+        follow_town(client, world)
+        client.wait_idle(30.0)
+        lm = client.landmarks()
+    finally:
+        client.close()
+    confirmed = lm.take(np.flatnonzero(lm.status == STATUS_CONFIRMED))
+    return {"all": score(world, lm).as_dict(), "confirmed": score(world, confirmed).as_dict()}
 
 
 def main() -> int:
@@ -224,6 +251,13 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=1000.0, help="observations/s, whole fleet")
     ap.add_argument("--vehicles", type=int, default=10)
     ap.add_argument("--speedup", type=float, default=120.0)
+    ap.add_argument(
+        "--pool-passes",
+        type=int,
+        default=600,
+        help="simulated passes the vehicles replay (a few dozen repeat each sign's "
+        "detector errors too often: see fleetsim.loadgen)",
+    )
     ap.add_argument("--days-back", type=float, default=29.0)
     ap.add_argument("--sample-s", type=float, default=30.0)
     ap.add_argument(
@@ -259,6 +293,12 @@ def main() -> int:
         f"(plateau: {r['plateau']}); landmarks {report['landmarks']['start']} -> "
         f"{report['landmarks']['end']}; accepted {report['accepted']}, failed {report['failed']}"
     )
+    for kind, m in report["map"].items():
+        print(
+            f"map ({kind}): {m['n_landmarks']} landmarks, found {m['found']} of {m['n_true']}, "
+            f"false {m['false']}, duplicated {m['duplicated']}, "
+            f"mean error {m['mean_err_m']:.2f} m, 95 % coverage {m['coverage95']:.2f}"
+        )
     write_json(args.json, report)
     if args.png is not None:
         plot(report, args.png)
