@@ -71,7 +71,8 @@ def geojson(result: TownRunResult) -> dict:
     m = match_landmarks(w, lm.lat, lm.lon, lm.h, lm.sign_class, gate_m=5.0)
     truth_of = dict(zip(m.landmark.tolist(), m.sign_row.tolist(), strict=True))
     err_of = dict(zip(m.landmark.tolist(), m.horizontal_error_m.tolist(), strict=True))
-    az, az_sigma, known = as_map_landmarks(lm).facing()
+    mlm = as_map_landmarks(lm)
+    az, az_sigma, known = mlm.facing()
     feats = []
     for i in range(len(lm)):
         c = lm.cov[i]
@@ -91,6 +92,11 @@ def geojson(result: TownRunResult) -> dict:
             # the direction the sign is seen from (not its panel normal); None: unknown
             "facing_deg": float(az[i]) if known[i] else None,
             "facing_sigma_deg": float(az_sigma[i]) if known[i] else None,
+            # whether the sign still stands (None: unknown); first and last seen, event time
+            "existence": [None, "confirmed", "doubtful"][int(mlm.exist_state[i])],
+            "p_exist": float(mlm.p_exist[i]) if mlm.exist_state[i] else None,
+            "first_seen": float(mlm.first_seen[i]) or None,
+            "last_seen": float(mlm.last_seen[i]) or None,
         }
         feats.append(
             {

@@ -37,7 +37,16 @@ from schemas.messages import (
     get_table,
     put_table,
 )
-from schemas.tables import Landmarks, Links, NewLandmarks, Observations, Removals, TrustChanges
+from schemas.tables import (
+    Absences,
+    ExistenceRows,
+    Landmarks,
+    Links,
+    NewLandmarks,
+    Observations,
+    Removals,
+    TrustChanges,
+)
 
 _STAGE_RE = re.compile(r"obs|assoc|update")
 _STAGE = "one of obs, assoc, update"
@@ -332,6 +341,9 @@ class ObsGroup(Message):
     batch_id: int
     received_at: float
     obs: Observations
+    absences: Absences = field(default_factory=Absences.empty)
+    """The upload's absences of landmarks whose home tile is this entry's tile (new to
+    ingest: a pass's report of a landmark is logged once). Optional on the wire."""
 
     def _encode(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -341,17 +353,23 @@ class ObsGroup(Message):
             "received_at": float(self.received_at),
         }
         put_table(out, "obs", self.obs)
+        if len(self.absences):
+            put_table(out, "absences", self.absences)
         return out
 
     @classmethod
     def from_bytes(cls, data: bytes) -> ObsGroup:
         m = cls._open(data)
+        absences = Absences.empty()
+        if "absences" in m:
+            absences = get_table(m, "absences", Absences, MAX_TABLE_ROWS)
         return cls(
             vehicle_id=get_str(m, "vehicle_id"),
             pass_id=get_int(m, "pass_id"),
             batch_id=get_int(m, "batch_id"),
             received_at=get_float(m, "received_at", 0.0, FLOAT_EPOCH_MAX),
             obs=get_table(m, "obs", Observations, MAX_TABLE_ROWS),
+            absences=absences,
         )
 
 
@@ -375,6 +393,10 @@ class AssocGroup(Message):
     ``trust`` change settles it); empty = none held. Optional on the wire."""
     trust: TrustChanges = field(default_factory=lambda: TrustChanges.empty())
     """Vehicles leaving probation, applied after this entry's links. Optional on the wire."""
+    existence: ExistenceRows = field(default_factory=lambda: ExistenceRows.empty())
+    """Landmarks whose existence changed (a pass closed on them, or absences counted),
+    applied after this entry's links; a revoked landmark is in ``retired`` instead.
+    Optional on the wire."""
 
     def _encode(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -389,6 +411,8 @@ class AssocGroup(Message):
             out["held"] = np.ascontiguousarray(self.held, np.uint8).tobytes()
         if len(self.trust):
             put_table(out, "trust", self.trust)
+        if len(self.existence):
+            put_table(out, "existence", self.existence)
         return out
 
     @classmethod
@@ -425,6 +449,9 @@ class AssocGroup(Message):
             trust = get_table(m, "trust", TrustChanges, MAX_TABLE_ROWS)
             if len(trust) and int(trust.vehicle.max()) >= len(vehicles):
                 raise DecodeError("trust.vehicle", "index outside vehicles")
+        existence = ExistenceRows.empty()
+        if "existence" in m:
+            existence = get_table(m, "existence", ExistenceRows, MAX_TABLE_ROWS)
         return cls(
             vehicles=vehicles,
             links=links,
@@ -434,6 +461,7 @@ class AssocGroup(Message):
             merged_into=merged,
             held=held,
             trust=trust,
+            existence=existence,
         )
 
 

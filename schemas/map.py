@@ -1,7 +1,7 @@
 """Publisher -> vehicles: a tile's change (:class:`MapDelta`) and the whole tile
 (:class:`MapSnapshot`), whose landmark rows are :class:`MapLandmarks` (the ``Landmarks``
-columns and the landmark's facing, optional columns: a message without them reads as
-"facing unknown").
+columns, the landmark's facing and its existence, optional columns: a message without
+them reads as "facing unknown", "existence unknown").
 
 >>> from schemas.tables import Landmarks
 >>> s = MapSnapshot("0123", 4, Landmarks.empty())
@@ -55,6 +55,32 @@ class MapLandmarks(Landmarks):
         unit_label="deg",
         optional=True,
         doc="standard error of facing_deg; 0 = facing unknown",
+    )
+    exist_state: np.ndarray = col(
+        "u1",
+        lo=0,
+        hi=2,
+        optional=True,
+        doc="whether the sign still stands: 1 confirmed, 2 doubtful, 0 unknown (revoked: removed)",
+    )
+    p_exist: np.ndarray = col(
+        "f4", lo=0.0, hi=1.0, optional=True, doc="probability that it stands; 0 with state 0"
+    )
+    first_seen: np.ndarray = col(
+        "f8",
+        lo=0.0,
+        hi=FLOAT_EPOCH_MAX,
+        unit_label="s",
+        optional=True,
+        doc="event time of its first observation; 0 = unknown",
+    )
+    last_seen: np.ndarray = col(
+        "f8",
+        lo=0.0,
+        hi=FLOAT_EPOCH_MAX,
+        unit_label="s",
+        optional=True,
+        doc="event time of its latest observation; 0 = unknown",
     )
 
     def facing(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -42,6 +42,29 @@ class Observations(Table):
 
 
 @table
+class Absences(Table):
+    """Mapped landmarks a pass had in view and did not detect (issue 21's negative
+    evidence; :mod:`vehicle.absence`), one row per landmark per pass."""
+
+    landmark_id: np.ndarray = col("u8", doc="the published id the vehicle expected to see")
+    t: np.ndarray = col(
+        "f8", lo=0.0, hi=FLOAT_EPOCH_MAX, unit_label="s", doc="capture time of the closest view"
+    )
+    frames: np.ndarray = col("u4", lo=1, hi=100_000, doc="frames of the pass that had it in view")
+    share: np.ndarray = col("f4", lo=0.0, hi=1.0, doc="those frames' share of the pass's frames")
+    range_m: np.ndarray = col(
+        "f4", lo=0.0, hi=1000.0, unit_label="m", doc="horizontal range at the closest view"
+    )
+    bearing_deg: np.ndarray = col(
+        "f4",
+        lo=-180.0,
+        hi=180.0,
+        unit_label="deg",
+        doc="bearing from the camera's axis at the closest view, clockwise",
+    )
+
+
+@table
 class Links(Table):
     """Per associated observation: its landmark and where it came from."""
 
@@ -79,6 +102,26 @@ class NewLandmarks(Table):
     lat: np.ndarray = col("f8", lo=-90.0, hi=90.0, unit_label="deg")
     lon: np.ndarray = col("f8", lo=-180.0, hi=180.0, unit_label="deg")
     h: np.ndarray = col("f8", lo=-1000.0, hi=10000.0, unit_label="m")
+
+
+@table
+class ExistenceRows(Table):
+    """Matcher -> solver: landmarks whose existence changed (:mod:`hdmap.mapping.existence`)."""
+
+    landmark_id: np.ndarray = col("u8")
+    p_exist: np.ndarray = col("f4", lo=0.0, hi=1.0, doc="probability that the sign stands")
+    state: np.ndarray = col("u1", lo=1, hi=2, doc="1 confirmed, 2 doubtful (revoked: retired)")
+    first_seen: np.ndarray = col(
+        "f8", lo=0.0, hi=FLOAT_EPOCH_MAX, unit_label="s", doc="event time of its first ray"
+    )
+    last_seen: np.ndarray = col(
+        "f8", lo=0.0, hi=FLOAT_EPOCH_MAX, unit_label="s", doc="event time of its latest ray"
+    )
+
+
+EXIST_UNKNOWN, EXIST_CONFIRMED, EXIST_DOUBTFUL = 0, 1, 2
+"""``ExistenceRows.state`` and ``MapLandmarks.exist_state`` values (0: not known, an older
+sender)."""
 
 
 @table

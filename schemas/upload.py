@@ -25,7 +25,7 @@ from schemas.messages import (
     get_ids,
     put_table,
 )
-from schemas.tables import Observations
+from schemas.tables import Absences, Observations
 
 
 @dataclass(frozen=True)
@@ -47,6 +47,9 @@ class ObservationBatch(Message):
     batch_id: int
     sent_at: float
     obs: Observations
+    absences: Absences = field(default_factory=Absences.empty)
+    """Mapped landmarks this pass had in view and did not detect (a pass sends them once,
+    usually with its last upload). Optional on the wire (absent = none)."""
 
     def _encode(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -56,6 +59,8 @@ class ObservationBatch(Message):
             "sent_at": float(self.sent_at),
         }
         put_table(out, "obs", self.obs)
+        if len(self.absences):
+            put_table(out, "absences", self.absences)
         return out
 
     @classmethod
@@ -63,22 +68,32 @@ class ObservationBatch(Message):
         cls, data: bytes, max_obs: int = MAX_BATCH, catalog: SignCatalog = CATALOG
     ) -> ObservationBatch:
         """Strict decode: the first bad row raises."""
-        head, obs, bad, fld, why = cls._decode(data, max_obs, catalog)
+        head, obs, bad, fld, why, ab, ab_bad, ab_fld, ab_why = cls._decode(data, max_obs, catalog)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise DecodeError(f"obs.{fld[i]}", str(why[i]), i)
-        return cls(*head, obs)
+        if ab_bad.any():
+            i = int(np.flatnonzero(ab_bad)[0])
+            raise DecodeError(f"absences.{ab_fld[i]}", str(ab_why[i]), i)
+        return cls(*head, obs, ab)
 
     @classmethod
     def from_bytes_partial(
         cls, data: bytes, max_obs: int = MAX_BATCH, catalog: SignCatalog = CATALOG
     ) -> tuple[ObservationBatch, list[Rejection]]:
-        """Structure errors raise; bad rows come back as rejections, good rows as the batch."""
-        head, obs, bad, fld, why = cls._decode(data, max_obs, catalog)
+        """Structure errors raise; bad rows come back as rejections, good rows as the batch.
+        A refused absence's rejection names the landmark id in ``obs_id`` and a field
+        ``absences.<column>``."""
+        head, obs, bad, fld, why, ab, ab_bad, ab_fld, ab_why = cls._decode(data, max_obs, catalog)
         rejected = [
             Rejection(int(obs.obs_id[i]), f"obs.{fld[i]}", str(why[i])) for i in np.flatnonzero(bad)
         ]
-        return cls(*head, obs.take(~bad) if bad.any() else obs), rejected
+        rejected += [
+            Rejection(int(ab.landmark_id[i]), f"absences.{ab_fld[i]}", str(ab_why[i]))
+            for i in np.flatnonzero(ab_bad)
+        ]
+        obs = obs.take(~bad) if bad.any() else obs
+        return cls(*head, obs, ab.take(~ab_bad) if ab_bad.any() else ab), rejected
 
     @classmethod
     def _decode(cls, data: bytes, max_obs: int, catalog: SignCatalog):
@@ -109,7 +124,25 @@ class ObservationBatch(Message):
         dup &= ~bad
         fld[dup], why[dup] = "obs_id", "duplicate id within the batch"
         bad |= dup
-        return head, obs, bad, fld, why
+        return (head, obs, bad, fld, why, *cls._absences(m, max_obs))
+
+    @staticmethod
+    def _absences(m: dict, max_rows: int):
+        """The optional absences table and its bad rows (as for the observations)."""
+        n = get_int(m, "n_absences", 0) if "absences" in m else 0
+        if n > max_rows:
+            raise DecodeError("n_absences", f"{n} absences exceed the limit of {max_rows}")
+        if n == 0:
+            ab = Absences.empty()
+            return ab, np.zeros(0, bool), np.zeros(0, object), np.zeros(0, object)
+        ab: Absences = Absences.CODEC.decode(get_map(m, "absences"), n, "absences", strict=False)
+        bad, fld, why = Absences.CODEC.row_errors(ab)
+        _, first = np.unique(ab.landmark_id, return_index=True)
+        dup = np.ones(n, bool)
+        dup[first] = False
+        dup &= ~bad
+        fld[dup], why[dup] = "landmark_id", "reported twice in one batch (a pass counts once)"
+        return ab, bad | dup, fld, why
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +165,9 @@ class UploadAck(Message):
     error: DecodeError | None = None
     retry_after_s: float = 0.0
     permanent: bool = False
+    absences: int = 0
+    """Absence rows of the upload durably recorded (new or recorded before: a pass's report
+    of a landmark counts once). Optional on the wire (absent = 0)."""
 
     def _encode(self) -> dict[str, Any]:
         out = {
@@ -145,6 +181,8 @@ class UploadAck(Message):
         }
         if self.permanent:  # absent means false: an ack reads as an older ingest's otherwise
             out["permanent"] = True
+        if self.absences:
+            out["absences"] = int(self.absences)
         return out
 
     @classmethod
@@ -190,4 +228,5 @@ class UploadAck(Message):
             error=error,
             retry_after_s=get_float(m, "retry_after_s", 0.0, MAX_RETRY_AFTER_S),
             permanent=permanent,
+            absences=get_int(m, "absences", 0, max_rows) if "absences" in m else 0,
         )

@@ -92,6 +92,25 @@ class MissLedger:
         self._misses.pop(landmark, None)
         self._since_seen.pop(landmark, None)
 
+    def clear(self) -> None:
+        self._misses.clear()
+        self._since_seen.clear()
+
+    def records(self, landmark: int) -> tuple[dict[str, list[float]], list[str]]:
+        """One landmark's state: its counted misses by vehicle, the vehicles since seen."""
+        return (
+            {v: list(ts) for v, ts in sorted(self._misses.get(landmark, {}).items()) if ts},
+            sorted(self._since_seen.get(landmark, ())),
+        )
+
+    def put(self, landmark: int, misses: dict[str, list[float]], since: list[str]) -> None:
+        """Set one landmark's state (:meth:`records`), as a store reads it back."""
+        self.forget(landmark)
+        if misses:
+            self._misses[landmark] = {v: list(ts) for v, ts in misses.items()}
+        if since:
+            self._since_seen[landmark] = set(since)
+
     def snapshot(self) -> dict[int, tuple[dict[str, list[float]], list[str]]]:
         """The state as plain data (landmark -> (misses by vehicle, vehicles since seen))."""
         keys = sorted(set(self._misses) | set(self._since_seen))

@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from hdmap.mapping.evidence import EvidencePolicy, MissLedger
 from hdmap.mapping.pair_counts import PairCounts
 from hdmap.mapping.pool import PendingTile
 from hdmap.mapping.trust import SeenIndex, VehicleTrust
@@ -69,6 +70,12 @@ class Landmark:
     """Gating facing as of the last re-solve of its gating estimate: azimuth, its standard
     error, the rays' spread (radians) and 1.0 where known (:class:`~hdmap.mapping.facing.
     Facing`); with ``x`` and ``cov`` what association sees of it (:mod:`hdmap.mapping.tick`)."""
+    exist: float = float("nan")
+    """Existence log-odds (:mod:`hdmap.mapping.presence`); NaN: no evidence since it was
+    made (it stands at the config's start value)."""
+    last_seen: float = 0.0
+    """Event time of the latest pass that linked rays to it (0: none since it was made,
+    ``created_at`` stands for it)."""
 
 
 @dataclass
@@ -129,6 +136,9 @@ class LandmarkTable:
         self.covis_pairs = PairCounts()
         """Images in which two landmarks of one class were both detected: then they are two
         signs, whatever their estimates say."""
+        self.misses = MissLedger(EvidencePolicy())
+        """Counted "not seen" reports per landmark and vehicle (:mod:`hdmap.mapping.presence`;
+        its policy is the matcher's)."""
         self.copass = PairCounts()
         """Upload units that linked rays to both of two landmarks of one class: with no image
         holding both, one sign (:func:`hdmap.mapping.merge.merge_partner`)."""

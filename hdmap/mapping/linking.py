@@ -18,6 +18,7 @@ import numpy as np
 
 from hdmap.geo.geodesy import GEODESY
 from hdmap.geo.tiles import quadkeys_of
+from hdmap.mapping import presence
 from hdmap.mapping.association import LocalRays
 from hdmap.mapping.estimator import Rays
 from hdmap.mapping.estimator.provisional import prior_covariance, usable
@@ -115,7 +116,12 @@ def link(
         ids = np.array(first_ids, np.uint64)[inv.reshape(-1)]
         m.hold_link((rows, np.full(len(idx), key, np.int64), rays, hold[sel]), ids)
         m.state.mark_changed(first_ids)  # their rows' sums change
+        before = m.quiet.members(key)
         m.quiet.note(key, list(zip(first_ids, rows[first].tolist(), strict=True)))
+        fresh = [
+            lms[idx[f]] for f, i in zip(first.tolist(), first_ids, strict=True) if i not in before
+        ]
+        presence.seen(m, vehicle, fresh, float(np.max(sub.t)))
         out = m.out[home]
         vi = out.vehicle_index(vehicle)
         out.links += [(lms[k].id, vi, pass_id) for k in idx]

@@ -34,6 +34,7 @@ from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from hdmap.mapping.facing import Facing, facing_from_sums
 from hdmap.mapping.initiation import InitConfig
 from hdmap.mapping.landmarks import Landmark, LandmarkTable
+from hdmap.mapping.presence import PresenceConfig
 from hdmap.mapping.quiet import (
     COMPACT_MIN_ROWS,
     QuietPasses,
@@ -159,6 +160,9 @@ class MatchingConfig:
     landmark."""
     group_min_rays: int = 2
     """Smallest group that is checked (one ray does not triangulate)."""
+    presence: PresenceConfig = field(default_factory=PresenceConfig)
+    """Existence per landmark from the passes that detect it and the vehicles' "not seen"
+    reports; revoked landmarks leave the map (:mod:`hdmap.mapping.presence`)."""
     sightings: SightingConfig = field(default_factory=SightingConfig)
     """Landmarks that the passes having them in view do not detect are retired
     (:mod:`hdmap.mapping.sightings`: second copies of a sign, counted ``retired_unseen``)."""
@@ -254,7 +258,10 @@ class AssocOutput:
     retired: list[tuple[int, int]] = field(default_factory=list)
     """(retired id, id it merged into)."""
     ended: list[int] = field(default_factory=list)
-    """Retired without a successor (emptied: every ray taken out)."""
+    """Retired without a successor (emptied: every ray taken out; revoked)."""
+    existence: dict[int, tuple[int, float, int, float, float]] = field(default_factory=dict)
+    """Landmarks whose existence changed: (id, probability, state, first seen, last seen)
+    (:func:`hdmap.mapping.presence.row`)."""
 
     def vehicle_index(self, v: str) -> int:
         """Index of vehicle ``v`` in ``vehicles`` (added if new)."""
@@ -288,6 +295,7 @@ class Matching:
     ):
         self.config = config
         self.state = state
+        state.misses.policy = config.presence.evidence
         self.zoom = zoom
         self.region = region
         self.tally = tally

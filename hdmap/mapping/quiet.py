@@ -54,6 +54,12 @@ class QuietPasses:
         mine.update((int(a), int(b)) for a, b in members)
         self._open[int(key)] = (self._clock(), mine)  # to the end: the most recent
 
+    def members(self, key: int) -> set[int]:
+        """The landmarks pass ``key`` has linked rays to while open (ids; empty when it is
+        not open, or when the closing is off and nothing is noted)."""
+        known = self._open.get(int(key))
+        return set() if known is None else {lid for lid, _row in known[1]}
+
     def extend(self, key: int, members: Iterable[tuple[int, int]]) -> None:
         """Pass ``key`` is open on ``members`` too (a merge moved it there), keeping its
         quiet time; a pass not known here is noted now.

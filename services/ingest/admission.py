@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import DecodeError, ObservationBatch, Observations, Rejection
+from schemas import Absences, DecodeError, ObservationBatch, Observations, Rejection
 
 MAX_PASS_ID = 2**63 - 1
 """Largest pass id ingest accepts: downstream (the matcher's pending rays) keeps pass ids
@@ -94,6 +94,32 @@ def admit(
         (spread, "obs.lat", f"in a tile beyond the first {policy.max_tiles} of this upload"),
     ):
         rejected += [Rejection(int(i), field, reason) for i in obs.obs_id[mask]]
+    return ~bad, rejected
+
+
+def admit_absences(
+    ab: Absences, policy: AdmissionPolicy, now: float, tiles: np.ndarray, horizon: float
+) -> tuple[np.ndarray, list[Rejection]]:
+    """Which schema-valid absences are admitted (the observations' time window; at most
+    ``policy.max_tiles`` home tiles an upload), with the rejections of the others (the
+    landmark id in ``obs_id``)."""
+    too_old = ab.t < oldest_admitted(policy, now, horizon)
+    future = ab.t > now + policy.max_future_s
+    bad = too_old | future
+    spread = np.zeros(len(ab), bool)
+    spread[~bad] = _beyond_first_tiles(np.asarray(tiles)[~bad], policy.max_tiles)
+    bad |= spread
+    rejected: list[Rejection] = []
+    for mask, field, reason in (
+        (too_old, "absences.t", f"older than the admission window ({lag_s(policy):g} s)"),
+        (future, "absences.t", f"more than {policy.max_future_s:g} s in the future"),
+        (
+            spread,
+            "absences.landmark_id",
+            f"in a home tile beyond the first {policy.max_tiles} of this upload",
+        ),
+    ):
+        rejected += [Rejection(int(i), field, reason) for i in ab.landmark_id[mask]]
     return ~bad, rejected
 
 

@@ -17,14 +17,16 @@ Per upload (``hdmap/v1/upload/<vehicle_id>`` queryable):
    vehicle ids adds load only at that rate;
 3. drop duplicates by (vehicle, observation id): a retried batch is acknowledged
    again but recorded once;
-4. route each new observation to the tile of its expected target point and
-   append one :class:`schemas.ObsGroup` entry per tile to the obs log, in the same
-   SQLite transaction as the dedup rows;
+4. route each new observation to the tile of its expected target point and each new
+   absence (``ObservationBatch.absences``: a mapped landmark the pass did not detect;
+   deduplicated by (vehicle, pass, landmark), admitted in the observations' time window)
+   to its landmark's home tile, and append one :class:`schemas.ObsGroup` entry per tile
+   to the obs log, in the same SQLite transaction as the dedup rows;
 5. commit, then reply the ack, then publish the entries on ``hdmap/v1/obs/<tile>``.
 
 Uploads that arrive together are committed in one transaction (one fsync for many).
 Every refused upload or row is counted in ``Stats.rejected`` by reason (``batch.<field>``,
-``obs.<column>``, ``rate_limited``, ``vehicle.new``).
+``obs.<column>``, ``absences.<column>``, ``rate_limited``, ``vehicle.new``).
 
 Storage: a failed transaction (disk full, read-only) is answered ``error.field ==
 "storage"`` with ``retry_after_s`` :data:`STORAGE_RETRY_S` (transient: it passes by
@@ -60,8 +62,15 @@ from hdmap.runtime.store import DatabaseCorrupt, Meta, StorageError, u64_to_i64
 from hdmap.runtime.stream import STAGE_KEYS
 from schemas import DecodeError, ObservationBatch, ObsGroup, UploadAck, keys
 from schemas.codec import valid_id
+from schemas.ids import home_tile
 from schemas.messages import MAX_BATCH
-from services.ingest.admission import AdmissionPolicy, admit, check_header, oldest_admitted
+from services.ingest.admission import (
+    AdmissionPolicy,
+    admit,
+    admit_absences,
+    check_header,
+    oldest_admitted,
+)
 from services.ingest.ratelimit import RateLimit, VehicleLimiter
 
 log = logging.getLogger(__name__)
@@ -145,6 +154,10 @@ class IngestService(Service):
     CREATE TABLE IF NOT EXISTS seen (
         vehicle TEXT NOT NULL, obs_id INTEGER NOT NULL, t REAL NOT NULL DEFAULT 0,
         PRIMARY KEY (vehicle, obs_id)) WITHOUT ROWID;
+    CREATE TABLE IF NOT EXISTS seen_absence (
+        vehicle TEXT NOT NULL, pass_id INTEGER NOT NULL, landmark_id INTEGER NOT NULL,
+        t REAL NOT NULL, PRIMARY KEY (vehicle, pass_id, landmark_id)) WITHOUT ROWID;
+    CREATE INDEX IF NOT EXISTS seen_absence_t ON seen_absence(t);
     """
 
     PRUNE_EVERY_S = 60.0
@@ -304,7 +317,7 @@ class IngestService(Service):
             return UploadAck(
                 key_vehicle, batch.batch_id, _NO_IDS, error=err, retry_after_s=wait
             ), []
-        n_rows = len(batch.obs) + len(rejected)
+        n_rows = len(batch.obs) + len(batch.absences) + len(rejected)
         wait = self.limiter.observations(key_vehicle, n_rows)
         if wait > 0:
             self.count("rate_limited_obs", n_rows)
@@ -323,6 +336,14 @@ class IngestService(Service):
         )
         keep, more = admit(batch.obs, self.config.policy, self.wall(), all_tiles, self.horizon)
         obs = batch.obs.take(keep) if not keep.all() else batch.obs
+        rejected += more
+        ab_tiles = np.array(
+            [home_tile(int(i), self.opts.zoom) for i in batch.absences.landmark_id], dtype=object
+        ).astype(str)
+        ab_keep, more = admit_absences(
+            batch.absences, self.config.policy, self.wall(), ab_tiles, self.horizon
+        )
+        absences, ab_tiles = batch.absences.take(ab_keep), ab_tiles[ab_keep]
         rejected += more
         for reason, n in Counter(r.field for r in rejected).items():
             self.reject(reason, n)
@@ -345,20 +366,39 @@ class IngestService(Service):
         self.count("duplicates", int(dup.sum()))
         if len(new):
             self._admitted.append(batch.vehicle_id)
+        ab_dup = self._seen_absences(batch.vehicle_id, batch.pass_id, absences.landmark_id)
+        ab_new, ab_tiles = absences.take(~ab_dup), ab_tiles[~ab_dup]
+        self.db.executemany(
+            "INSERT INTO seen_absence(vehicle, pass_id, landmark_id, t) VALUES (?, ?, ?, ?)",
+            zip(
+                itertools.repeat(batch.vehicle_id),
+                itertools.repeat(int(batch.pass_id)),
+                u64_to_i64(ab_new.landmark_id).tolist(),
+                ab_new.t.tolist(),
+                strict=False,
+            ),
+        )
+        self.count("absences_accepted", len(ab_new))
+        self.count("absences_duplicates", int(ab_dup.sum()))
         entries = []
-        if len(new):
-            tiles = all_tiles[keep][~dup]
-            for tile in np.unique(tiles):
-                group = ObsGroup(
-                    batch.vehicle_id,
-                    batch.pass_id,
-                    batch.batch_id,
-                    time.time(),
-                    new.take(tiles == tile),
-                )
-                entries.append(self.writer.append(str(tile), group.to_bytes()))
+        tiles = all_tiles[keep][~dup]
+        for tile in np.unique(np.concatenate([tiles.astype(str), ab_tiles])):
+            group = ObsGroup(
+                batch.vehicle_id,
+                batch.pass_id,
+                batch.batch_id,
+                time.time(),
+                new.take(tiles == tile),
+                ab_new.take(ab_tiles == tile),
+            )
+            entries.append(self.writer.append(str(tile), group.to_bytes()))
         ack = UploadAck(
-            batch.vehicle_id, batch.batch_id, ids, duplicates=ids[dup], rejected=rejected
+            batch.vehicle_id,
+            batch.batch_id,
+            ids,
+            duplicates=ids[dup],
+            rejected=rejected,
+            absences=len(absences),
         )
         return ack, entries
 
@@ -399,6 +439,11 @@ class IngestService(Service):
                     "(SELECT vehicle, obs_id FROM seen WHERE t < ? LIMIT ?)",
                     (before, self.PRUNE_CHUNK),
                 ).rowcount
+                n += self.db.execute(
+                    "DELETE FROM seen_absence WHERE (vehicle, pass_id, landmark_id) IN "
+                    "(SELECT vehicle, pass_id, landmark_id FROM seen_absence WHERE t < ? LIMIT ?)",
+                    (before, self.PRUNE_CHUNK),
+                ).rowcount
                 self.count("seen_pruned", n)
             gone += n
             if n < self.PRUNE_CHUNK:
@@ -422,6 +467,24 @@ class IngestService(Service):
                 )
             )
         return np.fromiter((int(x) in found for x in signed), bool, signed.size)
+
+    def _seen_absences(self, vehicle: str, pass_id: int, ids: np.ndarray) -> np.ndarray:
+        """Which of a pass's absences (by landmark id) ingest recorded before."""
+        if ids.size == 0:
+            return np.zeros(0, bool)
+        signed = u64_to_i64(ids).tolist()
+        found: set[int] = set()
+        for s in range(0, len(signed), 900):
+            part = signed[s : s + 900]
+            found.update(
+                r[0]
+                for r in self.db.execute(
+                    "SELECT landmark_id FROM seen_absence WHERE vehicle=? AND pass_id=? "
+                    f"AND landmark_id IN ({','.join('?' * len(part))})",
+                    [vehicle, int(pass_id), *part],
+                )
+            )
+        return np.fromiter((x in found for x in signed), bool, len(signed))
 
     def extra_counters(self) -> dict[str, float]:
         return {

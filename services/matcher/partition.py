@@ -1,7 +1,8 @@
 """The matcher's tables cut by region or joined (:mod:`hdmap.runtime.partition`).
 
 Landmarks belong to the region of their home tile (the tile their id was counted in);
-their views, facings, tick marks, sightings and pair counts follow them. Pending rays
+their views, facings, tick marks, sightings, existence, counted misses and pair counts
+follow them. Pending rays
 belong to their tile's region, the untried marks to their pending rays. A vehicle's trust,
 pass budgets and probation status are copied to every part (each part goes on counting
 what it sees of the vehicle), except the home tiles it has held passes in (each part
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 from hdmap.runtime.partition import Rules
 
-_BY_LANDMARK = ("views", "facings", "tick", "sightings")
+_BY_LANDMARK = ("views", "facings", "tick", "sightings", "existence", "misses")
 
 RULES = Rules(
     service="matcher",

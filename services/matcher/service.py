@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hdmap.mapping import presence
 from hdmap.mapping.estimator import LandmarkSums
 from hdmap.mapping.estimator.solve import preload
 from hdmap.mapping.event_time import advance
@@ -48,6 +49,7 @@ from schemas import (
     RELEASE,
     AssocGroup,
     DecodeError,
+    ExistenceRows,
     Links,
     LogEntry,
     NewLandmarks,
@@ -55,6 +57,7 @@ from schemas import (
     ObsGroup,
     TrustChanges,
 )
+from schemas.ids import pass_key
 from services.matcher import held_links
 from services.matcher.state import MatcherState
 
@@ -113,6 +116,14 @@ class MatcherConfig(MatchingConfig):
             )
 
 
+def _capture_times(g: ObsGroup) -> np.ndarray:
+    """An obs entry's capture times: its rays' and its absences' (an entry of absences
+    alone moves the clock by their times, not by its ingest stamp)."""
+    if not len(g.absences):
+        return np.asarray(g.obs.t, float)
+    return np.r_[np.asarray(g.obs.t, float), np.asarray(g.absences.t, float)]
+
+
 def wall_clock() -> float:
     """Wall-clock seconds (only to refuse ingest stamps far ahead of it)."""
     return time.time()
@@ -141,6 +152,7 @@ def assoc_body(out: AssocOutput) -> bytes:
             h=np.array([c[4] for c in created], float),
         ),
         retired=np.r_[retired[:, 0], np.array(out.ended, np.uint64)],
+        existence=existence_rows(out),
         merged_into=retired[:, 1].copy(),
         held=np.array(out.held, bool),
         trust=TrustChanges(
@@ -149,6 +161,18 @@ def assoc_body(out: AssocOutput) -> bytes:
             np.array([c[2] for c in out.trust], np.float32),
         ),
     ).to_bytes()
+
+
+def existence_rows(out: AssocOutput) -> ExistenceRows:
+    """The output's existence changes as the wire table (by id)."""
+    rows = [out.existence[i] for i in sorted(out.existence)]
+    return ExistenceRows(
+        landmark_id=np.array([r[0] for r in rows], np.uint64),
+        p_exist=np.array([r[1] for r in rows], np.float32),
+        state=np.array([r[2] for r in rows], np.uint8),
+        first_seen=np.array([r[3] for r in rows], float),
+        last_seen=np.array([r[4] for r in rows], float),
+    )
 
 
 class MatcherService(StageService):
@@ -283,8 +307,27 @@ class MatcherService(StageService):
         was associated ahead, ``batch()`` associates it with the units after it in its
         tick; else it is associated alone."""
         m = self.matching
-        at = m.entry_time(g.received_at, np.asarray(g.obs.t, float))
+        at = m.entry_time(g.received_at, _capture_times(g))
         enter(m, at)  # the unit's gating tick (the one before it may end)
+        if len(g.obs):
+            self._match(tile, g, at, index, batch)
+        if len(g.absences):
+            t = m.state.trust_of(g.vehicle_id)
+            held = t.held(m.config.trust)
+            key = pass_key(g.vehicle_id, g.pass_id, held)
+            presence.not_seen(m, g.vehicle_id, key, g.absences, held)
+        return at
+
+    def _match(
+        self,
+        tile: str,
+        g: ObsGroup,
+        at: float,
+        index: int,
+        batch: Callable[[], list[tuple[int, Associated]]] | None,
+    ) -> None:
+        """The unit's rays associated and linked (:meth:`_unit`)."""
+        m = self.matching
         u: Prepared | None = None
         res: Checked | None = None
         hit = self._ahead_of.pop(index, None)
@@ -303,7 +346,6 @@ class MatcherService(StageService):
         if u is None:
             u = prepare_unit(m, tile, g.vehicle_id, g.pass_id, g.obs)
         match_unit(m, u, at, g.received_at, res)
-        return at
 
     def _associate_ahead(
         self, i: int, decoded: list[tuple[LogEntry, ObsGroup]], ahead: list[bool]
@@ -316,10 +358,11 @@ class MatcherService(StageService):
         run = [i]
         for k in range(i + 1, min(len(decoded), i + self.config.associate_ahead)):
             g = decoded[k][1]
-            at, now = m.event_time(g.received_at, np.asarray(g.obs.t, float), ahead[k], now)
+            at, now = m.event_time(g.received_at, _capture_times(g), ahead[k], now)
             if tick_of(m, at, now) != tick:
                 break
-            run.append(k)
+            if len(g.obs):  # an entry of absences alone has no unit to associate
+                run.append(k)
         units = prepare_units(
             m, [(e.tile, g.vehicle_id, g.pass_id, g.obs) for e, g in (decoded[k] for k in run)]
         )

@@ -14,6 +14,7 @@ rebuilds the memory from the database (start, or after a failed transaction).
 
 from __future__ import annotations
 
+import math
 import sqlite3
 from collections import defaultdict
 from collections.abc import Callable
@@ -65,6 +66,11 @@ CREATE TABLE IF NOT EXISTS covis (
 CREATE TABLE IF NOT EXISTS copass (
     a INTEGER NOT NULL, b INTEGER NOT NULL, n INTEGER NOT NULL, PRIMARY KEY (a, b)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS existence (
+    id INTEGER PRIMARY KEY, l REAL NOT NULL, last_seen REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS misses (
+    id INTEGER NOT NULL, vehicle TEXT NOT NULL, times TEXT NOT NULL, since INTEGER NOT NULL,
+    PRIMARY KEY (id, vehicle)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS pass_budget (
     vehicle TEXT NOT NULL, pass_id INTEGER NOT NULL, evicted INTEGER NOT NULL,
     failed INTEGER NOT NULL, quarantined TEXT NOT NULL, last_at REAL NOT NULL,
@@ -142,12 +148,17 @@ class MatcherState(LandmarkTable):
             "INSERT OR REPLACE INTO sightings(id, in_view, seen) VALUES (?,?,?)",
             [(r[0], lm.in_view, lm.seen) for r, lm in zip(rows, dirty, strict=True) if lm.in_view],
         )
+        self._save_presence([r[0] for r in rows], dirty)
         gone = [(id_to_sql(i),) for i in sorted(self._deleted)]
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
         c.executemany("DELETE FROM facings WHERE id=?", gone)
         self._save_tick()
         c.executemany("DELETE FROM sightings WHERE id=?", gone)
+        c.executemany("DELETE FROM existence WHERE id=?", gone)
+        c.executemany("DELETE FROM misses WHERE id=?", gone)
+        for i in self._deleted:
+            self.misses.forget(i)
         for table, counts in (("covis", self.covis_pairs), ("copass", self.copass)):
             pairs = sorted(counts.dirty)
             c.executemany(
@@ -243,6 +254,46 @@ class MatcherState(LandmarkTable):
             ],
         )
         self.clear_marks()
+
+    def _load_presence(self) -> None:
+        """Existence log-odds and counted misses back into the landmarks and the ledger."""
+        c = self._conn
+        for i, lo, last in c.execute("SELECT id, l, last_seen FROM existence"):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.exist, lm.last_seen = float(lo), float(last)
+        self.misses.clear()
+        by: dict[int, tuple[dict[str, list[float]], list[str]]] = {}
+        for i, v, times, since in c.execute(
+            "SELECT id, vehicle, times, since FROM misses ORDER BY id, vehicle"
+        ):
+            misses, vs = by.setdefault(id_from_sql(i), ({}, []))
+            if times:
+                misses[v] = [float(x) for x in times.split()]
+            if since:
+                vs.append(v)
+        for lid, (misses, vs) in by.items():
+            self.misses.put(lid, misses, vs)
+
+    def _save_presence(self, sql_ids: list[int], dirty: list[Landmark]) -> None:
+        """Existence log-odds and counted misses of the changed landmarks."""
+        c = self._conn
+        c.executemany(
+            "INSERT OR REPLACE INTO existence(id, l, last_seen) VALUES (?,?,?)",
+            [
+                (i, lm.exist, lm.last_seen)
+                for i, lm in zip(sql_ids, dirty, strict=True)
+                if not math.isnan(lm.exist)
+            ],
+        )
+        c.executemany("DELETE FROM misses WHERE id=?", [(i,) for i in sql_ids])
+        out = []
+        for i, lm in zip(sql_ids, dirty, strict=True):
+            misses, since = self.misses.records(lm.id)
+            for v in sorted(set(misses) | set(since)):
+                times = " ".join(repr(x) for x in misses.get(v, []))
+                out.append((i, v, times, int(v in since)))
+        c.executemany("INSERT INTO misses(id, vehicle, times, since) VALUES (?,?,?,?)", out)
 
     def _save_tick(self) -> None:
         """Write the current gating tick's marks that changed: all of them again when the
@@ -363,6 +414,7 @@ class MatcherState(LandmarkTable):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.in_view, lm.seen = int(n_in), int(n_seen)
+        self._load_presence()
         for table, counts in (("covis", self.covis_pairs), ("copass", self.copass)):
             for a, b, n in c.execute(f"SELECT a, b, n FROM {table}"):
                 counts.add(id_from_sql(a), id_from_sql(b), int(n))

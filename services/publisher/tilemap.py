@@ -41,6 +41,10 @@ _FIELDS = (
     "source_time",
     "facing_deg",
     "facing_sigma_deg",
+    "exist_state",
+    "p_exist",
+    "first_seen",
+    "last_seen",
 )
 _COLS = "id, " + ", ".join(_FIELDS)
 _MARKS = ",".join("?" * (len(_FIELDS) + 2))  # tile, id, fields
@@ -50,12 +54,16 @@ CREATE TABLE IF NOT EXISTS current (
     id INTEGER PRIMARY KEY, tile TEXT NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
     cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
     updated_at REAL, source_time REAL, facing_deg REAL NOT NULL DEFAULT 0,
-    facing_sigma_deg REAL NOT NULL DEFAULT 0);
+    facing_sigma_deg REAL NOT NULL DEFAULT 0, exist_state REAL NOT NULL DEFAULT 0,
+    p_exist REAL NOT NULL DEFAULT 0, first_seen REAL NOT NULL DEFAULT 0,
+    last_seen REAL NOT NULL DEFAULT 0);
 CREATE TABLE IF NOT EXISTS published (
     tile TEXT NOT NULL, id INTEGER NOT NULL, sign_class INTEGER, lat REAL, lon REAL, h REAL,
     cov BLOB, status INTEGER, n_obs INTEGER, n_passes INTEGER, revision INTEGER,
     updated_at REAL, source_time REAL, facing_deg REAL NOT NULL DEFAULT 0,
-    facing_sigma_deg REAL NOT NULL DEFAULT 0, PRIMARY KEY (tile, id)) WITHOUT ROWID;
+    facing_sigma_deg REAL NOT NULL DEFAULT 0, exist_state REAL NOT NULL DEFAULT 0,
+    p_exist REAL NOT NULL DEFAULT 0, first_seen REAL NOT NULL DEFAULT 0,
+    last_seen REAL NOT NULL DEFAULT 0, PRIMARY KEY (tile, id)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS versions (tile TEXT PRIMARY KEY, version INTEGER NOT NULL)
     WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS dirty (
@@ -66,9 +74,16 @@ CREATE TABLE IF NOT EXISTS quarantine (
     row BLOB NOT NULL, at REAL NOT NULL);
 """
 
-_ADDED = ("facing_deg", "facing_sigma_deg")
+_ADDED = (
+    "facing_deg",
+    "facing_sigma_deg",
+    "exist_state",
+    "p_exist",
+    "first_seen",
+    "last_seen",
+)
 """Columns added to ``current`` and ``published`` after their first release (a database
-from before gets them, 0 = facing unknown, when it is opened)."""
+from before gets them, 0 = facing or existence unknown, when it is opened)."""
 
 # integer columns of a row (index in ``_COLS`` order) and the range their wire type holds
 _INT_RANGES = {
@@ -100,14 +115,18 @@ def _rows(lm: Landmarks) -> list[tuple]:
             float(lm.source_time[i]),
             float(lm.facing_deg[i]),
             float(lm.facing_sigma_deg[i]),
+            int(lm.exist_state[i]),
+            float(lm.p_exist[i]),
+            float(lm.first_seen[i]),
+            float(lm.last_seen[i]),
         )
         for i in range(len(lm))
     ]
 
 
 def landmarks_from_rows(rows: list[tuple]) -> MapLandmarks:
-    """Rows (id, sign_class, ..., source_time, facing_deg, facing_sigma_deg) as in
-    ``_COLS``."""
+    """Rows (id, sign_class, ..., source_time, facing_deg, facing_sigma_deg, exist_state,
+    p_exist, first_seen, last_seen) as in ``_COLS``."""
     if not rows:
         return MapLandmarks.empty()
     cols = list(zip(*rows, strict=True))
@@ -126,6 +145,10 @@ def landmarks_from_rows(rows: list[tuple]) -> MapLandmarks:
         source_time=np.array(cols[11], float),
         facing_deg=np.array(cols[12], np.float32),
         facing_sigma_deg=np.array(cols[13], np.float32),
+        exist_state=np.array(cols[14], float).astype(np.uint8),
+        p_exist=np.array(cols[15], np.float32),
+        first_seen=np.array(cols[16], float),
+        last_seen=np.array(cols[17], float),
     )
 
 

@@ -1,6 +1,6 @@
 """The solver's tables cut by region or joined (:mod:`hdmap.runtime.partition`):
-landmarks by the region of their home tile, their views with them; the event-time clock
-copied (joined: the latest)."""
+landmarks by the region of their home tile, their views and existence with them; the
+event-time clock copied (joined: the latest)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ RULES = Rules(
     split=(
         "DELETE FROM landmarks WHERE NOT in_region(home)",
         "DELETE FROM views WHERE id NOT IN (SELECT id FROM landmarks)",
+        "DELETE FROM existence WHERE id NOT IN (SELECT id FROM landmarks)",
     ),
     merge={
         "clock": "INSERT INTO clock SELECT * FROM b.clock WHERE true "

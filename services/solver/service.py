@@ -339,6 +339,7 @@ class SolverService(StageService):
                 self._source[i] = max(self._source.get(i, 0.0), t)
         self.count("observations", int(known.sum()))
         self._note_passes(ids, known, keys_)
+        touched |= self.state.note_existence(g.existence)
         return touched | self._settle(g) | self._retire(g)
 
     def _note_passes(self, ids: np.ndarray, known: np.ndarray, keys_: np.ndarray) -> None:
@@ -495,9 +496,14 @@ class SolverService(StageService):
                 facing_deg, facing_sigma_deg = to_wire(
                     self.state.facings(lms, sol.n_clusters[ks], self.config.facing_min_rays)
                 )
+                ex = np.array([lm.existence for lm in lms], float).reshape(-1, 4)
                 landmarks = MapLandmarks(
                     facing_deg=facing_deg,
                     facing_sigma_deg=facing_sigma_deg,
+                    exist_state=ex[:, 1].astype(np.uint8),
+                    p_exist=ex[:, 0].astype(np.float32),
+                    first_seen=ex[:, 2],
+                    last_seen=ex[:, 3],
                     id=np.array([lm.id for lm in lms], np.uint64),
                     sign_class=np.array([lm.cls for lm in lms], np.uint16),
                     lat=sol.lat[sel],

@@ -17,6 +17,9 @@ CREATE TABLE IF NOT EXISTS landmarks (
 CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (
     id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL, count INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS existence (
+    id INTEGER PRIMARY KEY, p REAL NOT NULL, state INTEGER NOT NULL, first_seen REAL NOT NULL,
+    last_seen REAL NOT NULL);
 """
 
 
@@ -34,6 +37,9 @@ class SolverLandmark:
     (:mod:`hdmap.mapping.facing`); ``views`` table (absent in an older database: zero)."""
     view_n: int = 0
     """Rays in ``view`` (a caught vehicle's rays taken out of the sums stay in it)."""
+    existence: tuple[float, int, float, float] = (0.0, 0, 0.0, 0.0)
+    """(probability, state, first seen, last seen) as the matcher last sent them
+    (``AssocGroup.existence``); state 0: none sent yet (published as unknown)."""
 
 
 class SolverState:
@@ -64,6 +70,24 @@ class SolverState:
         view = np.array([lm.view for lm in lms], float).reshape(-1, 2)
         return facing_from_sums(view, [lm.view_n for lm in lms], n_passes, min_rays)
 
+    def note_existence(self, rows) -> set[int]:
+        """The matcher's existence changes (:class:`schemas.tables.ExistenceRows`) onto the
+        landmarks here; returns the ids they changed (to be published again)."""
+        changed: set[int] = set()
+        for lid, p, state, first, last in zip(
+            rows.landmark_id.tolist(),
+            rows.p_exist.tolist(),
+            rows.state.tolist(),
+            rows.first_seen.tolist(),
+            rows.last_seen.tolist(),
+            strict=True,
+        ):
+            lm = self.landmarks.get(int(lid))
+            if lm is not None:
+                lm.existence = (float(p), int(state), float(first), float(last))
+                changed.add(lm.id)
+        return changed
+
     def delete(self, lid: int) -> SolverLandmark:
         self._dirty.discard(lid)
         self._deleted.add(lid)
@@ -73,6 +97,7 @@ class SolverState:
         gone = [(id_to_sql(i),) for i in sorted(self._deleted)]
         self._conn.executemany("DELETE FROM landmarks WHERE id=?", gone)
         self._conn.executemany("DELETE FROM views WHERE id=?", gone)
+        self._conn.executemany("DELETE FROM existence WHERE id=?", gone)
         self._deleted.clear()
         dirty = [self.landmarks[i] for i in sorted(self._dirty)]
         blobs = pack_rows(np.array([lm.row for lm in dirty], np.int64)) if dirty else []
@@ -87,6 +112,11 @@ class SolverState:
         self._conn.executemany(
             "INSERT OR REPLACE INTO views(id, e, n, count) VALUES (?,?,?,?)",
             [(id_to_sql(lm.id), *map(float, lm.view), lm.view_n) for lm in dirty if lm.view_n],
+        )
+        self._conn.executemany(
+            "INSERT OR REPLACE INTO existence(id, p, state, first_seen, last_seen) "
+            "VALUES (?,?,?,?,?)",
+            [(id_to_sql(lm.id), *lm.existence) for lm in dirty if lm.existence[1]],
         )
         self._dirty.clear()
         self._conn.execute(
@@ -108,5 +138,11 @@ class SolverState:
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.view, lm.view_n = np.array([e, n], float), int(count)
+        for i, p, state, first, last in self._conn.execute(
+            "SELECT id, p, state, first_seen, last_seen FROM existence"
+        ):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.existence = (float(p), int(state), float(first), float(last))
         clock = self._conn.execute("SELECT t FROM clock WHERE name='event'").fetchone()
         self.event_time = 0.0 if clock is None else float(clock[0])
