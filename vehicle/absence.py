@@ -15,7 +15,10 @@ landmark in view in at least ``min_frames`` frames and seen in none.
 Pitfalls: occlusion (a parked truck) is not modelled: the share of frames in view and the
 range go with each absence so that the server weighs it (a pass counts once); a map
 landmark whose position is off by more than the gate's width at its range looks absent:
-the gate must cover the landmark's and the pose's uncertainty (the caller widens it).
+the gate must cover the landmark's and the pose's uncertainty. Given them (the frames'
+yaw and position sigmas, the landmarks' position sigma), the gate in a frame is
+``hypot(bearing_gate_deg, gate_sigmas * s)`` with ``s`` the predicted bearing's sigma:
+``hypot(sigma_yaw, atan(hypot(sigma_camera, sigma_landmark) / range))`` (wider up close).
 
 >>> import numpy as np
 >>> cam = np.stack([np.zeros(21), np.linspace(0.0, 40.0, 21)], 1)  # north along x = 0
@@ -53,7 +56,10 @@ class ViewModel:
     facing_tol_deg: float = 80.0
     """A sign is in view only from within this angle of the direction it is seen from."""
     bearing_gate_deg: float = 4.0
-    """A detection this close to the predicted bearing is the landmark."""
+    """A detection this close to the predicted bearing is the landmark (with no pose or
+    landmark uncertainty: the detector's own error)."""
+    gate_sigmas: float = 3.0
+    """The gate widens by this many sigmas of the predicted bearing (module docstring)."""
     min_frames: int = 3
     """An absence needs the landmark in view in at least this many frames."""
 
@@ -61,22 +67,28 @@ class ViewModel:
 @dataclass(frozen=True)
 class Frames:
     """The pass's camera frames: time (s), position (F, 2) East-North m, yaw (deg,
-    clockwise from North: the camera's axis)."""
+    clockwise from North: the camera's axis), and optionally the standard deviations of
+    the yaw (deg) and of the position (m, per horizontal axis); None: exact."""
 
     t: Array
     en: Array
     yaw_deg: Array
+    sigma_yaw_deg: Array | None = None
+    sigma_m: Array | None = None
 
 
 @dataclass(frozen=True)
 class MapSigns:
     """Map landmarks near the route: id, position (L, 2) East-North m, class, facing (deg
-    clockwise from North, the direction the sign is seen from; NaN: unknown)."""
+    clockwise from North, the direction the sign is seen from; NaN: unknown), and
+    optionally the position's standard deviation (m, its largest horizontal axis); None:
+    exact."""
 
     id: IntArray
     en: Array
     sign_class: IntArray
     facing_deg: Array
+    sigma_m: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -121,6 +133,17 @@ def geometry(frames: Frames, signs: MapSigns) -> tuple[Array, Array, BoolArray]:
     return rng, bearing, off
 
 
+def gate_deg(frames: Frames, signs: MapSigns, rng: Array, model: ViewModel) -> Array:
+    """The bearing gate per frame and landmark (F, L), deg (module docstring)."""
+    f, n = rng.shape
+    s_yaw = np.zeros(f) if frames.sigma_yaw_deg is None else np.asarray(frames.sigma_yaw_deg)
+    s_cam = np.zeros(f) if frames.sigma_m is None else np.asarray(frames.sigma_m, float)
+    s_lm = np.zeros(n) if signs.sigma_m is None else np.asarray(signs.sigma_m, float)
+    s_pos = np.degrees(np.arctan2(np.hypot(s_cam[:, None], s_lm[None, :]), rng))
+    s = np.hypot(np.asarray(s_yaw, float)[:, None], s_pos)
+    return np.hypot(model.bearing_gate_deg, model.gate_sigmas * s)
+
+
 def expected(frames: Frames, signs: MapSigns, dets: FrameDetections, model: ViewModel) -> Expected:
     """The pass's view of each map landmark (module docstring)."""
     rng, bearing, off = geometry(frames, signs)
@@ -134,22 +157,22 @@ def expected(frames: Frames, signs: MapSigns, dets: FrameDetections, model: View
     f = np.asarray(dets.frame, np.int64)
     if f.size:
         same = np.asarray(dets.sign_class)[:, None] == np.asarray(signs.sign_class)[None, :]
-        close = np.abs(_wrap(np.asarray(dets.bearing_deg)[:, None] - bearing[f])) <= (
-            model.bearing_gate_deg
-        )
+        gate = gate_deg(frames, signs, rng, model)[f]
+        close = np.abs(_wrap(np.asarray(dets.bearing_deg)[:, None] - bearing[f])) <= gate
         seen = np.any(in_view[f] & same & close, axis=0)
     n = in_view.sum(axis=0)
-    masked = np.where(in_view, rng, np.inf)
-    k = np.argmin(masked, axis=0)
-    cols = np.arange(len(signs.id))
-    some = n > 0
+    f_all, n_signs = rng.shape
+    none = np.full((1, n_signs), np.nan)  # a row past the last frame: no view
+    k = np.argmin(np.vstack([np.where(in_view, rng, np.inf), np.full_like(none, np.inf)]), axis=0)
+    k = np.where(n > 0, k, f_all)  # the closest frame in view, or the row of no view
+    cols = np.arange(n_signs)
     return Expected(
         frames_in_view=n.astype(np.int64),
-        share=n / max(len(frames.t), 1),
+        share=n / max(f_all, 1),
         seen=seen,
-        range_m=np.where(some, rng[k, cols], np.nan),
-        bearing_deg=np.where(some, bearing[k, cols], np.nan),
-        t=np.where(some, np.asarray(frames.t, float)[k], np.nan),
+        range_m=np.vstack([rng, none])[k, cols],
+        bearing_deg=np.vstack([bearing, none])[k, cols],
+        t=np.append(np.asarray(frames.t, float), np.nan)[k],
     )
 
 

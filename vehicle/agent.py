@@ -1,7 +1,9 @@
 """A vehicle's onboard loop: detections -> projection lines -> durable queue -> upload.
 
 The paper's onboard block (perception output + GNSS -> geolocated feature marks,
-"registered on the vehicle and uploaded to cloud servers whenever possible").
+"registered on the vehicle and uploaded to cloud servers whenever possible"). A vehicle
+that follows the map also reports, per pass, the mapped signs it had in view and did not
+detect (issue 21: :mod:`vehicle.absence_report`), queued and uploaded with the pass.
 """
 
 from __future__ import annotations
@@ -12,7 +14,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from schemas import Observations
+from schemas import Absences, Observations
+from schemas.map import MapLandmarks
+from vehicle.absence_report import DEFAULT_ABSENCE, AbsenceConfig, pass_absences
 from vehicle.geoloc import (
     DEFAULT_TIMING,
     Detections,
@@ -70,6 +74,7 @@ class VehicleAgent:
         fix_check: FixCheck | None = DEFAULT_FIX_CHECK,
         tracking: TrackConfig | None = DEFAULT_TRACKING,
         timing: PoseTiming = DEFAULT_TIMING,
+        absence: AbsenceConfig = DEFAULT_ABSENCE,
     ):
         self.vehicle_id = vehicle_id
         self.model = model
@@ -79,6 +84,8 @@ class VehicleAgent:
         """Label detections of one sign followed through the frames (None: untracked)."""
         self.timing = timing
         """How a detection's pose is interpolated from the fixes (:mod:`vehicle.pose`)."""
+        self.absence = absence
+        """Which mapped signs a pass should have seen (:mod:`vehicle.absence_report`)."""
         self.uploader = Uploader(vehicle_id, Path(queue_dir) / f"{vehicle_id}.sqlite", batch_size)
         self.last_kept = np.zeros(0, bool)
         """Per detection of the last :meth:`record`, whether it was queued."""
@@ -91,8 +98,16 @@ class VehicleAgent:
         """The white pitch std the last tracked :meth:`record` measured from its tracks and
         put into its rays' elevation sigmas (:mod:`vehicle.pitch`; the model's bound when
         the pass had too few)."""
+        self.last_absences = Absences.empty()
+        """The absences the last :meth:`record` queued (none without ``expected_map``)."""
 
-    def record(self, pass_id: int, fixes: GnssFixes, det: Detections) -> Observations:
+    def record(
+        self,
+        pass_id: int,
+        fixes: GnssFixes,
+        det: Detections,
+        expected_map: MapLandmarks | None = None,
+    ) -> Observations:
         """Geolocate a pass's detections and queue them (durably, before any upload).
 
         Suspect fixes (:func:`fix_outliers`) are not used: with detection times
@@ -101,7 +116,12 @@ class VehicleAgent:
         without times (one fix per image) a suspect fix's detections are dropped.
         :attr:`last_kept` says which detections were queued, in ``det``'s row order.
         With tracking, the elevation sigmas carry the pitch measured from the pass's own
-        tracks instead of the model's bound (:mod:`vehicle.pitch`)."""
+        tracks instead of the model's bound (:mod:`vehicle.pitch`).
+
+        With ``expected_map`` (the map's landmarks near the pass's route, e.g.
+        :meth:`MapClient.near`), the pass's absences (:func:`pass_absences`: the whole pass
+        in one call) are queued with its observations, in one transaction, and kept in
+        :attr:`last_absences`; they are uploaded once, with the pass's last batch."""
         keep = np.ones(len(det), bool)
         bad_fix = None
         use = fixes
@@ -131,8 +151,14 @@ class VehicleAgent:
                 self.model.pitch_sigma_rad,
             )
             lines = replace(lines, sigma_el=sigma_el)
+        absences = Absences.empty()
+        if expected_map is not None:
+            absences = pass_absences(
+                fixes, det, expected_map, self.model, self.absence, self.timing, self.fix_check
+            )
+        self.last_absences = absences
         obs = to_observations(lines, self.uploader.next_obs_ids(len(lines)), track)
-        self.uploader.enqueue(pass_id, obs)
+        self.uploader.enqueue(pass_id, obs, absences)
         return obs
 
     def upload(self, session: zenoh.Session, timeout: float = 10.0) -> UploadResult:

@@ -206,7 +206,7 @@ class ProjectionLines:
         return ProjectionLines(**{k: getattr(self, k)[idx] for k in self.__dataclass_fields__})
 
 
-def _angles_in_vehicle(intr: Intrinsics, cam: Mount, uv: Array) -> tuple[Array, Array, Array]:
+def angles_in_vehicle(intr: Intrinsics, cam: Mount, uv: Array) -> tuple[Array, Array, Array]:
     """Pixel -> (direction in vehicle frame, azimuth at heading 0, elevation)."""
     xy = intr.pixel_to_normalized(uv)
     ray_c = np.concatenate([xy, np.ones((*xy.shape[:-1], 1))], axis=-1)
@@ -411,7 +411,7 @@ def geolocate(
     uv = np.stack([(box[:, 0] + box[:, 2]) / 2.0, (box[:, 1] + box[:, 3]) / 2.0], axis=-1)
 
     r_wv = vehicle_to_enu(pose.heading_rad)
-    d_v, _, _ = _angles_in_vehicle(intr, cam, uv)
+    d_v, _, _ = angles_in_vehicle(intr, cam, uv)
     d_fix = np.einsum("nij,nj->ni", r_wv, d_v)
 
     lat_f, lon_f, h_f = pose.lat, pose.lon, pose.h
@@ -428,8 +428,8 @@ def geolocate(
     grads = []
     for du, dv in ((step, 0.0), (0.0, step)):
         delta = np.array([du, dv])
-        _, a_p, e_p = _angles_in_vehicle(intr, cam, uv + delta)
-        _, a_m, e_m = _angles_in_vehicle(intr, cam, uv - delta)
+        _, a_p, e_p = angles_in_vehicle(intr, cam, uv + delta)
+        _, a_m, e_m = angles_in_vehicle(intr, cam, uv - delta)
         grads.append((wrap_angle(a_p - a_m) / (2 * step), (e_p - e_m) / (2 * step)))
     (da_du, de_du), (da_dv, de_dv) = grads
     s_px2 = model.pixel_sigma**2
