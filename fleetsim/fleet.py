@@ -8,7 +8,9 @@ northbound), a uniform random speed and its sensor noise, all from the seed
 ``(fleet seed, v, k)``: any pass can be regenerated alone, in any order.
 
 Pass ``k`` of vehicle ``v`` starts at ``start_time + (k * n_vehicles + v) *
-pass_interval_s``; :meth:`Fleet.passes` yields them in that (time) order.
+pass_interval_s``; :meth:`Fleet.passes` yields them in that (time) order. Given a
+:class:`fleetsim.changes.ChangeSchedule`, a pass sees the signs standing at its start
+time (:meth:`Fleet.world_at`); without one (or before any change), the world's own.
 
 >>> from fleetsim.world import straight_road
 >>> from vehicle.config import load_vehicle_model
@@ -24,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fleetsim.changes import ChangeSchedule
 from fleetsim.drive import DriveParams, DriveTruth, simulate_pass
 from fleetsim.noise import FLEET, NoiseModel
 from fleetsim.route import Path, random_route
@@ -89,12 +92,16 @@ class Fleet:
         noise: NoiseModel = FLEET,
         config: FleetConfig | None = None,
         seed: int = 0,
+        schedule: ChangeSchedule | None = None,
     ):
+        if schedule is not None:
+            schedule.check(world.signs)
         self.world = world
         self.model = model
         self.noise = noise
         self.config = config or FleetConfig()
         self.seed = int(seed)
+        self.schedule = schedule
 
     @property
     def vehicle_ids(self) -> list[str]:
@@ -103,6 +110,11 @@ class Fleet:
     def start_time(self, vehicle: int, k: int) -> float:
         c = self.config
         return c.start_time + (k * c.n_vehicles + vehicle) * c.pass_interval_s
+
+    def world_at(self, t: float) -> World:
+        """The world with the signs standing at time ``t`` (the world itself when no
+        scheduled change is in effect)."""
+        return self.world if self.schedule is None else self.schedule.world_at(self.world, t)
 
     def drive(self, vehicle: int, k: int) -> Pass:
         """Pass ``k`` of vehicle index ``vehicle``."""
@@ -126,7 +138,7 @@ class Fleet:
         )
         t0 = self.start_time(vehicle, k)
         fixes, det, truth = simulate_pass(
-            self.world, path, self.model, self.noise, rng_drive, t0=t0, params=params
+            self.world_at(t0), path, self.model, self.noise, rng_drive, t0=t0, params=params
         )
         return Pass(
             vehicle_id=vehicle_id(vehicle),

@@ -249,7 +249,7 @@ def _grid(n_blocks: int, block_m: float) -> tuple[Array, IntArray]:
     return nodes.astype(float), np.concatenate([e, e[:, ::-1]])
 
 
-def _roadside(
+def roadside(
     nodes: Array, edge: NDArray, frac: Array, lateral: Array, lane: float
 ) -> tuple[Array, Array]:
     """Points beside directed edges (right of travel), and the facing azimuth (deg)."""
@@ -335,7 +335,7 @@ def demo_town(
     lat_p = rng.uniform(2.5, 4.0, n_pairs)
     cls_p = rng.choice(codes, n_pairs)
     for f in (frac, frac + gap):
-        xy, az = _roadside(nodes, e_pair, f, lat_p, lane_offset_m)
+        xy, az = roadside(nodes, e_pair, f, lat_p, lane_offset_m)
         xy_l.append(xy)
         az_l.append(az)
         cls_l.append(cls_p)
@@ -366,7 +366,7 @@ def demo_town(
     rest_xy, rest_az = [], []
     while len(rest_xy) < n_rest:
         e = edges[rng.integers(len(edges))][None]
-        xy, az = _roadside(
+        xy, az = roadside(
             nodes, e, rng.uniform(0.12, 0.88, 1), rng.uniform(2.5, 4.0, 1), lane_offset_m
         )
         if placed.size and np.min(np.linalg.norm(placed - xy, axis=1)) < 12.0:
@@ -413,7 +413,7 @@ class CornerPairs:
     """(k,) the junction (row of ``World.nodes``) of each pair."""
 
 
-def _segment_distance(p: Array, a: Array, b: Array) -> Array:
+def segment_distance(p: Array, a: Array, b: Array) -> Array:
     """(n,) distance of each point to the nearest of the segments ``a[i] -> b[i]``."""
     t = b - a
     tt = np.maximum(np.sum(t * t, axis=1), 1e-12)
@@ -489,7 +489,7 @@ def corner_pairs(
         gap = float(np.linalg.norm(p[0] - p[1]))
         if not gap_m[0] <= gap <= gap_m[1]:
             continue
-        if (_segment_distance(p, a_all, b_all) < kerb_m).any():
+        if (segment_distance(p, a_all, b_all) < kerb_m).any():
             continue
         dist = np.linalg.norm(placed[None] - p[:, None], axis=-1).min(axis=0)
         if dist.size and dist.min() < clear_m:
