@@ -23,7 +23,8 @@ time; the PNG plots disk and RSS per service against event hours.
 
 JSON: ``samples: [{wall_s, event_time_s, disk_bytes, rss_bytes, p99_s, landmarks,
 disk_by_service, rss_by_service}]``, ``disk``, ``rss`` (``first_half``,
-``second_half``: growth in bytes; ``quarters``: the growth of each quarter; ``ratio``;
+``second_half``: growth in bytes; ``fitted``, ``fitted_ratio``: the same from a line
+fitted to each half; ``quarters``: the growth of each quarter; ``ratio``;
 ``plateau``; ``per_event_hour``),
 ``landmarks`` (start, end: the matcher's, candidates included), ``map`` (``all``,
 ``confirmed``: :class:`fleetsim.score.MapScore`), ``config``, ``machine``, ``command``.
@@ -94,8 +95,22 @@ def sample(stack: Stack, session, t0: float, cfg: LoadConfig, counters: Counters
     }, n
 
 
+def _fitted_growth(samples: list[dict], key: str) -> float:
+    """Growth of ``key`` over ``samples`` from the least-squares line through all of them
+    (slope times the span): a sample's scatter (RSS moves +-1.5 MB from sample to sample)
+    weighs 1/n, not all of it as in the difference of the two end samples."""
+    t = np.array([x["event_time_s"] for x in samples], float)
+    y = np.array([x[key] for x in samples], float)
+    if t.size < 2 or np.ptp(t) == 0:
+        return 0.0
+    return float(np.polyfit(t, y, 1)[0] * np.ptp(t))
+
+
 def growth(samples: list[dict], key: str) -> dict:
-    """Growth of ``key`` over the first and second half of the run (by event time)."""
+    """Growth of ``key`` over the first and second half of the run (by event time): the
+    end samples' differences (``first_half``, ``second_half``, ``ratio``, ``plateau``:
+    ratio under 5 %) and the same from a line fitted to each half's samples (``fitted``,
+    ``fitted_ratio``)."""
     if len(samples) < 3:
         return {"first_half": None, "second_half": None, "ratio": None, "plateau": None}
     mid = len(samples) // 2
@@ -104,9 +119,12 @@ def growth(samples: list[dict], key: str) -> dict:
     hours = (samples[-1]["event_time_s"] - samples[0]["event_time_s"]) / 3600.0
     ratio = second / first if first > 0 else None
     at = [samples[round(i * (len(samples) - 1) / 4)][key] for i in range(5)]
+    fit = [_fitted_growth(samples[: mid + 1], key), _fitted_growth(samples[mid:], key)]
     return {
         "first_half": first,
         "second_half": second,
+        "fitted": fit,
+        "fitted_ratio": fit[1] / fit[0] if fit[0] > 0 else None,
         "quarters": [at[i + 1] - at[i] for i in range(4)],
         "ratio": ratio,
         "plateau": bool(ratio is not None and ratio < 0.05),

@@ -21,6 +21,7 @@ from fleetsim.fleet import Fleet, FleetConfig, Pass
 from fleetsim.noise import NoiseModel
 from fleetsim.world import World
 from hdmap.geo.tiles import DEFAULT_ZOOM, quadkeys_of
+from schemas.map import MapLandmarks
 from vehicle.agent import VehicleAgent
 from vehicle.geoloc import VehicleModel
 from vehicle.mapclient import MapClient
@@ -74,6 +75,13 @@ class FleetDriver:
     agents: dict[str, VehicleAgent] = field(default_factory=dict)
     bulk: frozenset[str] = frozenset()
     """Vehicles that upload only at :meth:`flush`."""
+    tamper: Callable[[Pass], Pass] | None = None
+    """What a pass becomes before its vehicle records it (a rogue vehicle's blind camera,
+    say); None: as simulated."""
+    expected_map: Callable[[], MapLandmarks] | None = None
+    """The map the vehicles follow (a map client's landmarks): each pass reports the
+    mapped signs it had in view and did not detect (:mod:`vehicle.absence_report`);
+    None: no absences."""
 
     def __post_init__(self) -> None:
         self.seen = SeenCounts(np.zeros(len(self.world.signs), np.int64))
@@ -91,8 +99,11 @@ class FleetDriver:
         on_pass: Callable[[Pass], None] | None = None,
     ) -> None:
         for p in passes:
+            if self.tamper is not None:
+                p = self.tamper(p)
             a = self.agent(p.vehicle_id)
-            obs = a.record(p.pass_id, p.fixes, p.detections)
+            expected = None if self.expected_map is None else self.expected_map()
+            obs = a.record(p.pass_id, p.fixes, p.detections, expected_map=expected)
             self.seen.add(self.world, p)
             self.seen.observations += len(obs)
             if p.vehicle_id not in self.bulk:

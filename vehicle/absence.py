@@ -19,6 +19,11 @@ the gate must cover the landmark's and the pose's uncertainty. Given them (the f
 yaw and position sigmas, the landmarks' position sigma), the gate in a frame is
 ``hypot(bearing_gate_deg, gate_sigmas * s)`` with ``s`` the predicted bearing's sigma:
 ``hypot(sigma_yaw, atan(hypot(sigma_camera, sigma_landmark) / range))`` (wider up close).
+Where a detection has a range (from its box's size, with its sigma), it must also agree
+with the landmark's range in that frame within ``gate_sigmas`` sigmas of the difference
+(the detection's, the camera's and the landmark's), and ``range_slack_m``: a sign moved
+along its street stands on nearly the same bearing as its old place, further on, and
+would otherwise count as the old one seen.
 
 >>> import numpy as np
 >>> cam = np.stack([np.zeros(21), np.linspace(0.0, 40.0, 21)], 1)  # north along x = 0
@@ -60,6 +65,8 @@ class ViewModel:
     landmark uncertainty: the detector's own error)."""
     gate_sigmas: float = 3.0
     """The gate widens by this many sigmas of the predicted bearing (module docstring)."""
+    range_slack_m: float = 2.0
+    """Added to the range gate (the panel's distance is not the sign's point)."""
     min_frames: int = 3
     """An absence needs the landmark in view in at least this many frames."""
 
@@ -99,6 +106,9 @@ class FrameDetections:
     frame: IntArray
     sign_class: IntArray
     bearing_deg: Array
+    range_m: Array | None = None
+    """Per detection its range from the box's size, m (0: none); None: no ranges."""
+    sigma_range_m: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -144,6 +154,21 @@ def gate_deg(frames: Frames, signs: MapSigns, rng: Array, model: ViewModel) -> A
     return np.hypot(model.bearing_gate_deg, model.gate_sigmas * s)
 
 
+def range_agrees(
+    frames: Frames, signs: MapSigns, dets: FrameDetections, rng: Array, model: ViewModel
+) -> BoolArray:
+    """(D, L): whether each detection's box range agrees with each landmark's range in its
+    frame (module docstring); a detection without a range (0) agrees with any."""
+    f = np.asarray(dets.frame, np.int64)
+    r = np.asarray(dets.range_m, float)
+    s_r = np.zeros(r.size) if dets.sigma_range_m is None else np.asarray(dets.sigma_range_m)
+    s_cam = np.zeros(len(frames.t)) if frames.sigma_m is None else np.asarray(frames.sigma_m)
+    s_lm = np.zeros(len(signs.id)) if signs.sigma_m is None else np.asarray(signs.sigma_m)
+    sigma = np.sqrt(s_r[:, None] ** 2 + s_cam[f][:, None] ** 2 + s_lm[None, :] ** 2)
+    ok = np.abs(r[:, None] - rng[f]) <= model.gate_sigmas * sigma + model.range_slack_m
+    return ok | (r <= 0)[:, None]
+
+
 def expected(frames: Frames, signs: MapSigns, dets: FrameDetections, model: ViewModel) -> Expected:
     """The pass's view of each map landmark (module docstring)."""
     rng, bearing, off = geometry(frames, signs)
@@ -159,6 +184,8 @@ def expected(frames: Frames, signs: MapSigns, dets: FrameDetections, model: View
         same = np.asarray(dets.sign_class)[:, None] == np.asarray(signs.sign_class)[None, :]
         gate = gate_deg(frames, signs, rng, model)[f]
         close = np.abs(_wrap(np.asarray(dets.bearing_deg)[:, None] - bearing[f])) <= gate
+        if dets.range_m is not None:
+            close &= range_agrees(frames, signs, dets, rng, model)
         seen = np.any(in_view[f] & same & close, axis=0)
     n = in_view.sum(axis=0)
     f_all, n_signs = rng.shape

@@ -19,12 +19,20 @@ detection matches at any bearing in the image and from any side, up to
 ``match_range_m`` (beyond the range that counts frames: a sign the detector saw farther
 off still stands); the gate decides.
 
-**Gate.** ``bearing_gate_deg`` widened by ``gate_sigmas`` sigmas of the predicted
-bearing (:func:`vehicle.absence.gate_deg`): the heading's and the camera's position
-sigma (the claim, at least ``heading_sigma_floor_deg`` / ``pose_sigma_floor_m``: many
-receivers claim only their white error, the simulator's FLEET receiver 1 m of its
-2.5 m bias) and the landmark's (its covariance's largest horizontal axis). A wide gate
-only costs absences where a same-class sign stands near the one missing.
+**Gate.** The detection's range from its box's size agrees with the landmark's
+(:func:`vehicle.absence.range_agrees`), and its bearing lies within ``bearing_gate_deg``
+widened by ``gate_sigmas`` sigmas of the predicted bearing
+(:func:`vehicle.absence.gate_deg`): the heading's and the camera's position sigma
+(the claim, at least ``heading_sigma_floor_deg`` / ``pose_sigma_floor_m``: many receivers
+claim only their white error, the simulator's FLEET receiver 1 m of its 2.5 m bias) and
+the landmark's (its covariance's largest horizontal axis). By default the widening is off
+(``gate_sigmas`` 0: 4 degrees and 2 m): the vehicle's own test is strict, and where its
+pose is off a sign it passed looks missed; the matcher, which linked the pass's rays to
+that landmark, then takes it as seen (:mod:`hdmap.mapping.presence`: the rays decide).
+Pitfall: a wide gate (3 sigmas of a 2 m pose error is 40 degrees at 8 m) takes a sign
+moved 5-30 m along its street, on nearly the same bearing further on, for the old one:
+with it only 14 of 64 passes past a moved sign reported the old place empty (with the
+strict gate 55).
 
 **Landmarks**: the map's rows the caller gives (those near the route), retired ones
 excepted, candidates included (a ghost's absences help take it down).
@@ -60,6 +68,7 @@ from vehicle.geoloc import (
     GnssFixes,
     VehicleModel,
     angles_in_vehicle,
+    box_range,
     fix_outliers,
     vehicle_to_enu,
 )
@@ -92,7 +101,7 @@ class AbsenceConfig:
     """Taken off each side of the horizontal field of view (a sign at the edge is cut)."""
     facing_tol_deg: float = 80.0
     bearing_gate_deg: float = 4.0
-    gate_sigmas: float = 3.0
+    gate_sigmas: float = 0.0
     pose_sigma_floor_m: float = 2.0
     heading_sigma_floor_deg: float = 1.0
     match_range_m: float = 60.0
@@ -238,10 +247,13 @@ def detection_frames(
             t[keep], interpolate(br, xyz), interpolate_angle(br, psi), s_pos, s_yaw, model
         )
         row = np.cumsum(has)[row_all[ok]] - 1  # index among the frames kept
+    r, s_r = box_range(np.asarray(det.box, float).reshape(-1, 4), np.asarray(det.sign_class), model)
     dets = FrameDetections(
         frame=np.asarray(row, np.int64),
         sign_class=np.asarray(det.sign_class, np.int64)[ok],
         bearing_deg=detection_bearings(det, model)[ok],
+        range_m=r[ok],
+        sigma_range_m=s_r[ok],
     )
     return frames, dets
 
@@ -288,6 +300,7 @@ def pass_absences(
         facing_tol_deg=180.0,
         bearing_gate_deg=cfg.bearing_gate_deg,
         gate_sigmas=cfg.gate_sigmas,
+        range_slack_m=view.range_slack_m,
         min_frames=1,
     )
     seen = expected(_floored(d_frames, cfg), signs, d_dets, anywhere).seen

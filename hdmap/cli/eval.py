@@ -8,6 +8,10 @@ registered in :data:`EVALUATIONS`):
   ``--seeds`` runs several seeds and summarises the claims (``DIR/paper_sim_seeds.json``).
 - ``fleet``: central Helsinki through the real pipeline with the realistic fleet noise,
   written to ``DIR/fleet.json`` and PNG figures (:mod:`fleetsim.evaluation.fleet_runs`).
+- ``changes``: signs removed, moved, replaced, added and put up for a while while a fleet
+  that follows the map drives a town: passes until the map shows each change, false and
+  rogue revocations (``DIR/changes.json``, ``DIR/changes.png``;
+  :mod:`fleetsim.evaluation.changes_runs`).
 
 The evaluation modules are imported when a command runs, so ``hdmap eval --help`` stays
 fast.
@@ -18,6 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 from hdmap.cli.common import (
@@ -200,7 +205,37 @@ def run_fleet_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_changes_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--seeds", type=seed_list, help="several seeds, one after another (0,1,2,3)")
+    p.add_argument("--passes", type=positive_int, default=480, help="passes of the fleet")
+    p.add_argument("--rounds", type=positive_int, default=48, help="checks of the map")
+    p.add_argument("--vehicles", type=positive_int, default=8)
+    p.add_argument("--no-rogue", action="store_true", help="no vehicle turns blind")
+    p.add_argument("--quick", action="store_true", help="small run for the test suite")
+
+
+def run_changes_command(args: argparse.Namespace) -> int:
+    from fleetsim.evaluation.changes_eval import ChangesEvalConfig
+    from fleetsim.evaluation.changes_runs import run_changes_job
+
+    out = Path(args.out)
+    if args.quick:
+        cfg = ChangesEvalConfig.quick(out)
+    else:
+        cfg = ChangesEvalConfig(out, passes=args.passes, rounds=args.rounds, vehicles=args.vehicles)
+    cfg = replace(cfg, seed=args.seed, rogue=not args.no_rogue)
+    run_changes_job(cfg, tuple(args.seeds or ()))
+    return 0
+
+
 EVALUATIONS: dict[str, tuple[Callable, Callable, str]] = {
+    "changes": (
+        add_changes_arguments,
+        run_changes_command,
+        "signs removed, moved, replaced, added: passes until the map shows them",
+    ),
     "fleet": (
         add_fleet_arguments,
         run_fleet_command,

@@ -136,6 +136,10 @@ class LandmarkTable:
         self.covis_pairs = PairCounts()
         """Images in which two landmarks of one class were both detected: then they are two
         signs, whatever their estimates say."""
+        self.held_absences: dict[str, list[tuple[int, int, float, int]]] = {}
+        """Per vehicle on probation, its held "not seen" reports: (pass id, landmark id,
+        time, frames) in the order they came (:func:`hdmap.mapping.presence.release_held`)."""
+        self._held_absences_dirty: set[str] = set()
         self.misses = MissLedger(EvidencePolicy())
         """Counted "not seen" reports per landmark and vehicle (:mod:`hdmap.mapping.presence`;
         its policy is the matcher's)."""
@@ -179,6 +183,19 @@ class LandmarkTable:
         n = self.counters.get(home, 0) + 1
         self.counters[home] = n
         return landmark_id(home, n)
+
+    def hold_absences(self, vehicle: str, rows: list[tuple[int, int, float, int]]) -> None:
+        """Keep reports of a vehicle on probation (:attr:`held_absences`)."""
+        if rows:
+            self.held_absences.setdefault(vehicle, []).extend(rows)
+            self._held_absences_dirty.add(vehicle)
+
+    def take_held_absences(self, vehicle: str) -> list[tuple[int, int, float, int]]:
+        """A vehicle's held reports, forgotten here."""
+        rows = self.held_absences.pop(vehicle, [])
+        if rows:
+            self._held_absences_dirty.add(vehicle)
+        return rows
 
     def removed_since_save(self) -> set[int]:
         """Landmarks removed since the last save (or load)."""
@@ -303,6 +320,7 @@ class LandmarkTable:
     def forget_trust(self, vehicle: str) -> None:
         """Forget the vehicle's record (it has no held passes): it is new if it returns."""
         self.trust.pop(vehicle)
+        self.take_held_absences(vehicle)
         self._trust_dirty.discard(vehicle)
         self._trust_gone.add(vehicle)
         self.held_by_seen.discard(vehicle)
@@ -395,6 +413,7 @@ class LandmarkTable:
         self.covis_pairs.clear_marks()
         self.copass.clear_marks()
         self._deleted.clear()
+        self._held_absences_dirty.clear()
         self._trust_dirty.clear()
         self._trust_gone.clear()
         self._dirty.clear()

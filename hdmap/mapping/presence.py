@@ -11,9 +11,10 @@ Evidence, per landmark and pass (:mod:`hdmap.mapping.existence` for the arithmet
   and batches its rays come in); its latest ray's time becomes ``last_seen``.
 - **Not seen**: the pass's vehicle reported it absent, with the frames it had it in view.
   Counted unless the pass linked rays to it (seen wins), the pass is blind (it saw less
-  than half of what it had in view: :func:`hdmap.mapping.evidence.blind`), the vehicle's
-  misses of it are over their cap, or the vehicle is on probation (counted
-  ``absences_held``: not applied).
+  than half of what it had in view: :func:`hdmap.mapping.evidence.blind`) or the
+  vehicle's misses of it are over their cap. A vehicle on probation has its reports held
+  (counted ``absences_held``, kept with the table) until it leaves probation: promoted,
+  they are weighed then (:func:`release_held`); caught or timed out, they go.
 
 A landmark is revoked only when its log-odds reach ``l_revoked`` *and* misses of at
 least ``min_vehicles`` vehicles have counted since it was last seen; otherwise it stays
@@ -37,6 +38,7 @@ import numpy as np
 from hdmap.mapping.evidence import EvidencePolicy, blind
 from hdmap.mapping.existence import ExistenceConfig, update
 from hdmap.mapping.landmarks import Landmark
+from schemas.ids import pass_key
 
 EXIST_CONFIRMED, EXIST_DOUBTFUL = 1, 2
 """Published states (``schemas.tables.ExistenceRows.state``); revoked ones are retired."""
@@ -84,12 +86,13 @@ def seen(m: Any, vehicle: str, lms: list[Landmark], t: float) -> None:
     m.tally("passes_seen", len(lms))
 
 
-def not_seen(m: Any, vehicle: str, key: int, absences: Any, held: bool) -> None:
-    """A pass (cluster key ``key``) of ``vehicle`` reported ``absences``
-    (:class:`schemas.tables.Absences`): count what counts (module docstring), revoke what
-    falls to revoked with enough vehicles behind it."""
+def not_seen(m: Any, vehicle: str, pass_id: int, key: int, absences: Any, held: bool) -> None:
+    """Pass ``pass_id`` (cluster key ``key``) of ``vehicle`` reported ``absences`` (columns
+    ``landmark_id``, ``t``, ``frames``: :class:`schemas.tables.Absences`): count what
+    counts (module docstring), revoke what falls to revoked with enough vehicles behind
+    it; ``held``: the vehicle is on probation, the reports wait (:func:`release_held`)."""
     cfg: PresenceConfig = m.config.presence
-    if not cfg.enabled or not len(absences):
+    if not cfg.enabled or not len(absences.landmark_id):
         return
     ids = np.asarray(absences.landmark_id, np.uint64).tolist()
     lms = [m.state.landmarks.get(i) for i in ids]
@@ -97,6 +100,10 @@ def not_seen(m: Any, vehicle: str, key: int, absences: Any, held: bool) -> None:
     if len(known) < len(ids):
         m.tally("absences_unknown", len(ids) - len(known))
     if held:
+        m.state.hold_absences(
+            vehicle,
+            [(pass_id, ids[k], float(absences.t[k]), int(absences.frames[k])) for k in known],
+        )
         m.tally("absences_held", len(known))
         return
     linked = m.quiet.members(key)
@@ -128,6 +135,33 @@ def not_seen(m: Any, vehicle: str, key: int, absences: Any, held: bool) -> None:
         lm.exist = lo
         m.state.mark_changed([lm.id])
         m.out[lm.home].existence[lm.id] = row(lm, ex)
+
+
+def release_held(m: Any, vehicle: str, weigh: bool) -> None:
+    """``vehicle`` left probation: its held reports are weighed now, pass by pass in the
+    order they came (``weigh``: promoted), or go (caught, timed out)."""
+    held = m.state.take_held_absences(vehicle)
+    if not weigh or not held:
+        return
+    by_pass: dict[int, list[tuple[int, float, int]]] = {}
+    for pass_id, lid, t, frames in held:
+        by_pass.setdefault(pass_id, []).append((lid, t, frames))
+    for pass_id, rows in by_pass.items():
+        cols = _Reports(
+            np.array([r[0] for r in rows], np.uint64),
+            np.array([r[1] for r in rows], float),
+            np.array([r[2] for r in rows], np.int64),
+        )
+        not_seen(m, vehicle, pass_id, pass_key(vehicle, pass_id, True), cols, held=False)
+
+
+@dataclass(frozen=True)
+class _Reports:
+    """Held reports of one pass, in the columns :func:`not_seen` reads."""
+
+    landmark_id: np.ndarray
+    t: np.ndarray
+    frames: np.ndarray
 
 
 def revoke(m: Any, lm: Landmark) -> None:

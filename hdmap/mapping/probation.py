@@ -10,6 +10,7 @@ import logging
 
 import numpy as np
 
+from hdmap.mapping import presence
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh_due
 from hdmap.mapping.matching import Matching
@@ -37,9 +38,12 @@ def settle(m: Matching, vehicle: str, t: VehicleTrust) -> set[int]:
     )
     if status == CAUGHT:
         m.tally("vehicles_caught", 1)
+        presence.release_held(m, vehicle, weigh=False)
         return let_go(m, vehicle, t, True, 0.0)
     m.tally("vehicles_promoted", 1)
-    return let_go(m, vehicle, t, False, t.weight(m.config.trust, ref))
+    gone = let_go(m, vehicle, t, False, t.weight(m.config.trust, ref))
+    presence.release_held(m, vehicle, weigh=True)
+    return gone
 
 
 def freeze_stale(m: Matching, now: float) -> int:
@@ -63,6 +67,7 @@ def freeze_stale(m: Matching, now: float) -> int:
         if by_row is None:
             by_row = landmarks_by_row(m)
         let_go(m, v, t, False, w, local, by_row)
+        presence.release_held(m, v, weigh=False)
         m.tally("probation_timed_out", 1)
         n += 1
     return n

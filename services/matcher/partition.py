@@ -29,6 +29,7 @@ RULES = Rules(
             for t in ("covis", "copass")
         ),
         "DELETE FROM pending WHERE NOT in_region(tile)",
+        "DELETE FROM held_absences WHERE landmark_id NOT IN (SELECT id FROM landmarks)",
         "DELETE FROM untried WHERE NOT EXISTS (SELECT 1 FROM pending p "
         "WHERE p.vehicle = untried.vehicle AND p.obs_id = untried.obs_id)",
         # a vehicle's held passes are settled by each part for its own home tiles

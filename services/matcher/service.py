@@ -315,7 +315,7 @@ class MatcherService(StageService):
             t = m.state.trust_of(g.vehicle_id)
             held = t.held(m.config.trust)
             key = pass_key(g.vehicle_id, g.pass_id, held)
-            presence.not_seen(m, g.vehicle_id, key, g.absences, held)
+            presence.not_seen(m, g.vehicle_id, g.pass_id, key, g.absences, held)
         return at
 
     def _match(

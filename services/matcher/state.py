@@ -68,6 +68,10 @@ CREATE TABLE IF NOT EXISTS copass (
 CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS existence (
     id INTEGER PRIMARY KEY, l REAL NOT NULL, last_seen REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS held_absences (
+    vehicle TEXT NOT NULL, seq INTEGER NOT NULL, pass_id INTEGER NOT NULL,
+    landmark_id INTEGER NOT NULL, t REAL NOT NULL, frames INTEGER NOT NULL,
+    PRIMARY KEY (vehicle, seq)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS misses (
     id INTEGER NOT NULL, vehicle TEXT NOT NULL, times TEXT NOT NULL, since INTEGER NOT NULL,
     PRIMARY KEY (id, vehicle)) WITHOUT ROWID;
@@ -274,6 +278,14 @@ class MatcherState(LandmarkTable):
                 vs.append(v)
         for lid, (misses, vs) in by.items():
             self.misses.put(lid, misses, vs)
+        self.held_absences = {}
+        for v, pid, lid, t, frames in c.execute(
+            "SELECT vehicle, pass_id, landmark_id, t, frames FROM held_absences "
+            "ORDER BY vehicle, seq"
+        ):
+            self.held_absences.setdefault(v, []).append(
+                (int(pid), id_from_sql(lid), float(t), int(frames))
+            )
 
     def _save_presence(self, sql_ids: list[int], dirty: list[Landmark]) -> None:
         """Existence log-odds and counted misses of the changed landmarks."""
@@ -294,6 +306,17 @@ class MatcherState(LandmarkTable):
                 times = " ".join(repr(x) for x in misses.get(v, []))
                 out.append((i, v, times, int(v in since)))
         c.executemany("INSERT INTO misses(id, vehicle, times, since) VALUES (?,?,?,?)", out)
+        dirty_v = sorted(self._held_absences_dirty)
+        c.executemany("DELETE FROM held_absences WHERE vehicle=?", [(v,) for v in dirty_v])
+        c.executemany(
+            "INSERT INTO held_absences(vehicle, seq, pass_id, landmark_id, t, frames) "
+            "VALUES (?,?,?,?,?,?)",
+            [
+                (v, k, pid, id_to_sql(lid), t, frames)
+                for v in dirty_v
+                for k, (pid, lid, t, frames) in enumerate(self.held_absences.get(v, []))
+            ],
+        )
 
     def _save_tick(self) -> None:
         """Write the current gating tick's marks that changed: all of them again when the

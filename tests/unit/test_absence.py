@@ -81,3 +81,24 @@ def test_the_camera_yaw_turns_the_field_of_view():
                  FrameDetections(*[np.zeros(0, np.int64)] * 3), M)  # fmt: skip
     assert e.frames_in_view[0] == 0 and e.frames_in_view[1] > 20
     assert absent(e, M).tolist() == [False, True]
+
+
+def test_a_sign_moved_along_the_street_is_not_taken_for_the_old_one_when_ranges_are_given():
+    """The map has the sign at y = 40; it now stands 14 m further on (y = 54), on nearly
+    the same bearing from afar (the detector sees it up to 60 m): by bearing alone the old
+    place counts as seen; the detections' box ranges tell the two apart (the strict gate
+    the vehicle uses: 4 degrees, 2 m). The sign still at its place is seen with them."""
+    strict = ViewModel(gate_sigmas=0.0)
+    old = signs((1, 4.0, 40.0, 7, np.nan))
+
+    def ranged(at: tuple[float, float]) -> FrameDetections:
+        d = detections_of(at, 7, ViewModel(max_range_m=60.0))
+        r = np.hypot(*(np.asarray(at) - CAM[d.frame]).T)
+        return FrameDetections(d.frame, d.sign_class, d.bearing_deg, r, 0.1 * r)
+
+    moved = ranged((4.0, 54.0))
+    bearing_only = FrameDetections(moved.frame, moved.sign_class, moved.bearing_deg)
+    assert expected(FRAMES, old, bearing_only, strict).seen.tolist() == [True]
+    e = expected(FRAMES, old, moved, strict)
+    assert e.seen.tolist() == [False] and absent(e, strict).tolist() == [True]
+    assert expected(FRAMES, old, ranged((4.0, 40.0)), strict).seen.tolist() == [True]

@@ -160,7 +160,7 @@ def test_a_detection_off_the_gate_does_not_count_and_the_gate_grows_with_the_pos
     fixes, det, sign = drive(1, EXACT)
     n = len(fixes)
     fixes = replace(fixes, sigma_h_m=np.full(n, 0.05), sigma_heading_deg=np.full(n, 0.05))
-    cfg = AbsenceConfig(pose_sigma_floor_m=0.0, heading_sigma_floor_deg=0.0)
+    cfg = AbsenceConfig(pose_sigma_floor_m=0.0, heading_sigma_floor_deg=0.0, gate_sigmas=3.0)
     intr = MODEL.intrinsics
     turn = np.where(sign == A, np.radians(20.0), 0.0)
     uc = (det.box[:, 0] + det.box[:, 2]) / 2.0

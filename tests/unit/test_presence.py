@@ -20,6 +20,7 @@ import pytest
 from fleetsim.loadgen import LoadConfig, build_pool
 from hdmap.geo.tiles import quadkeys_of
 from hdmap.mapping.existence import ExistenceConfig
+from hdmap.mapping.trust import TRUSTED
 from hdmap.runtime.service import ServiceOptions
 from schemas import Absences, AssocGroup, LandmarkUpdates, LogEntry, Observations, ObsGroup
 from schemas.ids import COUNTER_BITS, home_tile
@@ -204,3 +205,27 @@ def test_existence_and_counted_misses_survive_a_restart(feed):
     assert feed.m.state.landmarks[lid].exist == exist
     assert feed.m.state.misses.records(lid) == records and feed.m.state.misses.revocable(lid)
     assert feed.s.state.landmarks[lid].existence == solver_row
+
+
+def test_a_vehicle_on_probation_has_its_reports_held_until_promoted(feed, pool):
+    lid = busiest(feed)
+    feed.absent("veh-n", 1, [lid], feed.t)
+    assert feed.m.counters["absences_held"] == 1
+    assert feed.m.state.landmarks[lid].exist == pytest.approx(EX.l_max)  # not weighed yet
+    feed.close()
+    feed.open()  # held reports are kept with the table
+    assert [r[:2] for r in feed.m.state.held_absences["veh-n"]] == [(1, lid)]
+    t = feed.t + 60.0
+    trust = feed.m.config.trust
+
+    def on_probation() -> bool:
+        return feed.m.state.trust["veh-n"].held(trust)
+
+    for k in range(24):
+        t = feed.passes(pool, "veh-n", 2 + k, 1, t)
+        if not on_probation():
+            break
+    assert not on_probation() and feed.m.state.trust["veh-n"].status == TRUSTED
+    assert "veh-n" not in feed.m.state.held_absences
+    assert feed.m.counters["absences_counted"] == 1  # weighed once promoted
+    assert "veh-n" in feed.m.state.misses.records(lid)[0]  # its miss, with its time

@@ -1,0 +1,119 @@
+"""``hdmap eval changes`` over one seed or several: ``DIR/changes.json`` and the timeline
+``DIR/changes.png`` (:mod:`fleetsim.evaluation.changes_eval` runs one seed).
+
+With several seeds the JSON holds each seed's result under ``seeds`` and the summary
+keys pooled over them: the passes to reflect every event of a kind pooled before the
+median and p95, the false and rogue revocations summed.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from fleetsim.evaluation.changes_eval import ChangesEvalConfig, run_changes_eval
+from fleetsim.evaluation.changes_scoring import KIND_KEYS
+
+KIND_COLOURS = {
+    "remove": "tab:red",
+    "move": "tab:orange",
+    "replace": "tab:purple",
+    "add": "tab:green",
+    "temporary": "tab:blue",
+}
+
+
+def event_key(e: dict) -> str:
+    """The summary key of an event (``removal``, ``move``, ..., ``temporary_up``)."""
+    return KIND_KEYS.get(e["kind"], "temporary_" + ("up" if e["present"] else "down"))
+
+
+def pooled(results: dict[int, dict]) -> dict:
+    """The summary keys over several seeds' results."""
+    out: dict = {}
+    by: dict[str, list[float]] = {}
+    for r in results.values():
+        for e in r["events"]:
+            p = e["passes_to_reflect"]
+            by.setdefault(event_key(e), []).append(np.inf if p is None else float(p))
+    for key, vals in sorted(by.items()):
+        med, p95 = np.percentile(np.array(vals), [50, 95], method="higher")
+        out[f"{key}_median_passes"] = None if np.isinf(med) else float(med)
+        out[f"{key}_p95_passes"] = None if np.isinf(p95) else float(p95)
+        out[f"{key}_events"] = len(vals)
+        out[f"{key}_unreflected"] = int(np.isinf(vals).sum())
+    for key in ("false_revocations", "rogue_revocations"):
+        out[key] = int(sum(r[key] for r in results.values()))
+    return out
+
+
+def plot_timeline(results: dict[int, dict], png: Path) -> None:
+    """Per seed, each change from its time to when the map reflected it (in passes of the
+    whole fleet); and the map's doubtful landmarks and false revocations per round."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 3.0 + 0.9 * len(results)))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(results) + 1, 1, squeeze=False)[:, 0]
+    for ax, (seed, r) in zip(axes, sorted(results.items()), strict=False):
+        interval = r["config"]["pass_interval_s"]
+        start = r["start_time"]
+        end = r["rounds"][-1]["passes"]
+        for y, e in enumerate(r["events"]):
+            x0 = (e["t"] - start) / interval
+            done = e["hours_to_reflect"]
+            x1 = end if done is None else x0 + done * 3600.0 / interval
+            colour = KIND_COLOURS.get(e["kind"], "k")
+            ax.plot([x0, x1], [y, y], color=colour, lw=3, alpha=0.8)
+            mark = "x" if done is None else "o"
+            ax.plot([x1], [y], mark, color=colour)
+            label = f"{event_key(e)}: {e['passes_to_reflect'] if done is not None else 'not yet'}"
+            ax.text(x1 + end * 0.005, y, label, va="center", fontsize=7)
+        ax.set_ylim(-1, len(r["events"]))
+        ax.set_yticks([])
+        ax.set_xlim(0, end * 1.12)
+        ax.set_title(
+            f"seed {seed}: changes from when they happen to when the map shows them "
+            "(label: passes past the place)",
+            fontsize=9,
+        )
+    ax = axes[-1]
+    for seed, r in sorted(results.items()):
+        x = [row["passes"] for row in r["rounds"]]
+        ax.plot(x, [row["doubtful"] for row in r["rounds"]], label=f"seed {seed}: doubtful")
+        ax.plot(
+            x,
+            [row["false_revocations"] for row in r["rounds"]],
+            "--",
+            label=f"seed {seed}: false revocations",
+        )
+    ax.set_xlabel("passes of the fleet")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+
+
+def run_changes_job(cfg: ChangesEvalConfig, seeds: tuple[int, ...] = ()) -> dict:
+    """Run the seeds (``cfg.seed`` alone when none are given) one after another, write
+    ``changes.json`` and ``changes.png`` under ``cfg.out``; returns the JSON."""
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    results: dict[int, dict] = {}
+    for seed in seeds or (cfg.seed,):
+        one = replace(cfg, seed=seed, out=cfg.out / f"seed{seed}" if seeds else cfg.out)
+        results[seed] = run_changes_eval(one)
+    if len(results) == 1:
+        report = next(iter(results.values()))
+    else:
+        report = {**pooled(results), "seeds": {str(s): r for s, r in results.items()}}
+    (cfg.out / "changes.json").write_text(json.dumps(report, indent=1, default=str))
+    plot_timeline(results, cfg.out / "changes.png")
+    keys = {k: v for k, v in report.items() if k.endswith(("_passes", "_revocations"))}
+    print(json.dumps(keys, indent=1), file=sys.stderr)
+    print(f"wrote {cfg.out / 'changes.json'}, {cfg.out / 'changes.png'}", file=sys.stderr)
+    return report

@@ -1,0 +1,202 @@
+"""Scoring a map against a world whose signs change (issue 21's evaluation; pure, no I/O).
+
+At each check (the map as a vehicle reads it after a round of passes, at event time ``t``)
+every change event whose time has come (:meth:`fleetsim.changes.Change.events`) is
+*reflected* when each sign it puts up is held by a confirmed landmark (one-to-one pairing
+with the signs standing at ``t``, :func:`fleetsim.truth.match_landmarks`, ``match_m``) and
+no landmark of a sign it took down's class sits within ``match_m`` of that sign's place
+unpaired (a landmark that moved with a moved sign and pairs with it is fine). The passes a
+change needed are those that drove past its place (a camera within ``near_m`` of it) from
+its time until the first check that found it reflected; a change not reflected by the end
+counts as not reflected (censored, listed).
+
+False revocations: signs no change touched that a confirmed landmark held at one check
+and none held at a later one (the map lost a standing sign). Calibration: every published
+landmark at every check, its ``p_exist`` against whether a sign stands there.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fleetsim.changes import ChangeSchedule
+from fleetsim.truth import match_landmarks
+from fleetsim.world import World
+from schemas import STATUS_CONFIRMED
+from schemas.map import MapLandmarks
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class EventRecord:
+    """One change event being followed."""
+
+    change: int
+    """Index into the schedule's changes."""
+    kind: str
+    t: float
+    present: tuple[int, ...]
+    gone: tuple[int, ...]
+    place: Array
+    """(2,) East/North of the place passes are counted at (the old sign's, else the new)."""
+    passes: int = 0
+    """Passes past the place since ``t`` so far."""
+    reflected_at: float | None = None
+    """Event time of the check that first found it reflected."""
+    passes_to_reflect: int | None = None
+    hours_to_reflect: float | None = None
+    waiting_for: list[int] = field(default_factory=list)
+    """At the latest check: the signs it puts up that no confirmed landmark held, and the
+    landmarks still standing where a sign it took down was."""
+
+
+@dataclass
+class ChangeScorer:
+    """Follows a schedule's events over the checks of one run."""
+
+    world: World
+    schedule: ChangeSchedule
+    match_m: float = 5.0
+    near_m: float = 30.0
+    events: list[EventRecord] = field(default_factory=list)
+    held: dict[int, int] = field(default_factory=dict)
+    """Unchanged sign id -> the landmark id that last held it (confirmed)."""
+    lost: dict[int, tuple[float, int]] = field(default_factory=dict)
+    """Unchanged sign id -> (check time, landmark id) when the map lost it."""
+    calibration: list[tuple[float, int]] = field(default_factory=list)
+    """(p_exist, a sign stands there) per published landmark per check."""
+
+    def __post_init__(self) -> None:
+        every, _up, _down = self.schedule.lifetimes(self.world.signs)
+        self._every = every
+        self._row = {int(i): k for k, i in enumerate(every.id.tolist())}
+        touched: set[int] = set()
+        for k, c in enumerate(self.schedule.changes):
+            touched |= {c.old_id, c.new_id} - {-1}
+            for e in c.events():
+                ids = e.gone or e.present
+                place = every.position[self._row[ids[0]], :2].copy()
+                self.events.append(EventRecord(k, c.kind, e.t, e.present, e.gone, place))
+        self.unchanged = {int(i) for i in self.world.signs.id.tolist()} - touched
+
+    def note_pass(self, t: float, camera_en: Array) -> None:
+        """A pass that started at ``t`` with its camera at ``camera_en`` ((F, 2) East/North)."""
+        cam = np.asarray(camera_en, float).reshape(-1, 2)
+        if cam.size == 0:
+            return
+        for e in self.events:
+            if e.reflected_at is None and t >= e.t:
+                if np.min(np.hypot(*(cam - e.place).T)) <= self.near_m:
+                    e.passes += 1
+
+    def check(self, t: float, lm: MapLandmarks) -> None:
+        """The map ``lm`` as read at event time ``t`` (after every pass up to ``t``)."""
+        now = self.schedule.world_at(self.world, t)
+        confirmed = lm.status == STATUS_CONFIRMED
+        m = match_landmarks(now, lm.lat, lm.lon, lm.h, lm.sign_class, self.match_m, confirmed)
+        sign_ids = now.signs.id[m.sign_row].tolist()
+        holder = {
+            int(s): int(lm.id[k])
+            for s, k in zip(sign_ids, m.landmark.tolist(), strict=True)
+            if confirmed[k]
+        }
+        paired = np.zeros(len(lm), bool)
+        paired[m.landmark] = True
+        en = now.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)[:, :2]
+        for e in self.events:
+            if e.reflected_at is not None or t < e.t:
+                continue
+            left = [
+                int(lm.id[k]) for i in e.gone for k in self._left_at(i, en, lm.sign_class, paired)
+            ]
+            e.waiting_for = [i for i in e.present if i not in holder] + left
+            if not e.waiting_for:
+                e.reflected_at = t
+                e.passes_to_reflect = e.passes
+                e.hours_to_reflect = (t - e.t) / 3600.0
+        for s in self.unchanged:
+            if s in holder:
+                self.held[s] = holder[s]
+                self.lost.pop(s, None)
+            elif s in self.held and s not in self.lost:
+                self.lost[s] = (t, self.held[s])
+        for p, ok in zip(np.asarray(lm.p_exist, float).tolist(), paired.tolist(), strict=True):
+            if p > 0:
+                self.calibration.append((p, int(ok)))
+
+    def _left_at(self, sign_id: int, en: Array, cls: NDArray, paired: NDArray) -> list[int]:
+        """Rows of the unpaired landmarks of the gone sign's class at its place."""
+        r = self._row[sign_id]
+        near = np.hypot(*(en - self._every.position[r, :2]).T) <= self.match_m
+        return np.flatnonzero(near & ~paired & (cls == self._every.sign_class[r])).tolist()
+
+
+def _stats(values: list[int], unreflected: int) -> dict:
+    """Median and p95 of passes to reflect, the unreflected counted as never (inf)."""
+    a = np.array(values + [np.inf] * unreflected, float)
+    if a.size == 0:
+        return {"median": None, "p95": None, "n": 0, "unreflected": 0}
+    med, p95 = np.percentile(a, [50, 95], method="higher")
+    return {
+        "median": None if np.isinf(med) else float(med),
+        "p95": None if np.isinf(p95) else float(p95),
+        "n": int(a.size),
+        "unreflected": unreflected,
+    }
+
+
+KIND_KEYS = {"remove": "removal", "move": "move", "replace": "replacement", "add": "addition"}
+
+
+def summary(scorer: ChangeScorer, rogue_landmarks: set[int]) -> dict:
+    """The evaluation's keys: per kind the median and p95 passes to reflect (removals,
+    moves, replacements, additions; a temporary sign's coming and going separately),
+    false revocations and those of landmarks the rogue vehicle reported absent, and the
+    existence probability's calibration."""
+    out: dict = {}
+    groups: dict[str, tuple[list[int], int]] = {}
+    for e in scorer.events:
+        key = KIND_KEYS.get(e.kind, "temporary_" + ("up" if e.present else "down"))
+        done, left = groups.get(key, ([], 0))
+        if e.passes_to_reflect is None:
+            groups[key] = (done, left + 1)
+        else:
+            groups[key] = ([*done, e.passes_to_reflect], left)
+    for key, (done, left) in sorted(groups.items()):
+        st = _stats(done, left)
+        out[f"{key}_median_passes"] = st["median"]
+        out[f"{key}_p95_passes"] = st["p95"]
+        out[f"{key}_events"] = st["n"]
+        out[f"{key}_unreflected"] = st["unreflected"]
+    out["false_revocations"] = len(scorer.lost)
+    out["rogue_revocations"] = sum(1 for _t, lid in scorer.lost.values() if lid in rogue_landmarks)
+    out["calibration"] = calibration(scorer.calibration)
+    return out
+
+
+def calibration(pairs: list[tuple[float, int]], edges=(0.0, 0.2, 0.5, 0.8, 0.95, 1.0)) -> dict:
+    """Reliability of ``p_exist``: per bin the mean probability and the share that stood,
+    and the Brier score."""
+    if not pairs:
+        return {"brier": None, "bins": []}
+    p = np.array([x[0] for x in pairs])
+    y = np.array([x[1] for x in pairs], float)
+    bins = []
+    for lo, hi in itertools.pairwise(edges):
+        sel = (p >= lo) & ((p < hi) if hi < 1.0 else (p <= hi))
+        if sel.any():
+            bins.append(
+                {
+                    "p_lo": lo,
+                    "p_hi": hi,
+                    "n": int(sel.sum()),
+                    "mean_p": float(p[sel].mean()),
+                    "stood": float(y[sel].mean()),
+                }
+            )
+    return {"brier": float(np.mean((p - y) ** 2)), "n": int(p.size), "bins": bins}
