@@ -41,6 +41,7 @@ from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session
+from vehicle.absence_report import mounting_yaw_deg
 from vehicle.config import load_vehicle_model
 from vehicle.mapclient import MapClient
 
@@ -147,7 +148,8 @@ def run_changes_eval(cfg: ChangesEvalConfig, progress: Callable[[str], None] | N
             )
 
             def on_pass(p: Pass) -> None:
-                scorer.note_pass(p.start_time, p.truth.camera_enu[:, :2])
+                yaw = np.degrees(p.truth.heading_rad) + mounting_yaw_deg(model)
+                scorer.note_pass(p.start_time, p.truth.t, p.truth.camera_enu[:, :2], yaw)
                 if p.vehicle_id == rogue:
                     ab = driver.agent(p.vehicle_id).last_absences
                     rogue_reported.update(int(i) for i in ab.landmark_id.tolist())
@@ -202,8 +204,10 @@ def run_changes_eval(cfg: ChangesEvalConfig, progress: Callable[[str], None] | N
                 "gone": list(e.gone),
                 "passes_to_reflect": e.passes_to_reflect,
                 "hours_to_reflect": e.hours_to_reflect,
+                "passes_to_locate": e.passes_to_locate,
                 "passes_seen_so_far": e.passes,
                 "waiting_for": e.waiting_for,
+                "trace": e.trace,
             }
             for e in scorer.events
         ],

@@ -35,17 +35,19 @@ def event_key(e: dict) -> str:
 def pooled(results: dict[int, dict]) -> dict:
     """The summary keys over several seeds' results."""
     out: dict = {}
-    by: dict[str, list[float]] = {}
-    for r in results.values():
-        for e in r["events"]:
-            p = e["passes_to_reflect"]
-            by.setdefault(event_key(e), []).append(np.inf if p is None else float(p))
-    for key, vals in sorted(by.items()):
-        med, p95 = np.percentile(np.array(vals), [50, 95], method="higher")
-        out[f"{key}_median_passes"] = None if np.isinf(med) else float(med)
-        out[f"{key}_p95_passes"] = None if np.isinf(p95) else float(p95)
-        out[f"{key}_events"] = len(vals)
-        out[f"{key}_unreflected"] = int(np.isinf(vals).sum())
+    for field_, suffix in (("passes_to_reflect", ""), ("passes_to_locate", "_located")):
+        by: dict[str, list[float]] = {}
+        for r in results.values():
+            for e in r["events"]:
+                p = e[field_]
+                by.setdefault(event_key(e), []).append(np.inf if p is None else float(p))
+        for key, vals in sorted(by.items()):
+            med, p95 = np.percentile(np.array(vals), [50, 95], method="higher")
+            out[f"{key}{suffix}_median_passes"] = None if np.isinf(med) else float(med)
+            out[f"{key}{suffix}_p95_passes"] = None if np.isinf(p95) else float(p95)
+            out[f"{key}{suffix}_unreflected"] = int(np.isinf(vals).sum())
+            if not suffix:
+                out[f"{key}_events"] = len(vals)
     for key in ("false_revocations", "rogue_revocations"):
         out[key] = int(sum(r[key] for r in results.values()))
     return out
@@ -97,6 +99,25 @@ def plot_timeline(results: dict[int, dict], png: Path) -> None:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(png, dpi=110)
+
+
+def changes_table(report: dict) -> str:
+    """One line per change of a one-seed report: what, when, passes until the map showed it."""
+    lines = [f"{'change':>10} {'at pass':>8} {'passes to show it':>18} {'hours':>6}"]
+    start, interval = report["start_time"], report["config"]["pass_interval_s"]
+    for e in report["events"]:
+        p = e["passes_to_reflect"]
+        h = e["hours_to_reflect"]
+        lines.append(
+            f"{event_key(e):>10} {(e['t'] - start) / interval:8.0f} "
+            f"{'not yet' if p is None else p:>18} {'-' if h is None else f'{h:.2f}':>6}"
+        )
+    lines.append(
+        f"false revocations {report['false_revocations']}, by the blind vehicle "
+        f"{report['rogue_revocations']} (it reported {report['rogue']['reported_landmarks']} "
+        "landmarks missing)"
+    )
+    return "\n".join(lines)
 
 
 def run_changes_job(cfg: ChangesEvalConfig, seeds: tuple[int, ...] = ()) -> dict:

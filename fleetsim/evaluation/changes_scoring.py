@@ -2,17 +2,23 @@
 
 At each check (the map as a vehicle reads it after a round of passes, at event time ``t``)
 every change event whose time has come (:meth:`fleetsim.changes.Change.events`) is
-*reflected* when each sign it puts up is held by a confirmed landmark (one-to-one pairing
-with the signs standing at ``t``, :func:`fleetsim.truth.match_landmarks`, ``match_m``) and
-no landmark of a sign it took down's class sits within ``match_m`` of that sign's place
-unpaired (a landmark that moved with a moved sign and pairs with it is fine). The passes a
-change needed are those that drove past its place (a camera within ``near_m`` of it) from
-its time until the first check that found it reflected; a change not reflected by the end
-counts as not reflected (censored, listed).
+*reflected* when each sign it puts up is held by a landmark whose existence is not
+doubtful (one-to-one pairing with the signs standing at ``t``,
+:func:`fleetsim.truth.match_landmarks`, ``match_m``; confirmed landmarks preferred) and no
+landmark of a sign it took down's class sits within ``match_m`` of that sign's place
+unpaired (a landmark that moved with a moved sign and pairs with it is fine); *located*
+when, besides, the landmarks that hold the new signs are confirmed (their horizontal sigma
+under the solver's bound). The passes a change needed are those that drove past it from
+its time until the first check that found it reflected (located): passes whose camera had
+the sign it took down or put up in view, from the side the sign faces, in at least
+``min_frames`` frames (:func:`vehicle.absence.expected` on the simulator's true camera
+poses; a pass on the cross street or the other way does not count); a change not
+reflected by the end counts as not reflected (censored, listed).
 
 False revocations: signs no change touched that a confirmed landmark held at one check
-and none held at a later one (the map lost a standing sign). Calibration: every published
-landmark at every check, its ``p_exist`` against whether a sign stands there.
+and no landmark (not doubtful) held at a later one (the map lost a standing sign).
+Calibration: every published landmark at every check, its ``p_exist`` against whether a
+sign stands there.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from fleetsim.truth import match_landmarks
 from fleetsim.world import World
 from schemas import STATUS_CONFIRMED
 from schemas.map import MapLandmarks
+from vehicle.absence import FrameDetections, Frames, MapSigns, ViewModel, expected
 
 Array = NDArray[np.float64]
 
@@ -42,14 +49,18 @@ class EventRecord:
     t: float
     present: tuple[int, ...]
     gone: tuple[int, ...]
-    place: Array
-    """(2,) East/North of the place passes are counted at (the old sign's, else the new)."""
+    places: MapSigns
+    """The signs it takes down and puts up, as the view test reads them."""
     passes: int = 0
     """Passes past the place since ``t`` so far."""
     reflected_at: float | None = None
     """Event time of the check that first found it reflected."""
     passes_to_reflect: int | None = None
     hours_to_reflect: float | None = None
+    passes_to_locate: int | None = None
+    trace: list[tuple[int, list[float], int]] = field(default_factory=list)
+    """Per check from its time until reflected: (passes so far, ``p_exist`` of the
+    landmarks left where a sign it took down was, signs it puts up held by any landmark)."""
     waiting_for: list[int] = field(default_factory=list)
     """At the latest check: the signs it puts up that no confirmed landmark held, and the
     landmarks still standing where a sign it took down was."""
@@ -62,7 +73,7 @@ class ChangeScorer:
     world: World
     schedule: ChangeSchedule
     match_m: float = 5.0
-    near_m: float = 30.0
+    view: ViewModel = field(default_factory=ViewModel)
     events: list[EventRecord] = field(default_factory=list)
     held: dict[int, int] = field(default_factory=dict)
     """Unchanged sign id -> the landmark id that last held it (confirmed)."""
@@ -79,19 +90,25 @@ class ChangeScorer:
         for k, c in enumerate(self.schedule.changes):
             touched |= {c.old_id, c.new_id} - {-1}
             for e in c.events():
-                ids = e.gone or e.present
-                place = every.position[self._row[ids[0]], :2].copy()
-                self.events.append(EventRecord(k, c.kind, e.t, e.present, e.gone, place))
+                rows = np.array([self._row[i] for i in (*e.gone, *e.present)], np.int64)
+                places = MapSigns(
+                    id=every.id[rows].astype(np.int64),
+                    en=every.position[rows, :2].copy(),
+                    sign_class=every.sign_class[rows].astype(np.int64),
+                    facing_deg=every.facing_azimuth_deg[rows],
+                )
+                self.events.append(EventRecord(k, c.kind, e.t, e.present, e.gone, places))
         self.unchanged = {int(i) for i in self.world.signs.id.tolist()} - touched
 
-    def note_pass(self, t: float, camera_en: Array) -> None:
-        """A pass that started at ``t`` with its camera at ``camera_en`` ((F, 2) East/North)."""
-        cam = np.asarray(camera_en, float).reshape(-1, 2)
-        if cam.size == 0:
-            return
+    def note_pass(self, t: float, frame_t: Array, camera_en: Array, yaw_deg: Array) -> None:
+        """A pass that started at ``t``: its camera's true poses per frame (times, (F, 2)
+        East/North, yaw deg clockwise from North)."""
+        frames = Frames(np.asarray(frame_t, float), np.asarray(camera_en, float), yaw_deg)
+        none = FrameDetections(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
         for e in self.events:
-            if e.reflected_at is None and t >= e.t:
-                if np.min(np.hypot(*(cam - e.place).T)) <= self.near_m:
+            if e.passes_to_locate is None and t >= e.t and len(frames.t):
+                seen = expected(frames, e.places, none, self.view).frames_in_view
+                if np.any(seen >= self.view.min_frames):
                     e.passes += 1
 
     def check(self, t: float, lm: MapLandmarks) -> None:
@@ -100,30 +117,42 @@ class ChangeScorer:
         confirmed = lm.status == STATUS_CONFIRMED
         m = match_landmarks(now, lm.lat, lm.lon, lm.h, lm.sign_class, self.match_m, confirmed)
         sign_ids = now.signs.id[m.sign_row].tolist()
+        doubtful = np.asarray(lm.exist_state) == 2
         holder = {
             int(s): int(lm.id[k])
             for s, k in zip(sign_ids, m.landmark.tolist(), strict=True)
-            if confirmed[k]
+            if not doubtful[k]
+        }
+        located = {
+            int(s) for s, k in zip(sign_ids, m.landmark.tolist(), strict=True) if confirmed[k]
         }
         paired = np.zeros(len(lm), bool)
         paired[m.landmark] = True
         en = now.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)[:, :2]
         for e in self.events:
-            if e.reflected_at is not None or t < e.t:
+            if t < e.t:
                 continue
-            left = [
-                int(lm.id[k]) for i in e.gone for k in self._left_at(i, en, lm.sign_class, paired)
-            ]
+            if e.passes_to_locate is None and e.reflected_at is not None:
+                if all(i in located for i in e.present):
+                    e.passes_to_locate = e.passes
+            if e.reflected_at is not None:
+                continue
+            rows = [k for i in e.gone for k in self._left_at(i, en, lm.sign_class, paired)]
+            left = [int(lm.id[k]) for k in rows]
             e.waiting_for = [i for i in e.present if i not in holder] + left
+            anyone = sum(i in sign_ids for i in e.present)
+            e.trace.append((e.passes, [round(float(lm.p_exist[k]), 4) for k in rows], anyone))
             if not e.waiting_for:
                 e.reflected_at = t
                 e.passes_to_reflect = e.passes
                 e.hours_to_reflect = (t - e.t) / 3600.0
+                if all(i in located for i in e.present):
+                    e.passes_to_locate = e.passes
         for s in self.unchanged:
-            if s in holder:
+            if s in located and s in holder:
                 self.held[s] = holder[s]
                 self.lost.pop(s, None)
-            elif s in self.held and s not in self.lost:
+            elif s in self.held and s not in holder and s not in self.lost:
                 self.lost[s] = (t, self.held[s])
         for p, ok in zip(np.asarray(lm.p_exist, float).tolist(), paired.tolist(), strict=True):
             if p > 0:
@@ -155,24 +184,24 @@ KIND_KEYS = {"remove": "removal", "move": "move", "replace": "replacement", "add
 
 def summary(scorer: ChangeScorer, rogue_landmarks: set[int]) -> dict:
     """The evaluation's keys: per kind the median and p95 passes to reflect (removals,
-    moves, replacements, additions; a temporary sign's coming and going separately),
-    false revocations and those of landmarks the rogue vehicle reported absent, and the
-    existence probability's calibration."""
+    moves, replacements, additions; a temporary sign's coming and going separately) and
+    to locate (``<kind>_located_...``), false revocations and those of landmarks the rogue
+    vehicle reported absent, and the existence probability's calibration."""
     out: dict = {}
-    groups: dict[str, tuple[list[int], int]] = {}
-    for e in scorer.events:
-        key = KIND_KEYS.get(e.kind, "temporary_" + ("up" if e.present else "down"))
-        done, left = groups.get(key, ([], 0))
-        if e.passes_to_reflect is None:
-            groups[key] = (done, left + 1)
-        else:
-            groups[key] = ([*done, e.passes_to_reflect], left)
-    for key, (done, left) in sorted(groups.items()):
-        st = _stats(done, left)
-        out[f"{key}_median_passes"] = st["median"]
-        out[f"{key}_p95_passes"] = st["p95"]
-        out[f"{key}_events"] = st["n"]
-        out[f"{key}_unreflected"] = st["unreflected"]
+    for field_, suffix in (("passes_to_reflect", ""), ("passes_to_locate", "_located")):
+        groups: dict[str, tuple[list[int], int]] = {}
+        for e in scorer.events:
+            key = KIND_KEYS.get(e.kind, "temporary_" + ("up" if e.present else "down"))
+            done, left = groups.get(key, ([], 0))
+            value = getattr(e, field_)
+            groups[key] = (done, left + 1) if value is None else ([*done, value], left)
+        for key, (done, left) in sorted(groups.items()):
+            st = _stats(done, left)
+            out[f"{key}{suffix}_median_passes"] = st["median"]
+            out[f"{key}{suffix}_p95_passes"] = st["p95"]
+            out[f"{key}{suffix}_unreflected"] = st["unreflected"]
+            if not suffix:
+                out[f"{key}_events"] = st["n"]
     out["false_revocations"] = len(scorer.lost)
     out["rogue_revocations"] = sum(1 for _t, lid in scorer.lost.values() if lid in rogue_landmarks)
     out["calibration"] = calibration(scorer.calibration)

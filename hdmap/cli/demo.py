@@ -8,6 +8,11 @@ By default it runs twice on a fresh stack each: first with the paper's GNSS nois
 0.35 rad white per fix, into ``OUT``), then with the realistic fleet noise of the accuracy
 evaluation (per-pass bias, drift, multipath, into ``OUT/fleet``), and ends with the two
 final rows side by side. ``--noise paper`` or ``--noise fleet`` runs one of them.
+
+Then (unless ``--no-changes``) the map following the world: a smaller town where, once
+the map is built, one sign is taken down, one moved 14 m and one put up, driven by a fleet
+that follows the map (one vehicle blind); it prints each change with the passes the map
+needed to show it (``OUT/changes``: :mod:`fleetsim.evaluation.changes_runs`).
 """
 
 from __future__ import annotations
@@ -33,6 +38,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--signs", type=int, default=40, help="signs in the town (default 40)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--no-changes",
+        action="store_true",
+        help="skip the last part (signs taken down, moved, put up: the map following them)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,4 +57,13 @@ def run(args: argparse.Namespace) -> int:
     finals = run_demo(opts)
     if len(finals) > 1:
         print(side_by_side(finals))
+    if not args.no_changes:
+        from fleetsim.evaluation.changes_eval import ChangesEvalConfig
+        from fleetsim.evaluation.changes_runs import changes_table, run_changes_job
+
+        print(
+            "\nhdmap demo: the map following the world (a sign taken down, one moved, one put up)"
+        )
+        report = run_changes_job(ChangesEvalConfig.quick(args.out / "changes"))
+        print(changes_table(report))
     return 0

@@ -8,8 +8,10 @@ Three rules, each against a failure the fleet cannot tell from a removed sign al
   camera pointed at the sky, a vehicle that reports "not seen" everywhere). Its seen
   landmarks still count.
 - **A vehicle's misses are capped.** Of one landmark, a vehicle's misses count at most
-  ``misses_per_vehicle`` times within ``window_s`` (event time): one vehicle driving the
-  same street all day weighs like two passes.
+  ``misses_per_vehicle`` times within ``window_s`` (event time) since the landmark was
+  last detected: one vehicle driving the same street all day weighs like two passes. A
+  detection refutes the misses before it: they no longer take from anyone's cap (else a
+  vehicle's strays before a sign was taken down used up its say after).
 - **Revocation needs several vehicles.** A landmark can be revoked only once misses from
   ``min_vehicles`` distinct vehicles have counted since it was last seen
   (:meth:`MissLedger.revocable`); a detection by anyone clears the list.
@@ -74,6 +76,7 @@ class MissLedger:
         clears the vehicles' misses; a miss within its vehicle's cap)."""
         if seen:
             self._since_seen.pop(landmark, None)
+            self._misses.pop(landmark, None)
             return True
         mine = self._misses[landmark].setdefault(vehicle, [])
         mine[:] = [x for x in mine if t - x < self.policy.window_s]

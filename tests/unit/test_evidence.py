@@ -80,5 +80,6 @@ def test_misses_count_again_after_the_window_and_the_ledger_round_trips():
     again = MissLedger.restore(POLICY, led.snapshot())
     assert again.snapshot() == led.snapshot()
     assert again.admit(1, "a", POLICY.window_s + 0.6, False) is False
-    led.admit(1, "b", 3.0, True)  # a detection clears the vehicles since seen
-    assert not led.revocable(1) and led.snapshot()[1][1] == []
+    led.admit(1, "b", 3.0, True)  # a detection refutes the misses before it
+    assert not led.revocable(1) and 1 not in led.snapshot()
+    assert led.admit(1, "a", POLICY.window_s + 0.7, False)  # "a" has its say again

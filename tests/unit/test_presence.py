@@ -228,4 +228,3 @@ def test_a_vehicle_on_probation_has_its_reports_held_until_promoted(feed, pool):
     assert not on_probation() and feed.m.state.trust["veh-n"].status == TRUSTED
     assert "veh-n" not in feed.m.state.held_absences
     assert feed.m.counters["absences_counted"] == 1  # weighed once promoted
-    assert "veh-n" in feed.m.state.misses.records(lid)[0]  # its miss, with its time
