@@ -4,9 +4,10 @@ vehicle can revoke signs, whether its camera is blind or it lies.
 Three rules, each against a failure the fleet cannot tell from a removed sign alone:
 
 - **Blind passes.** A pass that had at least ``min_expected`` landmarks in view and saw
-  fewer than ``min_seen_share`` of them reports its misses as nothing (a dirty lens, a
-  camera pointed at the sky, a vehicle that reports "not seen" everywhere). Its seen
-  landmarks still count.
+  fewer than ``min_seen_share`` of them, or fewer than ``min_seen`` (1), reports its misses as
+  nothing (a dirty lens, a camera pointed at the sky, a vehicle that reports "not seen"
+  everywhere). Its seen landmarks still count. Pitfall: a pass past only one mapped sign,
+  which is gone, is taken for blind too (the next passes, which see other signs, count).
 - **A vehicle's misses are capped.** Of one landmark, a vehicle's misses count at most
   ``misses_per_vehicle`` times within ``window_s`` (event time) since the landmark was
   last detected: one vehicle driving the same street all day weighs like two passes. A
@@ -19,6 +20,8 @@ Three rules, each against a failure the fleet cannot tell from a removed sign al
 >>> p = EvidencePolicy()
 >>> blind([True, False, False, False], p).tolist()  # saw 1 of 4 in view: blind
 [True, True, True, True]
+>>> blind([False], p).tolist(), blind([True, False], p).tolist()  # saw none: blind
+([True], [False, False])
 >>> led = MissLedger(p)
 >>> [led.admit(7, "veh-a", t, seen=False) for t in (0.0, 10.0, 20.0)]
 [True, True, False]
@@ -41,6 +44,8 @@ class EvidencePolicy:
     """A pass is judged blind only with at least this many landmarks in view."""
     min_seen_share: float = 0.5
     """A pass that saw less than this share of the landmarks it had in view is blind."""
+    min_seen: int = 1
+    """A pass that saw fewer landmarks than this is blind whatever it had in view."""
     misses_per_vehicle: int = 2
     """A vehicle's misses of one landmark that count within ``window_s``."""
     window_s: float = 86_400.0
@@ -58,8 +63,8 @@ def blind(seen: ArrayLike, policy: EvidencePolicy) -> NDArray[np.bool_]:
     """Per landmark a pass had in view (``seen``: whether it detected each), whether the
     pass is blind (the same for all: its misses are no evidence)."""
     s = np.asarray(seen, bool)
-    is_blind = s.size >= policy.min_expected and s.mean() < policy.min_seen_share
-    return np.full(s.size, is_blind)
+    few = s.size >= policy.min_expected and s.mean() < policy.min_seen_share
+    return np.full(s.size, bool(s.size and (few or s.sum() < policy.min_seen)))
 
 
 class MissLedger:

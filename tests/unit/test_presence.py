@@ -12,6 +12,7 @@ tombstone, persistence and what the solver publishes.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,13 +20,16 @@ import pytest
 
 from fleetsim.loadgen import LoadConfig, build_pool
 from hdmap.geo.tiles import quadkeys_of
+from hdmap.mapping.evidence import EvidencePolicy
 from hdmap.mapping.existence import ExistenceConfig
+from hdmap.mapping.presence import PresenceConfig
 from hdmap.mapping.trust import TRUSTED
 from hdmap.runtime.service import ServiceOptions
 from schemas import Absences, AssocGroup, LandmarkUpdates, LogEntry, Observations, ObsGroup
 from schemas.ids import COUNTER_BITS, home_tile
 from schemas.map import updates_from_bytes
 from services.matcher.replay import Sink, open_matcher
+from services.matcher.service import MatcherConfig
 from services.solver.service import SolverService
 
 EX = ExistenceConfig()
@@ -43,7 +47,10 @@ class Feed:
         self.open()
 
     def open(self) -> None:
-        self.m = open_matcher(self.tmp / "matcher")
+        # a report alone (no rays of its pass) would make its pass blind: off here, but
+        # for the blind test, which turns it on
+        lenient = PresenceConfig(evidence=EvidencePolicy(min_seen=0))
+        self.m = open_matcher(self.tmp / "matcher", MatcherConfig(presence=lenient))
         self.m.pubs = Sink(keep=True)
         self.s = SolverService(ServiceOptions(data_dir=self.tmp / "solver"))
         self.s.pubs = Sink(keep=True)
@@ -184,6 +191,15 @@ def test_a_blind_pass_and_a_contradicted_report_count_nothing(feed, pool):
     before = {i: feed.m.state.landmarks[i].exist for i in ids}
     feed.absent("veh-b", 700, ids, feed.t)  # in view four, saw none: blind
     assert feed.m.counters["absences_blind"] == 4
+    strict = PresenceConfig()  # a pass that saw nothing is blind with one report too
+    feed.m.config = replace(feed.m.config, presence=strict)
+    feed.m.matching.config = feed.m.config
+    feed.absent("veh-b", 701, ids[:1], feed.t + 60.0)
+    assert feed.m.counters["absences_blind"] == 5
+    feed.m.config = replace(
+        feed.m.config, presence=PresenceConfig(evidence=EvidencePolicy(min_seen=0))
+    )
+    feed.m.matching.config = feed.m.config
     assert {i: feed.m.state.landmarks[i].exist for i in ids} == before
     n = len(feed.assoc)
     t = feed.passes(pool, "veh-a", 300, 1, feed.t + 60)  # pass 300 links rays ...
