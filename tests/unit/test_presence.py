@@ -191,7 +191,7 @@ def test_a_blind_pass_and_a_contradicted_report_count_nothing(feed, pool):
     before = {i: feed.m.state.landmarks[i].exist for i in ids}
     feed.absent("veh-b", 700, ids, feed.t)  # in view four, saw none: blind
     assert feed.m.counters["absences_blind"] == 4
-    strict = PresenceConfig()  # a pass that saw nothing is blind with one report too
+    strict = PresenceConfig(evidence=EvidencePolicy(min_seen=1))  # one report blind too
     feed.m.config = replace(feed.m.config, presence=strict)
     feed.m.matching.config = feed.m.config
     feed.absent("veh-b", 701, ids[:1], feed.t + 60.0)
