@@ -7,7 +7,8 @@ belong to their tile's region, the untried marks to their pending rays. A vehicl
 pass budgets and probation status are copied to every part (each part goes on counting
 what it sees of the vehicle), except the home tiles it has held passes in (each part
 settles those of its own region); joined, the first part's record is kept, with the
-held passes' home tiles of both. Held links must be
+held passes' home tiles of both. A vehicle's held "not seen" reports go with the landmarks
+they name; joined, both parts' are kept. Held links must be
 in the sums (``MatcherService.before_handover``).
 """
 
@@ -41,6 +42,10 @@ RULES = Rules(
         "trim(held_homes || ' ' || excluded.held_homes)",
         "clock": "INSERT INTO clock SELECT * FROM b.clock WHERE true "
         "ON CONFLICT(name) DO UPDATE SET t = MAX(t, excluded.t)",
+        # a vehicle's held reports from both parts, the second's after the first's
+        "held_absences": "INSERT INTO held_absences SELECT vehicle, seq + "
+        "(SELECT COALESCE(MAX(seq), -1) + 1 FROM main.held_absences), pass_id, "
+        "landmark_id, t, frames FROM b.held_absences",
     },
     empty=("held_links",),
 )
