@@ -130,10 +130,16 @@ def test_a_matcher_cut_in_two_goes_on_as_the_whole_and_joins_back(tmp_path, logs
     assert got == want  # the same landmarks, the same sums to the bit
     assert sum(pendings) == pending > 0 and min(pendings) > 0
     assert sum(applied) == whole.counters["entries_applied"]  # counters in the first part
+    # a vehicle on probation has held "not seen" reports in both parts, each numbered 0 on
+    for i, cp_i in enumerate(cps):
+        with sqlite3.connect(cp_i) as c:
+            lid = c.execute("SELECT id FROM landmarks ORDER BY id LIMIT 1").fetchone()[0]
+            c.execute("INSERT INTO held_absences VALUES ('veh-h', 0, ?, ?, ?, 5)", (i, lid, T0))
     # joined back: the whole's landmarks, and it goes on like the whole
     merge(cps, db_of(MatcherService, tmp_path / "joined", []), MATCHER)
     joined = open_part(MatcherService, tmp_path / "joined", [])
     assert landmarks(joined) == want
+    assert [r[0] for r in joined.state.held_absences["veh-h"]] == [0, 1]  # both kept
     assert joined.counters["entries_applied"] == whole.counters["entries_applied"]
 
 
