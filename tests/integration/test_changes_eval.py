@@ -16,6 +16,8 @@ import sys
 
 import pytest
 
+from fleetsim.evaluation.changes_runs import changes_table
+
 pytestmark = pytest.mark.integration
 
 
@@ -51,6 +53,16 @@ def test_the_rogue_reports_everything_and_its_reports_count_for_nothing(quick):
     assert m.get("absences_blind", 0) + m.get("absences_held", 0) > 0
     ingest = r["services"]["ingest"]
     assert ingest["absences_accepted"] > m["absences_counted"]
+
+
+def test_the_demo_table_has_one_line_per_change(quick):
+    _, r = quick
+    lines = changes_table(r).splitlines()
+    assert len(lines) == 2 + len(r["events"])
+    assert [ln.split()[0] for ln in lines[1:-1]] == [
+        {"add": "addition", "move": "move", "remove": "removal"}[e["kind"]] for e in r["events"]
+    ]
+    assert lines[-1].startswith("false revocations 0, by the blind vehicle 0")
 
 
 def test_the_published_existence_is_calibrated_enough_to_trust(quick):

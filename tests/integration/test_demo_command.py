@@ -15,7 +15,9 @@ pytestmark = pytest.mark.timeout(240)
 
 def test_demo_runs_paper_then_fleet_noise_and_writes_both(tmp_path: Path, capsys) -> None:
     out = tmp_path / "demo"
-    args = argparse.Namespace(out=out, rounds=2, vehicles=8, noise="both", signs=12, seed=0)
+    args = argparse.Namespace(
+        out=out, rounds=2, vehicles=8, noise="both", signs=12, seed=0, no_changes=True
+    )  # the changes part is the quick changes evaluation (tests/integration/test_changes_eval.py)
     assert demo.run(args) == 0
     text = capsys.readouterr().out
     assert "paper noise" in text and "fleet noise" in text
