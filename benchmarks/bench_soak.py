@@ -22,7 +22,8 @@ time; the PNG plots disk and RSS per service against event hours.
     .venv/bin/python benchmarks/bench_soak.py [--quick] [--json FILE] [--png FILE]
 
 JSON: ``samples: [{wall_s, event_time_s, disk_bytes, rss_bytes, p99_s, landmarks,
-disk_by_service, rss_by_service}]``, ``disk``, ``rss`` (``first_half``,
+disk_by_service, rss_by_service, activity}]`` (``activity``: per service the counters of
+:data:`ACTIVITY` so far), ``disk``, ``rss`` (``first_half``,
 ``second_half``: growth in bytes; ``fitted``, ``fitted_ratio``: the same from a line
 fitted to each half; ``quarters``: the growth of each quarter; ``ratio``;
 ``plateau``; ``per_event_hour``),
@@ -66,6 +67,16 @@ from schemas.tables import STATUS_CONFIRMED
 from vehicle.mapclient import MapClient
 
 DAY = 86_400.0
+ACTIVITY = (
+    "catchups",
+    "entries_replayed",
+    "entries_gap",
+    "checkpoints_taken",
+    "snapshots",
+    "inbox_overflows",
+    "log_truncated",
+)
+"""Counters sampled with each service's RSS: what it was doing when its memory moved."""
 
 
 def dir_bytes(path: Path) -> int:
@@ -92,6 +103,9 @@ def sample(stack: Stack, session, t0: float, cfg: LoadConfig, counters: Counters
         "landmarks": int(t.get("matcher", {}).get("landmarks", 0)),
         "disk_by_service": disk,
         "rss_by_service": rss,
+        "activity": {
+            name: {k: t.get(name, {}).get(k, 0) for k in ACTIVITY} for name in SERVICE_NAMES
+        },
     }, n
 
 
