@@ -13,10 +13,9 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from fleetsim.evaluation.changes_eval import ChangesEvalConfig, run_changes_eval
-from fleetsim.evaluation.changes_scoring import KIND_KEYS
+from fleetsim.evaluation.changes_scoring import event_key as key_of
+from fleetsim.evaluation.changes_scoring import passes_keys
 
 KIND_COLOURS = {
     "remove": "tab:red",
@@ -29,25 +28,19 @@ KIND_COLOURS = {
 
 def event_key(e: dict) -> str:
     """The summary key of an event (``removal``, ``move``, ..., ``temporary_up``)."""
-    return KIND_KEYS.get(e["kind"], "temporary_" + ("up" if e["present"] else "down"))
+    return key_of(e["kind"], e["present"])
 
 
 def pooled(results: dict[int, dict]) -> dict:
-    """The summary keys over several seeds' results."""
-    out: dict = {}
-    for field_, suffix in (("passes_to_reflect", ""), ("passes_to_locate", "_located")):
-        by: dict[str, list[float]] = {}
-        for r in results.values():
-            for e in r["events"]:
-                p = e[field_]
-                by.setdefault(event_key(e), []).append(np.inf if p is None else float(p))
-        for key, vals in sorted(by.items()):
-            med, p95 = np.percentile(np.array(vals), [50, 95], method="higher")
-            out[f"{key}{suffix}_median_passes"] = None if np.isinf(med) else float(med)
-            out[f"{key}{suffix}_p95_passes"] = None if np.isinf(p95) else float(p95)
-            out[f"{key}{suffix}_unreflected"] = int(np.isinf(vals).sum())
-            if not suffix:
-                out[f"{key}_events"] = len(vals)
+    """The summary keys over several seeds' results: every event of a kind pooled before
+    the median and p95, the revocations summed."""
+    out = passes_keys(
+        [
+            (event_key(e), e["passes_to_reflect"], e["passes_to_locate"])
+            for r in results.values()
+            for e in r["events"]
+        ]
+    )
     for key in ("false_revocations", "rogue_revocations"):
         out[key] = int(sum(r[key] for r in results.values()))
     return out

@@ -182,19 +182,22 @@ def _stats(values: list[int], unreflected: int) -> dict:
 KIND_KEYS = {"remove": "removal", "move": "move", "replace": "replacement", "add": "addition"}
 
 
-def summary(scorer: ChangeScorer, rogue_landmarks: set[int]) -> dict:
-    """The evaluation's keys: per kind the median and p95 passes to reflect (removals,
-    moves, replacements, additions; a temporary sign's coming and going separately) and
-    to locate (``<kind>_located_...``), false revocations and those of landmarks the rogue
-    vehicle reported absent, and the existence probability's calibration."""
+def event_key(kind: str, present) -> str:
+    """The summary key of an event: its kind's (``removal``, ...), a temporary sign's
+    ``temporary_up`` (it puts a sign up) or ``temporary_down``."""
+    return KIND_KEYS.get(kind, "temporary_" + ("up" if present else "down"))
+
+
+def passes_keys(events: list[tuple[str, int | None, int | None]]) -> dict:
+    """Per summary key, the median and p95 passes to reflect and to locate
+    (``<key>_located_...``), the events and those never reflected, from (key, passes to
+    reflect, passes to locate) per event (None: never)."""
     out: dict = {}
-    for field_, suffix in (("passes_to_reflect", ""), ("passes_to_locate", "_located")):
+    for j, suffix in ((1, ""), (2, "_located")):
         groups: dict[str, tuple[list[int], int]] = {}
-        for e in scorer.events:
-            key = KIND_KEYS.get(e.kind, "temporary_" + ("up" if e.present else "down"))
-            done, left = groups.get(key, ([], 0))
-            value = getattr(e, field_)
-            groups[key] = (done, left + 1) if value is None else ([*done, value], left)
+        for e in events:
+            done, left = groups.get(e[0], ([], 0))
+            groups[e[0]] = (done, left + 1) if e[j] is None else ([*done, e[j]], left)
         for key, (done, left) in sorted(groups.items()):
             st = _stats(done, left)
             out[f"{key}{suffix}_median_passes"] = st["median"]
@@ -202,6 +205,20 @@ def summary(scorer: ChangeScorer, rogue_landmarks: set[int]) -> dict:
             out[f"{key}{suffix}_unreflected"] = st["unreflected"]
             if not suffix:
                 out[f"{key}_events"] = st["n"]
+    return out
+
+
+def summary(scorer: ChangeScorer, rogue_landmarks: set[int]) -> dict:
+    """The evaluation's keys: per kind the median and p95 passes to reflect (removals,
+    moves, replacements, additions; a temporary sign's coming and going separately) and
+    to locate (:func:`passes_keys`), false revocations and those of landmarks the rogue
+    vehicle reported absent, and the existence probability's calibration."""
+    out = passes_keys(
+        [
+            (event_key(e.kind, e.present), e.passes_to_reflect, e.passes_to_locate)
+            for e in scorer.events
+        ]
+    )
     out["false_revocations"] = len(scorer.lost)
     out["rogue_revocations"] = sum(1 for _t, lid in scorer.lost.values() if lid in rogue_landmarks)
     out["calibration"] = calibration(scorer.calibration)

@@ -36,12 +36,14 @@ from typing import Any
 import numpy as np
 
 from hdmap.mapping.evidence import EvidencePolicy, blind
-from hdmap.mapping.existence import ExistenceConfig, update
+from hdmap.mapping.existence import CONFIRMED, ExistenceConfig, status, update
 from hdmap.mapping.landmarks import Landmark
 from schemas.ids import pass_key
 
 EXIST_CONFIRMED, EXIST_DOUBTFUL = 1, 2
-"""Published states (``schemas.tables.ExistenceRows.state``); revoked ones are retired."""
+"""Published states, the values of ``schemas.tables.EXIST_CONFIRMED`` and
+``EXIST_DOUBTFUL`` (the domain does not import the codec: ``tests/unit/test_presence.py``
+checks they agree); revoked ones are retired."""
 
 
 @dataclass(frozen=True)
@@ -63,7 +65,7 @@ def row(lm: Landmark, cfg: ExistenceConfig) -> tuple[int, float, int, float, flo
     """What the solver publishes of a landmark's existence: (id, probability, state,
     first seen, last seen)."""
     lo = log_odds(lm, cfg)
-    state = EXIST_CONFIRMED if lo >= cfg.l_confirmed else EXIST_DOUBTFUL
+    state = EXIST_CONFIRMED if status(lo, cfg) == CONFIRMED else EXIST_DOUBTFUL
     p = 1.0 / (1.0 + math.exp(-lo))
     return lm.id, p, state, lm.created_at, lm.last_seen or lm.created_at
 
@@ -81,8 +83,8 @@ def seen(m: Any, vehicle: str, lms: list[Landmark], t: float) -> None:
         lm.exist = value
         lm.last_seen = max(lm.last_seen, t)
         m.state.misses.admit(lm.id, vehicle, t, seen=True)
-        m.state.mark_changed([lm.id])
         m.out[lm.home].existence[lm.id] = row(lm, ex)
+    m.state.mark_changed([lm.id for lm in lms])
     m.tally("passes_seen", len(lms))
 
 

@@ -244,3 +244,13 @@ def test_a_vehicle_on_probation_has_its_reports_held_until_promoted(feed, pool):
     assert not on_probation() and feed.m.state.trust["veh-n"].status == TRUSTED
     assert "veh-n" not in feed.m.state.held_absences
     assert feed.m.counters["absences_counted"] == 1  # weighed once promoted
+
+
+def test_the_published_states_are_the_wires():
+    from hdmap.mapping import presence
+    from schemas import tables
+
+    assert (presence.EXIST_CONFIRMED, presence.EXIST_DOUBTFUL) == (
+        tables.EXIST_CONFIRMED,
+        tables.EXIST_DOUBTFUL,
+    )
