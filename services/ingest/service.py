@@ -451,46 +451,35 @@ class IngestService(Service):
         return gone
 
     def _seen(self, vehicle: str, ids: np.ndarray) -> np.ndarray:
-        if ids.size == 0:
-            return np.zeros(0, bool)
-        signed = u64_to_i64(ids)
-        found: set[int] = set()
-        chunk = 900
-        for s in range(0, signed.size, chunk):
-            part = [int(x) for x in signed[s : s + chunk]]
-            marks = ",".join("?" * len(part))
-            found.update(
-                r[0]
-                for r in self.db.execute(
-                    f"SELECT obs_id FROM seen WHERE vehicle=? AND obs_id IN ({marks})",
-                    [vehicle, *part],
-                )
-            )
-        return np.fromiter((int(x) in found for x in signed), bool, signed.size)
+        """Which of a vehicle's observation ids ingest recorded before."""
+        return _recorded(
+            self.db, "SELECT obs_id FROM seen WHERE vehicle=? AND obs_id", [vehicle], ids
+        )
 
     def _seen_absences(self, vehicle: str, pass_id: int, ids: np.ndarray) -> np.ndarray:
         """Which of a pass's absences (by landmark id) ingest recorded before."""
-        if ids.size == 0:
-            return np.zeros(0, bool)
-        signed = u64_to_i64(ids).tolist()
-        found: set[int] = set()
-        for s in range(0, len(signed), 900):
-            part = signed[s : s + 900]
-            found.update(
-                r[0]
-                for r in self.db.execute(
-                    "SELECT landmark_id FROM seen_absence WHERE vehicle=? AND pass_id=? "
-                    f"AND landmark_id IN ({','.join('?' * len(part))})",
-                    [vehicle, int(pass_id), *part],
-                )
-            )
-        return np.fromiter((x in found for x in signed), bool, len(signed))
+        sql = "SELECT landmark_id FROM seen_absence WHERE vehicle=? AND pass_id=? AND landmark_id"
+        return _recorded(self.db, sql, [vehicle, int(pass_id)], ids)
 
     def extra_counters(self) -> dict[str, float]:
         return {
             "log_head_gseq": self.writer.gseq,
             "database_corrupt": int(self.corrupt is not None),
         }
+
+
+def _recorded(db, select: str, head: list, ids: np.ndarray) -> np.ndarray:
+    """Per u64 id, whether ``select`` (ending in the id column, completed with ``IN
+    (...)``) finds it with the parameters ``head``, asked 900 ids at a time."""
+    if ids.size == 0:
+        return np.zeros(0, bool)
+    signed = u64_to_i64(ids).tolist()
+    found: set[int] = set()
+    for s in range(0, len(signed), 900):
+        part = signed[s : s + 900]
+        rows = db.execute(f"{select} IN ({','.join('?' * len(part))})", [*head, *part])
+        found.update(r[0] for r in rows)
+    return np.fromiter((x in found for x in signed), bool, len(signed))
 
 
 def _sender(it: Item) -> str:
