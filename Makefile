@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
 .DEFAULT_GOAL := help
-.PHONY: help install lint format test test-faults demo bench clean
+.PHONY: help install lint format test test-browser test-faults demo bench clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-12s %s\n", $$1, $$2}'
@@ -27,8 +27,12 @@ format: $(STAMP) ## ruff format + autofix
 	$(BIN)/ruff check --fix .
 	$(BIN)/ruff format .
 
-test: $(STAMP) ## run every test (unit, property-based, integration)
-	$(BIN)/python -m pytest -q -m "not faults"
+test: $(STAMP) ## run every test (unit, property-based, integration; browser tests need chromium)
+	@[ -x /usr/bin/chromium ] && [ -x /usr/bin/chromedriver ] || echo "make test: /usr/bin/chromium or chromedriver missing: the browser tests are SKIPPED (apt-get install -y chromium chromium-driver)"
+	$(BIN)/python -m pytest -q -rs -m "not faults"
+
+test-browser: $(STAMP) ## the headless-Chromium tests alone
+	$(BIN)/python -m pytest -q -rs -s -m browser
 
 test-faults: $(STAMP) ## the long fault-injection runs
 	$(BIN)/python -m pytest -q -m faults

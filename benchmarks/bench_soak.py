@@ -17,16 +17,21 @@ map keeps its landmarks. After the drain a map client following the town reads t
 published map and scores it against the town's truth (``map``: found, false, duplicated,
 mean error, 95 % coverage; all landmarks and the confirmed ones). The JSON says whether
 each did (``disk.plateau``, ``rss.plateau``) and the disk's growth per hour of event
-time; the PNG plots disk and RSS per service against event hours.
+time; the PNG plots disk and RSS per service against event hours. ``rss_anon`` is the
+same for the services' anonymous resident memory (``RssAnon``: heap, stacks, the
+SQLite caches): RSS also counts shared mappings a process maps once and keeps, such as
+Zenoh's 16 MiB shared-memory segment (``/dev/shm/*.zenoh``), which becomes resident in
+the publisher at the first message over Zenoh's shared-memory threshold, hours into a
+run; a leak shows in ``rss_anon``.
 
     .venv/bin/python benchmarks/bench_soak.py [--quick] [--json FILE] [--png FILE]
 
-JSON: ``samples: [{wall_s, event_time_s, disk_bytes, rss_bytes, p99_s, landmarks,
-disk_by_service, rss_by_service, activity}]`` (``activity``: per service the counters of
-:data:`ACTIVITY` so far), ``disk``, ``rss`` (``first_half``,
-``second_half``: growth in bytes; ``fitted``, ``fitted_ratio``: the same from a line
-fitted to each half; ``quarters``: the growth of each quarter; ``ratio``;
-``plateau``; ``per_event_hour``),
+JSON: ``samples: [{wall_s, event_time_s, disk_bytes, rss_bytes, rss_anon_bytes, p99_s,
+landmarks, disk_by_service, rss_by_service, rss_anon_by_service, activity}]``
+(``activity``: per service the counters of :data:`ACTIVITY` so far), ``disk``, ``rss``
+(``first_half``, ``second_half``: growth in bytes; ``fitted``, ``fitted_ratio``: the
+same from a line fitted to each half; ``quarters``: the growth of each quarter;
+``ratio``; ``plateau``; ``per_event_hour``), ``rss_anon`` (the same),
 ``landmarks`` (start, end: the matcher's, candidates included), ``map`` (``all``,
 ``confirmed``: :class:`fleetsim.score.MapScore`), ``config``, ``machine``, ``command``.
 """
@@ -35,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import sys
 import tempfile
 import threading
@@ -59,6 +65,7 @@ from fleetsim.loadgen import (
 )
 from fleetsim.score import score
 from fleetsim.town_run import follow_town
+from hdmap.ops.progress import Progress, progress_wanted
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import SERVICE_NAMES, Stack
 from hdmap.ops.status import collect
@@ -89,6 +96,7 @@ def sample(stack: Stack, session, t0: float, cfg: LoadConfig, counters: Counters
     t = totals(collect(session, 2.0))
     disk = {n: dir_bytes(stack.data_dir / f"{n}-all") for n in SERVICE_NAMES}
     rss = {n: int(t.get(n, {}).get("rss_bytes", 0)) for n in SERVICE_NAMES}
+    anon = {n: int(t.get(n, {}).get("rss_anon_bytes", 0)) for n in SERVICE_NAMES}
     with counters.lock:
         n = counters.latency_count
         fresh = min(n - last, len(counters.latencies), 50_000)
@@ -99,10 +107,12 @@ def sample(stack: Stack, session, t0: float, cfg: LoadConfig, counters: Counters
         "event_time_s": round(cfg.capture_time(wall) - (cfg.event_start or 0.0), 1),
         "disk_bytes": sum(disk.values()),
         "rss_bytes": sum(rss.values()),
+        "rss_anon_bytes": sum(anon.values()),
         "p99_s": percentiles(lat)["p99"],
         "landmarks": int(t.get("matcher", {}).get("landmarks", 0)),
         "disk_by_service": disk,
         "rss_by_service": rss,
+        "rss_anon_by_service": anon,
         "activity": {
             name: {k: t.get(name, {}).get(k, 0) for k in ACTIVITY} for name in SERVICE_NAMES
         },
@@ -152,14 +162,17 @@ def plot(report: dict, png: Path) -> None:
 
     s = report["samples"]
     hours = [x["event_time_s"] / 3600.0 for x in s]
-    fig = Figure(figsize=(10, 7))
+    fig = Figure(figsize=(10, 10))
     FigureCanvasAgg(fig)
-    for i, (key, label) in enumerate(
-        (("disk_by_service", "disk MB"), ("rss_by_service", "RSS MB"))
-    ):
-        ax = fig.add_subplot(2, 1, i + 1)
+    panels = (
+        ("disk_by_service", "disk MB"),
+        ("rss_by_service", "RSS MB"),
+        ("rss_anon_by_service", "anonymous RSS MB"),
+    )
+    for i, (key, label) in enumerate(panels):
+        ax = fig.add_subplot(len(panels), 1, i + 1)
         for name in SERVICE_NAMES:
-            ax.plot(hours, [x[key][name] / 1e6 for x in s], label=name)
+            ax.plot(hours, [x.get(key, {}).get(name, 0) / 1e6 for x in s], label=name)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         if i == 0:
@@ -213,6 +226,8 @@ def run(args: argparse.Namespace) -> dict:
                 ]
                 t0 = time.monotonic()
                 samples, seen = [], 0
+                n_samples = math.ceil(cfg.duration_s / args.sample_s)
+                bar = Progress(n_samples, "samples", enabled=progress_wanted(args.no_progress))
                 try:
                     for v in vehicles:
                         v.start()
@@ -222,16 +237,16 @@ def run(args: argparse.Namespace) -> dict:
                         )
                         x, seen = sample(stack, session, t0, cfg, counters, seen)
                         samples.append(x)
-                        print(
+                        bar.note(
                             f"{x['wall_s']:6.0f} s  event {x['event_time_s'] / 3600:6.2f} h  "
                             f"disk {x['disk_bytes'] / 1e6:8.1f} MB  "
                             f"rss {x['rss_bytes'] / 1e6:7.1f} MB  "
                             f"p99 {x['p99_s'] if x['p99_s'] is None else round(x['p99_s'], 3)} s  "
-                            f"landmarks {x['landmarks']}  acked {counters.accepted}",
-                            file=sys.stderr,
-                            flush=True,
+                            f"landmarks {x['landmarks']}  acked {counters.accepted}"
                         )
+                        bar.update()
                 finally:
+                    bar.close()
                     stop.set()
                     for v in vehicles:
                         v.join(timeout=cfg.max_attempts * (cfg.upload_timeout_s + 2.0) + 5.0)
@@ -255,6 +270,7 @@ def run(args: argparse.Namespace) -> dict:
         "failed": counters.failed,
         "disk": growth(samples, "disk_bytes"),
         "rss": growth(samples, "rss_bytes"),
+        "rss_anon": growth(samples, "rss_anon_bytes"),
         "landmarks": {
             "start": samples[0]["landmarks"] if samples else None,
             "end": end["landmarks"],
@@ -310,19 +326,26 @@ def main() -> int:
     )
     ap.add_argument("--json", type=Path)
     ap.add_argument("--png", type=Path)
+    ap.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress line of the samples on stderr (also HDMAP_NO_PROGRESS=1)",
+    )
     args = ap.parse_args()
     if args.quick:
         args.minutes, args.rate, args.sample_s = 2.0, 500.0, 10.0
     print(machine_line(machine()), file=sys.stderr)
     report = run(args)
-    d, r = report["disk"], report["rss"]
+    d, r, a = report["disk"], report["rss"], report["rss_anon"]
     print(
         f"disk: +{(d['first_half'] or 0) / 1e6:.1f} MB "
         f"then +{(d['second_half'] or 0) / 1e6:.1f} MB "
         f"({(d['per_event_hour'] or 0) / 1e6:.1f} MB per event hour; plateau: {d['plateau']}); "
         f"rss: +{(r['first_half'] or 0) / 1e6:.1f} MB "
         f"then +{(r['second_half'] or 0) / 1e6:.1f} MB "
-        f"(plateau: {r['plateau']}); landmarks {report['landmarks']['start']} -> "
+        f"(plateau: {r['plateau']}); rss anon: +{(a['first_half'] or 0) / 1e6:.1f} MB "
+        f"then +{(a['second_half'] or 0) / 1e6:.1f} MB (plateau: {a['plateau']}); "
+        f"landmarks {report['landmarks']['start']} -> "
         f"{report['landmarks']['end']}; accepted {report['accepted']}, failed {report['failed']}"
     )
     for kind, m in report["map"].items():

@@ -1,7 +1,8 @@
 """The load test: a simulated fleet against a running stack (``hdmap loadtest``).
 
 :func:`run_load` waits until the stack is quiet, snapshots every service's counters, runs
-the fleet for ``LoadConfig.duration_s`` seconds (with a live progress line on stderr),
+the fleet for ``LoadConfig.duration_s`` seconds (with a live progress line on stderr:
+:class:`hdmap.ops.progress.Progress`, seconds of load done, the ETA and the live rates),
 waits until the chain has applied everything (the drain, bounded by ``drain_timeout``),
 snapshots again and reports the differences (the services' counters are durable and
 cumulative, so only before/after deltas mean anything). :func:`run_loadtest` does the same
@@ -57,6 +58,7 @@ from fleetsim.loadgen import (
     percentiles,
     town_tiles_with_halo,
 )
+from hdmap.ops.progress import Progress
 from hdmap.ops.quiesce import is_quiet, totals, wait_quiet
 from hdmap.ops.stack import SERVICE_NAMES
 from hdmap.ops.status import collect
@@ -97,29 +99,6 @@ REPORT_KEYS = (
 """Top-level keys of the report (documented in the module docstring)."""
 
 
-class Progress:
-    """The live line on stderr: rewritten in place on a terminal, one line a tick otherwise."""
-
-    def __init__(self, enabled: bool):
-        self.enabled = enabled
-        self.tty = enabled and sys.stderr.isatty()
-        self.dirty = False
-
-    def show(self, text: str) -> None:
-        if not self.enabled:
-            return
-        if self.tty:
-            print(f"\r{text:<100}", end="", file=sys.stderr, flush=True)
-            self.dirty = True
-        else:
-            print(text, file=sys.stderr, flush=True)
-
-    def done(self) -> None:
-        if self.dirty:
-            print(file=sys.stderr, flush=True)
-            self.dirty = False
-
-
 def _lag(t: dict[str, dict[str, float]]) -> str:
     """How far each stage is behind its upstream (entries), for the drain line."""
     parts = []
@@ -151,8 +130,8 @@ def run_load(
     world, pool = build_pool(cfg)
     tiles = town_tiles_with_halo(world)
     counters = Counters()
-    line = Progress(progress)
-    line.show("waiting for a quiet chain before the load ...")
+    if progress:
+        print("waiting for a quiet chain before the load ...", file=sys.stderr, flush=True)
     started_quiet = wait_quiet(session, timeout=quiet_timeout)
     before = collect(session)
     rss = RssPeaks()
@@ -163,6 +142,7 @@ def run_load(
     stop = threading.Event()
     vehicles = [Vehicle(i, session, pool, cfg, counters, stop, run_id) for i in range(cfg.vehicles)]
     t0 = time.monotonic()
+    line = Progress(cfg.duration_s, "load", unit="s", rate=False, enabled=progress)
     try:
         readers = [Reader(session, tiles, counters) for _ in range(cfg.subscribers)]
         for v in vehicles:
@@ -180,10 +160,10 @@ def run_load(
             dt = max(now - last[0], 1e-9)
             pc = percentiles(lat)
             lat_txt = f"p50 {pc['p50']:.3f} s p99 {pc['p99']:.3f} s" if lat else "(no update yet)"
-            line.show(
-                f"{now - t0:5.0f} s  accepted {(acc - last[1]) / dt:8.0f} obs/s  "
-                f"deltas {(dl - last[2]) / dt:6.0f}/s  latency {lat_txt}"
-                + (f"  FAILED {failed}" if failed else "")
+            line.set(
+                round(min(now - t0, cfg.duration_s), 1),
+                f"accepted {(acc - last[1]) / dt:6.0f} obs/s, deltas {(dl - last[2]) / dt:4.0f}/s, "
+                f"latency {lat_txt}" + (f", FAILED {failed}" if failed else ""),
             )
             last = (now, acc, dl, nlat)
     finally:
@@ -194,18 +174,19 @@ def run_load(
             if v.is_alive():
                 v.join(max(0.1, deadline - time.monotonic()))
         load_s = time.monotonic() - t0
+        line.close()
         if sys.exc_info()[0] is not None:  # failing or interrupted: no drain
             for r in readers:
                 r.close()
-            line.done()
+    drain_line = Progress(None, "drain", unit="s", rate=False, every_s=5.0, enabled=progress)
     try:
-        drained = _drain(session, line, drain_timeout, rss)
+        drained = _drain(session, drain_line, drain_timeout, rss)
     finally:
         drain_s = time.monotonic() - t0 - load_s
         time.sleep(0.5)  # the last deltas in flight to the readers
         for r in readers:
             r.close()
-        line.done()
+        drain_line.close()
     after = collect(session)
     rss.sample(after)
     loadgen = {
@@ -240,7 +221,7 @@ def _drain(session: zenoh.Session, line: Progress, timeout: float, rss: RssPeaks
         stats = collect(session, timeout=2.0)
         rss.sample(stats)
         t = totals(stats)
-        line.show(f"drain {time.monotonic() - start:4.0f} s  {_lag(t)}")
+        line.set(round(time.monotonic() - start), _lag(t))
     return is_quiet(totals(collect(session, timeout=2.0)))
 
 

@@ -22,7 +22,6 @@ change and every round; ``changes.png`` the timeline.
 from __future__ import annotations
 
 import shutil
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -37,6 +36,7 @@ from fleetsim.noise import FLEET
 from fleetsim.pipeline import FleetDriver, model_for
 from fleetsim.town_run import follow_town
 from fleetsim.world import World, demo_town
+from hdmap.ops.progress import Progress
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
@@ -107,12 +107,19 @@ def schedule_for(cfg: ChangesEvalConfig, world: World, start: float) -> ChangeSc
     )
 
 
-def run_changes_eval(cfg: ChangesEvalConfig, progress: Callable[[str], None] | None = None) -> dict:
-    say = progress or (lambda m: print(m, file=sys.stderr, flush=True))
+def run_changes_eval(
+    cfg: ChangesEvalConfig,
+    progress: Callable[[str], None] | None = None,
+    progress_bar: bool = False,
+) -> dict:
+    """One seed's run (see the module doc); ``progress`` takes its log lines (default:
+    stderr), ``progress_bar`` adds a progress line of the passes driven."""
     world = demo_town(cfg.seed, n_signs=cfg.n_signs, n_blocks=cfg.n_blocks)
     model = model_for(FLEET, load_vehicle_model())
     per_round = max(1, cfg.passes // cfg.rounds)
     total = per_round * cfg.rounds
+    bar = Progress(total, "passes", enabled=progress_bar)
+    say = progress or bar.note
     start = time.time() - (total + 2) * cfg.pass_interval_s - 600.0
     schedule = schedule_for(cfg, world, start)
     fleet_cfg = FleetConfig(
@@ -153,6 +160,7 @@ def run_changes_eval(cfg: ChangesEvalConfig, progress: Callable[[str], None] | N
                 if p.vehicle_id == rogue:
                     ab = driver.agent(p.vehicle_id).last_absences
                     rogue_reported.update(int(i) for i in ab.landmark_id.tolist())
+                bar.update()
 
             try:
                 for r in range(cfg.rounds):
@@ -185,8 +193,10 @@ def run_changes_eval(cfg: ChangesEvalConfig, progress: Callable[[str], None] | N
                         f"({rounds[-1]['doubtful']} doubtful), changes reflected {done}/{due}, "
                         f"false revocations {len(scorer.lost)}, {rounds[-1]['wall_s']:.0f} s"
                     )
+                bar.close()
                 services = totals(collect(session))
             finally:
+                bar.close()
                 client.close()
                 driver.close()
     keys = summary(scorer, rogue_reported)

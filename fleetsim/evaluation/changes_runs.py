@@ -113,14 +113,19 @@ def changes_table(report: dict) -> str:
     return "\n".join(lines)
 
 
-def run_changes_job(cfg: ChangesEvalConfig, seeds: tuple[int, ...] = ()) -> dict:
+def run_changes_job(
+    cfg: ChangesEvalConfig, seeds: tuple[int, ...] = (), progress: bool = False
+) -> dict:
     """Run the seeds (``cfg.seed`` alone when none are given) one after another, write
-    ``changes.json`` and ``changes.png`` under ``cfg.out``; returns the JSON."""
+    ``changes.json`` and ``changes.png`` under ``cfg.out``; returns the JSON. ``progress``:
+    a progress line of each seed's passes on stderr."""
     cfg.out.mkdir(parents=True, exist_ok=True)
     results: dict[int, dict] = {}
-    for seed in seeds or (cfg.seed,):
+    for k, seed in enumerate(seeds or (cfg.seed,), start=1):
         one = replace(cfg, seed=seed, out=cfg.out / f"seed{seed}" if seeds else cfg.out)
-        results[seed] = run_changes_eval(one)
+        if len(seeds) > 1:
+            print(f"changes: seed {seed} ({k}/{len(seeds)})", file=sys.stderr, flush=True)
+        results[seed] = run_changes_eval(one, progress_bar=progress)
     if len(results) == 1:
         report = next(iter(results.values()))
     else:

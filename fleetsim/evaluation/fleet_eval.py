@@ -25,7 +25,6 @@ from __future__ import annotations
 import math
 import shutil
 import sqlite3
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -56,6 +55,7 @@ from fleetsim.town_run import follow_town
 from fleetsim.world import World, tile_border_distance
 from hdmap.geo.signs import CATALOG
 from hdmap.mapping.gnss_floor import SharedFloor, floor_enu, shared_floor, shared_floor_m2
+from hdmap.ops.progress import Progress
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
@@ -249,14 +249,19 @@ def replay_links(session) -> list[ObsKeys]:
 
 
 def run_fleet_eval(
-    cfg: FleetEvalConfig, progress: Callable[[str], None] | None = None
+    cfg: FleetEvalConfig,
+    progress: Callable[[str], None] | None = None,
+    progress_bar: bool = False,
 ) -> tuple[dict, EvalState, Landmarks]:
-    say = progress or (lambda m: print(m, file=sys.stderr, flush=True))
+    """One run (see the module doc); ``progress`` takes its log lines (default: stderr),
+    ``progress_bar`` adds a progress line of the passes driven."""
     world = evaluation_world(cfg)
     noise = cfg.noise()
     model = model_for(noise, load_vehicle_model())
     per_round = max(1, cfg.passes // cfg.rounds)
     total = per_round * cfg.rounds
+    bar = Progress(total, "passes", enabled=progress_bar)
+    say = progress or bar.note
     start = time.time() - (total + 2) * 30.0 - 600.0
     rate = {"gnss_rate_hz": cfg.gnss_rate_hz} if cfg.gnss_rate_hz else {}
     fleet_cfg = FleetConfig(
@@ -291,10 +296,15 @@ def run_fleet_eval(
             client = MapClient(session, radius_m=0.0)
             follow_town(client, world)
             driver = FleetDriver(world, fleet, run_dir / "vehicles", bulk=cfg.bulk_vehicles())
+
+            def on_pass(p) -> None:
+                _remember(state, driver, p)
+                bar.update()
+
             try:
                 for r in range(cfg.rounds):
                     passes = fleet.passes(per_round, r * per_round)
-                    driver.run(session, passes, on_pass=lambda p: _remember(state, driver, p))
+                    driver.run(session, passes, on_pass=on_pass)
                     left = driver.flush(session)
                     quiet = wait_quiet(session, timeout=cfg.quiet_timeout_s)
                     time.sleep(0.8)
@@ -332,9 +342,11 @@ def run_fleet_eval(
                         f"coverage {row['coverage95'] or float('nan'):.2f}, "
                         f"{row['wall_s']:.0f} s"
                     )
+                bar.close()
                 links = replay_links(session)
                 services = totals(collect(session))
             finally:
+                bar.close()
                 client.close()
                 driver.close()
     linked = Linked.of(state, links)

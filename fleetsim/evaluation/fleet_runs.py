@@ -24,6 +24,7 @@ from fleetsim.evaluation.fleet_plots import write_fleet_figures, write_seed_figu
 from fleetsim.evaluation.fleet_seeds import FLEET_COLUMNS, seed_row, summarise_seeds
 from fleetsim.evaluation.map_floor_file import FLOOR_FILE, record_floor
 from fleetsim.evaluation.results import write_json, write_seed_summary
+from hdmap.ops.progress import Progress
 from hdmap.runtime.orphan import PARENT_ENV
 
 SEED_RUN_TIMEOUT_S = 1800.0
@@ -69,6 +70,10 @@ class FleetRunOptions:
     (:func:`fleetsim.evaluation.map_floor_file.record_floor`): for held-out seeds only."""
     quick: bool = False
     """A small run for the test suite."""
+    progress: bool = False
+    """Progress lines on stderr: the passes of a run, the seeds of separate runs (``hdmap
+    eval fleet``: unless ``--no-progress``); not one of :meth:`run_flags` (it changes no
+    result)."""
 
     def run_flags(self) -> list[str]:
         """The command-line options every seed's run shares (``--passes``, ``--rounds``,
@@ -119,9 +124,11 @@ def run_seeds_apart(opts: FleetRunOptions, out: Path) -> dict[int, dict]:
     (hdmap.runtime.orphan)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", **{PARENT_ENV: str(os.getpid())})
     extra = [word for flag in opts.run_flags() for word in flag.split()]
+    extra += [] if opts.progress else ["--no-progress"]
     todo = list(opts.seeds)
     running: dict[int, tuple[subprocess.Popen, IO[bytes], float]] = {}
     rows: dict[int, dict] = {}
+    bar = Progress(len(todo), "seeds", enabled=opts.progress)
     try:
         while todo or running:
             while todo and len(running) < opts.jobs:
@@ -131,7 +138,7 @@ def run_seeds_apart(opts: FleetRunOptions, out: Path) -> dict[int, dict]:
                 log = open(out / f"seed-{seed}.log", "wb")  # closed when the run ends
                 proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env)
                 running[seed] = (proc, log, time.monotonic())
-                print(f"fleet: seed {seed} started ({out / f'seed-{seed}.log'})", file=sys.stderr)
+                bar.note(f"fleet: seed {seed} started ({out / f'seed-{seed}.log'})")
             for seed, (proc, log, t0) in list(running.items()):
                 rc = proc.poll()
                 if rc is None:
@@ -145,9 +152,11 @@ def run_seeds_apart(opts: FleetRunOptions, out: Path) -> dict[int, dict]:
                     raise SeedRunError(f"seed {seed}: exit status {rc}\n{tail}")
                 result = json.loads((out / f"seed-{seed}" / "fleet.json").read_text())
                 rows[seed] = seed_row(result)
-                print(f"fleet: seed {seed} done", file=sys.stderr, flush=True)
+                bar.note(f"fleet: seed {seed} done")
+                bar.update()
             time.sleep(0.5)
     finally:
+        bar.close()
         for proc, log, _ in running.values():
             proc.terminate()
             try:
@@ -181,7 +190,7 @@ def run_fleet_once(opts: FleetRunOptions, out: Path, seed: int) -> dict:
         cfg = replace(cfg, gnss_rate_hz=opts.gnss_rate_hz)
     if opts.panel_size_rel_sigma is not None:
         cfg = replace(cfg, panel_size_rel_sigma=opts.panel_size_rel_sigma)
-    result, state, final = run_fleet_eval(cfg)
+    result, state, final = run_fleet_eval(cfg, progress_bar=opts.progress)
     result["meta"]["command"] = "hdmap eval fleet " + " ".join(
         [f"--out {out}", f"--passes {cfg.passes}", f"--rounds {cfg.rounds}"]
         + [f"--seed {cfg.seed}"]

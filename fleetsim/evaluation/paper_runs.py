@@ -38,6 +38,8 @@ class PaperSimOptions:
     models: tuple[str, ...] = ()
     """Error models; empty: white, correlated, correlated_equal (``quick``: white,
     correlated)."""
+    progress: bool = False
+    """A progress line of the passings on stderr (``hdmap eval``: unless ``--no-progress``)."""
 
     def run_trials(self) -> int:
         return self.trials or (40 if self.quick else 500)
@@ -97,6 +99,7 @@ def run_paper_sim_once(opts: PaperSimOptions, out: Path, seed: int) -> dict:
         models=models,
         workers=workers,
         pilot=(20, 30) if quick else (100, 100),
+        progress_bar=opts.progress,
     )
     result["meta"]["command"] = "hdmap eval paper-sim " + " ".join(
         [f"--out {out}", f"--trials {trials}", f"--max-passes {passes}", f"--seed {seed}"]

@@ -97,6 +97,7 @@ from hdmap.mapping.estimator import (
     excess_angular_variance,
     triangulate,
 )
+from hdmap.ops.progress import Progress, relayed, wait_relayed
 from vehicle.geoloc import vehicle_to_enu
 
 Array = NDArray[np.float64]
@@ -316,8 +317,10 @@ def run_model(
     pilot: tuple[int, int] = (100, 150),
     progress: Callable[[str], None] | None = None,
     ours: EstimatorConfig | None = None,
+    on_pass: Callable[[], None] | None = None,
 ) -> dict:
-    """Run one error model; returns its JSON-ready result block."""
+    """Run one error model; returns its JSON-ready result block. ``on_pass`` is called
+    after each passing (a progress bar's tick)."""
     geom = geom or Geometry()
     noise = MODELS[model]
     truth = geom.sign
@@ -385,6 +388,8 @@ def run_model(
                 f"published {o['published'][-1]:.2f}  paper: mean "
                 f"{series['paper']['mean_error_m'][-1]:6.2f} m"
             )
+        if on_pass is not None:
+            on_pass()
     se = np.concatenate(single_err)
     se = se[np.isfinite(se)]
     out = {
@@ -494,23 +499,39 @@ def run_paper_sim(
     pilot: tuple[int, int] = (100, 150),
     fit_range: tuple[int, int] = (100, 1000),
     progress: Callable[[str], None] | None = _log,
+    progress_bar: bool = False,
 ) -> dict:
     """Run the simulation for every error model (in parallel processes when ``workers > 1``)
-    and return the full JSON-ready result."""
+    and return the full JSON-ready result; with ``progress_bar``, a progress line of the
+    passings done over every model on stderr (:class:`hdmap.ops.progress.Progress`)."""
     t0 = time.perf_counter()
     kw = dict(trials=trials, max_passes=max_passes, seed=seed, pilot=pilot)
     blocks: dict[str, dict] = {}
-    if workers > 1 and len(models) > 1:
-        from concurrent.futures import ProcessPoolExecutor
+    bar = Progress(max_passes * len(models), "passings", enabled=progress_bar)
+    with bar:
+        if workers > 1 and len(models) > 1:
+            from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(max_workers=min(workers, len(models))) as ex:
-            futs = {
-                m: ex.submit(run_model, m, progress=_log if progress else None, **kw)
-                for m in models
-            }
-            blocks = {m: fut.result() for m, fut in futs.items()}
-    else:
-        blocks = {m: run_model(m, progress=progress, **kw) for m in models}
+            with (
+                ProcessPoolExecutor(max_workers=min(workers, len(models))) as ex,
+                relayed(bar) as relay,
+            ):
+                futs = {
+                    m: ex.submit(
+                        run_model,
+                        m,
+                        progress=relay.say if progress else None,
+                        on_pass=relay.tick if relay.queue is not None else None,
+                        **kw,
+                    )
+                    for m in models
+                }
+                wait_relayed(futs.values(), relay, bar)
+                blocks = {m: fut.result() for m, fut in futs.items()}
+        else:
+            say = bar.note if progress is _log else progress
+            on_pass = bar.update if bar.enabled else None
+            blocks = {m: run_model(m, progress=say, on_pass=on_pass, **kw) for m in models}
     result = {
         "meta": {
             "trials": trials,

@@ -20,6 +20,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "service": ("hdmap.cli.service", "run one service (ingest, matcher, solver, publisher)"),
     "up": ("hdmap.cli.up", "router + one of each service, until Ctrl-C"),
     "status": ("hdmap.cli.status", "live services, their regions and counters"),
+    "export": ("hdmap.cli.export", "the published map of an area as GeoJSON, OSM XML or CSV"),
+    "dashboard": ("hdmap.cli.dashboard", "a live web page of the map and the services' health"),
     "region": ("hdmap.cli.region", "split a live region into sub-regions, or merge regions"),
     "eval": ("hdmap.cli.eval", "accuracy evaluations (paper simulation, fleet)"),
     "loadtest": ("hdmap.cli.loadtest", "a simulated fleet against a running stack"),

@@ -32,6 +32,21 @@ from hdmap.cli.common import (
     positive_int,
     seed_list,
 )
+from hdmap.ops.progress import progress_wanted
+
+
+def add_progress_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress line on stderr (also HDMAP_NO_PROGRESS=1); on a terminal it is "
+        "redrawn in place, elsewhere (CI logs) a line every 10 %%",
+    )
+
+
+def wants_progress(args: argparse.Namespace) -> bool:
+    """Whether the command shows its progress (``--no-progress``, ``HDMAP_NO_PROGRESS``)."""
+    return progress_wanted(bool(getattr(args, "no_progress", False)))
 
 
 def add_paper_sim_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,6 +87,7 @@ def add_paper_sim_arguments(p: argparse.ArgumentParser) -> None:
         help="comma-separated error models (default white,correlated,correlated_equal; "
         "--quick: white,correlated)",
     )
+    add_progress_argument(p)
 
 
 def run_paper_sim_command(args: argparse.Namespace) -> int:
@@ -87,6 +103,7 @@ def run_paper_sim_command(args: argparse.Namespace) -> int:
         quick=bool(getattr(args, "quick", False)),
         workers=getattr(args, "workers", 2),
         models=tuple(m for m in models.split(",") if m),
+        progress=wants_progress(args),
     )
     run_paper_sim_job(opts)
     return 0
@@ -175,6 +192,7 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
         "the sign catalogue's size_rel_sigma, 0.10; 0: every panel at its nominal size)",
     )
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
+    add_progress_argument(p)
 
 
 def run_fleet_command(args: argparse.Namespace) -> int:
@@ -196,6 +214,7 @@ def run_fleet_command(args: argparse.Namespace) -> int:
         gnss_rate_hz=args.gnss_rate,
         panel_size_rel_sigma=args.panel_size_sigma,
         quick=args.quick,
+        progress=wants_progress(args),
     )
     try:
         run_fleet_job(opts)
@@ -214,6 +233,7 @@ def add_changes_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicles", type=positive_int, default=8)
     p.add_argument("--no-rogue", action="store_true", help="no vehicle turns blind")
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
+    add_progress_argument(p)
 
 
 def run_changes_command(args: argparse.Namespace) -> int:
@@ -226,7 +246,7 @@ def run_changes_command(args: argparse.Namespace) -> int:
     else:
         cfg = ChangesEvalConfig(out, passes=args.passes, rounds=args.rounds, vehicles=args.vehicles)
     cfg = replace(cfg, seed=args.seed, rogue=not args.no_rogue)
-    run_changes_job(cfg, tuple(args.seeds or ()))
+    run_changes_job(cfg, tuple(args.seeds or ()), progress=wants_progress(args))
     return 0
 
 

@@ -21,6 +21,7 @@ import zenoh
 from fleetsim.loadgen import LoadConfig
 from fleetsim.loadtest import LoadtestOptions, format_report, run_loadtest
 from hdmap.cli.common import add_bus_arguments, bus_from_args
+from hdmap.ops.progress import progress_wanted
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,7 +32,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subscribers", type=int, default=2, help="subscribed vehicles (map readers)")
     p.add_argument("--drain-timeout", type=float, default=120.0)
     p.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON")
-    p.add_argument("--quiet", action="store_true", help="no live progress line")
+    p.add_argument(
+        "--quiet",
+        "--no-progress",
+        dest="quiet",
+        action="store_true",
+        help="no live progress line (also HDMAP_NO_PROGRESS=1)",
+    )
     add_bus_arguments(p)
 
 
@@ -50,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         ),
         bus=bus_from_args(args),
         drain_timeout=args.drain_timeout,
-        progress=not args.quiet,
+        progress=progress_wanted(args.quiet),
     )
     try:
         r = run_loadtest(opts)

@@ -13,6 +13,7 @@ from hdmap.cli.common import add_bus_arguments, bus_from_args, setup_logging
 from hdmap.geo.tiles import DEFAULT_ZOOM, valid_quadkey
 from hdmap.runtime.config import EXIT_CONFIG, ConfigError, from_mapping, load_toml
 from hdmap.runtime.log_policy import GapPolicy, RetentionPolicy
+from hdmap.runtime.metrics import MetricsConfig
 from hdmap.runtime.service import Batching, ServiceOptions, run_until_signalled
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zoom", type=int, default=DEFAULT_ZOOM, help="tile zoom of the deployment")
     p.add_argument("--config", metavar="FILE", help="TOML file; the [NAME] table configures it")
     p.add_argument("--log-level", default="INFO")
+    p.add_argument(
+        "--metrics-port",
+        type=int,
+        metavar="PORT",
+        help="serve Prometheus metrics on http://HOST:PORT/metrics (0: off; default: the "
+        "config file's [NAME.metrics] port, else off)",
+    )
+    p.add_argument(
+        "--metrics-host",
+        metavar="HOST",
+        help="address the metrics endpoint binds (default: [NAME.metrics] host, else "
+        "127.0.0.1: it has no authentication)",
+    )
     add_bus_arguments(p)
 
 
@@ -63,6 +77,7 @@ def service_config(name: str, table: Mapping[str, Any]) -> tuple[Batching, Any]:
     batching = from_mapping(Batching, own.pop("batching", {}), f"{name}.batching")
     own.pop("gaps", None)  # the runtime's too: gap_policy
     own.pop("retention", None)  # and retention_policy
+    own.pop("metrics", None)  # and metrics_config
     module, _cls, cfg_name = SERVICES[name]
     return batching, from_mapping(getattr(importlib.import_module(module), cfg_name), own, name)
 
@@ -89,6 +104,20 @@ def retention_policy(name: str, table: Mapping[str, Any]) -> RetentionPolicy:
     return from_mapping(RetentionPolicy, table.get("retention", {}), f"{name}.retention")
 
 
+def metrics_config(
+    name: str, table: Mapping[str, Any], port: int | None = None, host: str | None = None
+) -> MetricsConfig:
+    """The ``[NAME.metrics]`` subtable of a service's table (:class:`MetricsConfig`), with
+    ``--metrics-port`` / ``--metrics-host`` (when given) over it.
+
+    >>> metrics_config("ingest", {"metrics": {"port": 9101}}, host="0.0.0.0")
+    MetricsConfig(port=9101, host='0.0.0.0')
+    """
+    cfg = from_mapping(MetricsConfig, table.get("metrics", {}), f"{name}.metrics")
+    over = {"port": port, "host": host}
+    return from_mapping(MetricsConfig, {k: v for k, v in over.items() if v is not None}, base=cfg)
+
+
 def build(args: argparse.Namespace):
     for r in args.region:
         if not valid_quadkey(r):
@@ -103,6 +132,12 @@ def build(args: argparse.Namespace):
         batching=batching,
         gaps=gap_policy(args.name, table),
         retention=retention_policy(args.name, table),
+        metrics=metrics_config(
+            args.name,
+            table,
+            getattr(args, "metrics_port", None),
+            getattr(args, "metrics_host", None),
+        ),
         region=tuple(args.region),
         data_dir=Path(args.data_dir),
         bus=bus_from_args(args),

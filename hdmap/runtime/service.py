@@ -50,10 +50,13 @@ import psutil
 import zenoh
 
 from hdmap.geo.tiles import DEFAULT_ZOOM, region_label
+from hdmap.runtime.backoff import Backoff
 from hdmap.runtime.bus import BusConfig, Publishers, open_session
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.heap import TRIM_EVERY_S, trim_heap
 from hdmap.runtime.log_policy import GapPolicy, RetentionPolicy
+from hdmap.runtime.metrics import MetricsConfig
+from hdmap.runtime.metrics_server import ServiceMetrics
 from hdmap.runtime.shards import shard_label
 from hdmap.runtime.store import (
     EXIT_CORRUPT,
@@ -146,6 +149,8 @@ class ServiceOptions:
     """(index, count): this instance serves the keys of its shard only (ingest: vehicles
     by :func:`shard_of` their id); part of the instance's label and data dir when count
     is above 1."""
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    """Where to serve Prometheus metrics (``[NAME.metrics]``, ``--metrics-port``; off)."""
 
 
 @dataclass
@@ -157,52 +162,6 @@ class Item:
     payload: bytes
     query: zenoh.Query | None = None
     received: float = field(default_factory=time.monotonic)
-
-
-@dataclass
-class Backoff:
-    """When a service may try again after transactions that failed on the storage.
-
-    The first failure in a row may be retried at once (a passing lock, a blip); each
-    further one waits ``first_s``, doubling up to ``max_s``; a commit resets it. Times are
-    of the service's clock (:attr:`Service.clock`)."""
-
-    first_s: float = 0.1
-    max_s: float = 5.0
-    failures: int = 0
-    """Storage failures in a row (0 after a commit)."""
-    retry_at: float | None = None
-    """When the next try is due; None when none is owed (no failure, or the retry ran)."""
-
-    def failed(self, now: float) -> float:
-        """One more failure at ``now``: the wait before the next try (also kept)."""
-        self.failures += 1
-        delay = 0.0
-        if self.failures > 1:
-            delay = min(self.max_s, self.first_s * 2.0 ** (self.failures - 2))
-        self.retry_at = now + delay
-        return delay
-
-    def succeeded(self) -> None:
-        """A commit: no wait any more."""
-        self.failures = 0
-        self.retry_at = None
-
-    def waiting(self, now: float) -> bool:
-        """Whether a failed try is still being waited out at ``now``."""
-        return self.retry_at is not None and now < self.retry_at
-
-    def fire(self, now: float) -> bool:
-        """Whether a retry is due at ``now``; if so it is taken (not due again until the
-        next failure)."""
-        if self.retry_at is None or now < self.retry_at:
-            return False
-        self.retry_at = None
-        return True
-
-    def wait_s(self, now: float) -> float:
-        """Seconds until the retry (0 when none is waited for)."""
-        return 0.0 if self.retry_at is None else max(0.0, self.retry_at - now)
 
 
 @dataclass
@@ -280,6 +239,7 @@ class Service:
         self._process = psutil.Process(os.getpid())
         self._declared: list[Any] = []
         self._timers: list[tuple[float, float, Callable[[float], None]]] = []
+        self.metrics = ServiceMetrics(self, opts.metrics)  # binds its port, if it has one
         self.session: zenoh.Session
         self.pubs: Publishers
 
@@ -448,7 +408,11 @@ class Service:
         if (last := self.last_txn_error) is not None:
             counters[f"last_txn_error.{last[0]}"] = last[1]
         counters["cpu_s"] = cpu.user + cpu.system
-        counters["rss_bytes"] = self._process.memory_info().rss
+        mem = self._process.memory_info()
+        counters["rss_bytes"] = mem.rss
+        # Anonymous memory (RssAnon: heap, stacks, caches): RSS less the shared mappings
+        # (files, /dev/shm: Zenoh's shared-memory segment counts in RSS once touched).
+        counters["rss_anon_bytes"] = mem.rss - getattr(mem, "shared", 0)
         counters["rss_peak_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         counters["uptime_s"] = time.time() - self.started_at
         counters = {k: _wire_number(v) for k, v in counters.items()}
@@ -481,8 +445,10 @@ class Service:
                 )
                 self.every(TRIM_EVERY_S, lambda _now: trim_heap())  # RSS follows what is held
                 log.info("%s %s ready (region %s)", self.name, self.instance, self.region_label)
+                self.metrics.start()
                 self._loop(stop)
             finally:
+                self.metrics.close()
                 for d in reversed(self._declared):
                     try:
                         d.undeclare()
@@ -524,11 +490,13 @@ class Service:
         if items:
             with self._stats_lock:
                 self._busy = True
+            began = time.monotonic()
             try:
                 self.handle(items)
             finally:
                 with self._stats_lock:
                     self._busy = False
+                self.metrics.batch_done(items, began)
             self._stop_if_corrupt()
         if self.backoff.fire(self.clock()):
             self.retry()
