@@ -33,13 +33,14 @@ hdmap_x_batch_seconds_count{service="x"} 3
 
 from __future__ import annotations
 
-import bisect
 import itertools
 import math
 import re
 import threading
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from hdmap.runtime.config import ConfigError
 
@@ -181,7 +182,8 @@ class Histogram:
         self.name = name
         self.help = help
         self.bounds = tuple(bounds)
-        self._counts = [0] * (len(bounds) + 1)
+        self._bounds = np.array(bounds)
+        self._counts = np.zeros(len(bounds) + 1, np.int64)
         """Per bucket (not cumulative); the last one is above every bound."""
         self._sum = 0.0
         self._lock = threading.Lock()
@@ -189,20 +191,22 @@ class Histogram:
     def observe(self, value: float) -> None:
         self.observe_many((value,))
 
-    def observe_many(self, values: Iterable[float]) -> None:
-        """Count each value (NaN is ignored) in the first bucket whose bound is >= it."""
+    def observe_many(self, values: Iterable[float] | np.ndarray) -> None:
+        """Count each value (NaN is ignored) in the first bucket whose bound is >= it (an
+        array is counted without a Python step per value)."""
+        v = np.asarray(values if isinstance(values, np.ndarray) else list(values), float)
+        v = v[~np.isnan(v)]
+        if not v.size:
+            return
+        counts = np.bincount(np.searchsorted(self._bounds, v), minlength=self._counts.size)
         with self._lock:
-            for v in values:
-                v = float(v)
-                if math.isnan(v):
-                    continue
-                self._counts[bisect.bisect_left(self.bounds, v)] += 1
-                self._sum += v
+            self._counts += counts
+            self._sum += float(v.sum())
 
     def snapshot(self) -> tuple[list[int], float, int]:
         """(cumulative counts per bound and +Inf, sum, count), consistent with each other."""
         with self._lock:
-            counts, total = list(self._counts), self._sum
+            counts, total = self._counts.tolist(), self._sum
         cumulative, running = [], 0
         for c in counts:
             running += c

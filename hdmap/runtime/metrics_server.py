@@ -20,6 +20,8 @@ from collections.abc import Callable, Sequence
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
+import numpy as np
+
 from hdmap.runtime.config import ConfigError
 from hdmap.runtime.metrics import (
     CONTENT_TYPE,
@@ -126,6 +128,11 @@ class ServiceMetrics:
             "inbox_wait_seconds",
             f"seconds an item waited in the {name} inbox before its batch began",
         )
+        self.ingest_age_seconds = self.histogram(
+            "ingest_age_seconds",
+            "seconds from ingest's receipt of an upload to this service handling what came "
+            "of it (wall clocks: across hosts as good as their synchronisation)",
+        )
         self.server = MetricsServer(config, self.render) if config.enabled else None
 
     def histogram(
@@ -147,6 +154,16 @@ class ServiceMetrics:
         self.batch_seconds.observe(max(now - began, 0.0))
         self.batch_items.observe(len(items))
         self.inbox_wait_seconds.observe_many(max(began - it.received, 0.0) for it in items)
+
+    def ages(self, received_at: Any, now: float | None = None) -> None:
+        """Items the service handles now whose uploads ingest received at ``received_at``
+        (Unix seconds, an array or an iterable; the matcher: per obs entry, the solver:
+        per link, the publisher: per landmark update)."""
+        if not self.enabled:
+            return
+        now = time.time() if now is None else now
+        t = np.asarray(received_at if isinstance(received_at, np.ndarray) else list(received_at))
+        self.ingest_age_seconds.observe_many(np.maximum(now - t.astype(float), 0.0))
 
     def labels(self) -> dict[str, object]:
         s = self._service

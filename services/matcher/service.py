@@ -261,6 +261,7 @@ class MatcherService(StageService):
                 decoded.append((e, ObsGroup.from_bytes(e.body)))
             except DecodeError as exc:
                 self.reject(f"obs.{exc.field}")
+        self.metrics.ages(g.received_at for _e, g in decoded)
         ahead = [self.matching.is_ahead(g.received_at) for _e, g in decoded]
         self._ahead_of = {}
         for i, (e, g) in enumerate(decoded):

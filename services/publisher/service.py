@@ -97,6 +97,7 @@ class PublisherService(StageService):
             except DecodeError as exc:
                 self.reject(f"update.{exc.field}")
                 continue
+            self.metrics.ages(upd.landmarks.source_time)
             self.count("changes", self.maps.apply(e.tile, upd))
 
     def flush(self) -> None:

@@ -275,6 +275,7 @@ class SolverService(StageService):
             except DecodeError as exc:
                 self.reject(f"assoc.{exc.field}")
                 continue
+            self.metrics.ages(g.links.received_at)
             at = self.group_time(g)  # the clock moves, the group's passes are noted, then
             if at is not None and at > self.state.event_time:  # the due ones close
                 self.state.event_time = at

@@ -95,3 +95,27 @@ def test_a_metrics_port_in_use_stops_the_service_as_a_refused_configuration(stac
         assert wait_until(lambda: not p.alive, 60.0)
         assert p.returncode == EXIT_CONFIG
         assert "metrics.port: cannot serve on" in p.log_path.read_text()
+
+
+def test_the_matcher_measures_how_long_after_ingest_it_handles_an_upload(stack) -> None:
+    port = free_port()
+    stack.start_router()
+    stack.start_service("ingest")
+    stack.start_service("matcher", (), "--metrics-port", str(port))
+    stack.wait_ready(["ingest-all", "matcher-all"], 60)
+    with open_session(stack.bus) as s:
+        t0 = time.time()
+        good = ObservationBatch("veh-1", 1, 1, t0, make_observations(20, t=t0 - 5)).to_bytes()
+        assert upload(s, "veh-1", good).error is None
+
+        def applied() -> bool:
+            m = [x for x in collect(s) if x.service == "matcher"]
+            return bool(m) and m[0].counters.get("entries_applied", 0) >= 1
+
+        assert wait_until(applied, 60.0)
+    elapsed = time.time() - t0
+    _ctype, text = scrape(port)
+    n = sample(text, "hdmap_matcher_ingest_age_seconds_count")
+    total = sample(text, "hdmap_matcher_ingest_age_seconds_sum")
+    assert n is not None and n >= 1  # one obs entry per tile the upload touched
+    assert total is not None and 0.0 <= total / n <= elapsed
