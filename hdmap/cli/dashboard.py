@@ -19,8 +19,9 @@ import threading
 import zenoh
 
 from hdmap.cli.common import add_bus_arguments, bus_from_args, positive_float, setup_logging
+from hdmap.geo.area import BBox
 from hdmap.geo.tiles import DEFAULT_ZOOM, MAX_ZOOM, valid_quadkey
-from hdmap.ops.dashboard.geometry import MAX_AREA_TILES, bbox_tiles, parse_bbox
+from hdmap.ops.dashboard.geometry import MAX_AREA_TILES
 from hdmap.ops.dashboard.server import DashboardConfig, serve
 from schemas.codec import valid_id
 
@@ -85,7 +86,7 @@ def area_tiles(args: argparse.Namespace) -> tuple[str, ...]:
     if not 1 <= args.zoom <= MAX_ZOOM:
         raise ValueError(f"--zoom must be in 1..{MAX_ZOOM}")
     if args.bbox:
-        return tuple(bbox_tiles(parse_bbox(args.bbox), args.zoom))
+        return tuple(BBox.parse(args.bbox).tiles(args.zoom, MAX_AREA_TILES))
     tiles = sorted({t.strip() for arg in args.tiles for t in arg.split(",") if t.strip()})
     bad = [t for t in tiles if not valid_quadkey(t, args.zoom)]
     if bad:

@@ -21,8 +21,9 @@ from pathlib import Path
 import zenoh
 
 from hdmap.cli.common import add_bus_arguments, bus_from_args, positive_float
+from hdmap.geo.area import BBox
 from hdmap.geo.tiles import DEFAULT_ZOOM
-from hdmap.ops.export import Bbox, export_map
+from hdmap.ops.export import MAX_TILES, export_map
 from hdmap.ops.export_formats import FORMATS
 from hdmap.ops.progress import Progress, progress_wanted
 from hdmap.runtime.bus import open_session
@@ -58,11 +59,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        bbox = Bbox.parse(args.bbox)
+        bbox = BBox.parse(args.bbox)
+        tiles = bbox.tiles(args.zoom, MAX_TILES)
     except ValueError as exc:
         print(f"hdmap export: {exc}", file=sys.stderr)
         return 2
-    tiles = bbox.tiles(args.zoom)
     bus = bus_from_args(args)
     bar = Progress(len(tiles), "tiles", enabled=progress_wanted(args.no_progress), quiet_s=1.0)
     try:

@@ -1,12 +1,13 @@
 """``hdmap export``: the published map of an area, fetched from the running publishers.
 
 The area is a bounding box (min lon, min lat, max lon, max lat, WGS84 degrees). Its tiles
-at the deployment's zoom are enumerated (``mercantile.tiles``, edges included), and each
-tile's snapshot is asked for on ``hdmap/v1/map/<tile>/by/hdmap-export``
-(:func:`schemas.keys.map_snapshot_for`: the export has a snapshot budget of its own at the
-publishers, and a secured deployment's ``operator`` identity may query it). The
-publishers offer no index of the tiles they hold (their stats count them; no query lists
-them), so the bounding box is required: there is no "everything" export.
+at the deployment's zoom are enumerated (:meth:`hdmap.geo.area.BBox.tiles`, edges included;
+at most :data:`MAX_TILES`), and each tile's snapshot is asked for on
+``hdmap/v1/map/<tile>/by/hdmap-export`` (:func:`schemas.keys.map_snapshot_for`: the export
+has a snapshot budget of its own at the publishers, and a secured deployment's
+``operator`` identity may query it). The publishers offer no index of the tiles they hold
+(their stats count them; no query lists them), so the bounding box is required: there is
+no "everything" export.
 
 Snapshots are fetched :data:`WINDOW` at a time; a refusal for rate (the publisher's
 per-client budget, ``[publisher.snapshots]``) is waited out as the publisher says and asked
@@ -24,11 +25,11 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import mercantile
 import numpy as np
 import zenoh
 
-from hdmap.geo.tiles import DEFAULT_ZOOM, MAX_LAT
+from hdmap.geo.area import BBox
+from hdmap.geo.tiles import DEFAULT_ZOOM
 from hdmap.ops.export_formats import ExportRow, export_rows, render
 from schemas import DecodeError, ErrorReply, MapSnapshot, keys
 from schemas.map import MapLandmarks, as_map_landmarks
@@ -43,63 +44,6 @@ Helsinki; at the publisher's per-client rate of 20 snapshots/s, 3.5 minutes): ex
 large area in parts."""
 QUERY_TIMEOUT_S = 5.0
 """How long one snapshot query waits for its answers (less if the deadline is nearer)."""
-
-
-@dataclass(frozen=True)
-class Bbox:
-    """A bounding box in WGS84 degrees (west, south, east, north); no antimeridian crossing."""
-
-    west: float
-    south: float
-    east: float
-    north: float
-
-    @classmethod
-    def parse(cls, text: str) -> Bbox:
-        """``minlon,minlat,maxlon,maxlat``; ValueError saying what is wrong.
-
-        >>> Bbox.parse("24.9,60.1,25.0,60.2")
-        Bbox(west=24.9, south=60.1, east=25.0, north=60.2)
-        >>> Bbox.parse("25,60,24,61")
-        Traceback (most recent call last):
-        ...
-        ValueError: --bbox '25,60,24,61': need minlon < maxlon (no antimeridian crossing)
-        """
-        parts = text.split(",")
-        try:
-            w, s, e, n = (float(p) for p in parts)
-        except ValueError:
-            raise ValueError(f"--bbox {text!r}: need minlon,minlat,maxlon,maxlat") from None
-        if not all(np.isfinite([w, s, e, n])):
-            raise ValueError(f"--bbox {text!r}: not finite")
-        if not (-180.0 <= w <= 180.0 and -180.0 <= e <= 180.0):
-            raise ValueError(f"--bbox {text!r}: longitudes must be in [-180, 180]")
-        if not (-MAX_LAT <= s <= MAX_LAT and -MAX_LAT <= n <= MAX_LAT):
-            raise ValueError(
-                f"--bbox {text!r}: latitudes must be in [-85.05, 85.05] (Web Mercator)"
-            )
-        if not w < e:
-            raise ValueError(f"--bbox {text!r}: need minlon < maxlon (no antimeridian crossing)")
-        if not s < n:
-            raise ValueError(f"--bbox {text!r}: need minlat < maxlat")
-        return cls(w, s, e, n)
-
-    def as_tuple(self) -> tuple[float, float, float, float]:
-        return self.west, self.south, self.east, self.north
-
-    def tiles(self, zoom: int = DEFAULT_ZOOM) -> list[str]:
-        """Quadkeys of the tiles at ``zoom`` that touch the box (edges included).
-
-        >>> Bbox(24.94, 60.17, 24.9401, 60.1701).tiles(16)
-        ['1201202110133102']
-        """
-        found = mercantile.tiles(self.west, self.south, self.east, self.north, zoom)
-        return sorted(mercantile.quadkey(t) for t in found)
-
-    def contains(self, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
-        """Which points are inside the box (edges included)."""
-        lat, lon = np.asarray(lat, float), np.asarray(lon, float)
-        return (lon >= self.west) & (lon <= self.east) & (lat >= self.south) & (lat <= self.north)
 
 
 @dataclass
@@ -190,7 +134,7 @@ def fetch_snapshots(
     return out
 
 
-def landmarks_in(fetched: Fetched, bbox: Bbox) -> MapLandmarks:
+def landmarks_in(fetched: Fetched, bbox: BBox) -> MapLandmarks:
     """The landmarks of the fetched snapshots inside ``bbox``, one row per id (its newest
     revision), sorted by id."""
     parts = [s.landmarks for s in fetched.snapshots.values() if len(s.landmarks)]
@@ -217,7 +161,7 @@ class Export:
 
 def export_map(
     session: zenoh.Session,
-    bbox: Bbox,
+    bbox: BBox,
     fmt: str,
     zoom: int = DEFAULT_ZOOM,
     timeout_s: float = 60.0,
@@ -225,11 +169,12 @@ def export_map(
     tiles: Sequence[str] | None = None,
 ) -> Export:
     """Fetch the box's tiles and format their landmarks in ``fmt`` (``geojson``, ``osm``,
-    ``csv``). ValueError when the box holds more than :data:`MAX_TILES` tiles."""
-    tiles = list(tiles) if tiles is not None else bbox.tiles(zoom)
-    if len(tiles) > MAX_TILES:
+    ``csv``), ``tiles`` those of the box at ``zoom`` unless given. ValueError beyond
+    :data:`MAX_TILES` tiles."""
+    tiles = bbox.tiles(zoom, MAX_TILES) if tiles is None else list(tiles)
+    if len(tiles) > MAX_TILES:  # a list of the caller's
         raise ValueError(
-            f"the box covers {len(tiles)} tiles at zoom {zoom}, more than {MAX_TILES}: "
+            f"the box covers {len(tiles)} tiles at zoom {zoom}; at most {MAX_TILES}: "
             "export it in parts"
         )
     fetched = fetch_snapshots(session, tiles, timeout_s, on_tile=on_tile)

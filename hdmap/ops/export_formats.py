@@ -6,9 +6,9 @@ One :class:`ExportRow` per landmark (:func:`export_rows`) carries what every for
   not OSM's ``ele``, which is above sea level);
 - the horizontal uncertainty: the 2x2 east/north block of the landmark's ENU covariance
   (m^2: ``cov_ee``, ``cov_en``, ``cov_nn``), ``sigma_m`` the 1-sigma along its major axis,
-  and the 95 % ellipse: semi-axes ``sqrt(k^2 lambda)`` with ``k^2 = -2 ln 0.05 = 5.991``
-  (the chi-square(2) 0.95 quantile, closed form for 2 dof) and the major axis's azimuth,
-  degrees clockwise from North in [0, 180); ``sigma_h_m`` the vertical 1-sigma;
+  and the 95 % ellipse (:mod:`hdmap.geo.ellipse`): semi-axes ``sqrt(k^2 lambda)`` with
+  ``k^2 = -2 ln 0.05 = 5.991`` (the chi-square(2) 0.95 quantile) and the major axis's
+  azimuth, degrees clockwise from North in [0, 180); ``sigma_h_m`` the vertical 1-sigma;
 - the facing: ``facing_deg``, the azimuth (degrees clockwise from true North) the sign is
   *seen from*, i.e. from the sign toward the cameras that saw it, and its sigma; None where
   unknown (:class:`schemas.map.MapLandmarks`);
@@ -49,8 +49,6 @@ panel's normal for a roadside sign: ``hdmap:direction_sigma_deg`` gives its sigm
 
 >>> osm_direction(359.6), osm_direction(0.4), osm_direction(None)
 (0, 0, None)
->>> [round(v, 3) for v in ellipse95(4.0, 0.0, 1.0)]  # sigma_E 2 m, sigma_N 1 m
-[4.895, 2.448, 90.0]
 """
 
 from __future__ import annotations
@@ -66,6 +64,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from hdmap.geo.ellipse import CHI2_2DOF_95, ellipse_axes, horizontal_cov
 from hdmap.geo.signs import CATALOG, SignCatalog, UnknownSignClass
 from schemas.map import MapLandmarks, as_map_landmarks
 from schemas.tables import (
@@ -78,8 +77,6 @@ from schemas.tables import (
 )
 
 FORMATS = ("geojson", "osm", "csv")
-CHI2_2DOF_95 = -2.0 * math.log(0.05)
-"""chi-square(2) 0.95 quantile (5.9915): the 95 % region of a 2-D normal."""
 GENERATOR = "hdmap"
 COORD_DECIMALS = 7
 """Degrees are written with 7 decimals: 1e-7 degree is 1.1 cm (OSM's own precision)."""
@@ -160,21 +157,6 @@ def iso_utc(t: float) -> str | None:
     return when.replace("+00:00", "Z")
 
 
-def ellipse95(ee: float, en: float, nn: float) -> tuple[float, float, float]:
-    """(major, minor semi-axis m, azimuth of the major axis in degrees clockwise from North,
-    in [0, 180)) of the 95 % ellipse of the east/north covariance ``[[ee, en], [en, nn]]``.
-
-    >>> [round(v, 3) for v in ellipse95(1.0, 0.9, 1.0)]  # correlated: along north-east
-    [3.374, 0.774, 45.0]
-    """
-    half_sum, half_diff = (ee + nn) / 2.0, (ee - nn) / 2.0
-    r = math.hypot(half_diff, en)
-    lam1, lam2 = max(half_sum + r, 0.0), max(half_sum - r, 0.0)
-    theta = 0.5 * math.atan2(2.0 * en, ee - nn)  # the major axis, from East counter-clockwise
-    azimuth = (90.0 - math.degrees(theta)) % 180.0
-    return math.sqrt(CHI2_2DOF_95 * lam1), math.sqrt(CHI2_2DOF_95 * lam2), azimuth
-
-
 def osm_direction(facing_deg: float | None) -> int | None:
     """OSM's ``direction`` of a sign node (the way its front faces, 0-359) from our facing
     (the azimuth it is seen from: the same side, see the module doc); None if unknown."""
@@ -196,13 +178,15 @@ def export_rows(lm: Landmarks, catalog: SignCatalog = CATALOG) -> list[ExportRow
     retired are left out (revoked ones are not in a snapshot at all)."""
     m: MapLandmarks = as_map_landmarks(lm)
     az, az_sigma, known = m.facing()
+    cov_en = horizontal_cov(m.cov)
+    major, minor, major_az = ellipse_axes(cov_en, 0.95)
+    sigma = major / math.sqrt(CHI2_2DOF_95)
     out = []
     for i in np.argsort(m.id, kind="stable"):
         status = int(m.status[i])
         if status == STATUS_RETIRED:
             continue
-        ee, en, _eu, nn, _nu, uu = (float(v) for v in m.cov[i])
-        major, minor, azimuth = ellipse95(ee, en, nn)
+        ee, en, nn = (float(v) for v in cov_en[i])
         name, osm = _class_names(int(m.sign_class[i]), catalog)
         state = int(m.exist_state[i])
         out.append(
@@ -217,11 +201,11 @@ def export_rows(lm: Landmarks, catalog: SignCatalog = CATALOG) -> list[ExportRow
                 cov_ee_m2=ee,
                 cov_en_m2=en,
                 cov_nn_m2=nn,
-                sigma_m=major / math.sqrt(CHI2_2DOF_95),
-                ellipse95_major_m=major,
-                ellipse95_minor_m=minor,
-                ellipse95_azimuth_deg=azimuth,
-                sigma_h_m=math.sqrt(max(uu, 0.0)),
+                sigma_m=float(sigma[i]),
+                ellipse95_major_m=float(major[i]),
+                ellipse95_minor_m=float(minor[i]),
+                ellipse95_azimuth_deg=float(major_az[i]),
+                sigma_h_m=math.sqrt(max(float(m.cov[i, 5]), 0.0)),
                 facing_deg=float(az[i]) if known[i] else None,
                 facing_sigma_deg=float(az_sigma[i]) if known[i] else None,
                 status=STATUS_NAMES.get(status, str(status)),

@@ -1,7 +1,7 @@
-"""What the dashboard draws (:mod:`hdmap.ops.dashboard.geometry`): 95 % ellipses from
-known covariances, facing arrows, the GeoJSON of a landmark, the area's tiles and the
-health panel's rates. References are independent: scipy's chi-square quantile, numpy's
-eigen-decomposition, pyproj's geodesic (WGS84) for metre offsets.
+"""What the dashboard draws (:mod:`hdmap.ops.dashboard.geometry`): 95 % ellipse rings from
+known covariances (their axes: tests/unit/test_ellipse.py), facing arrows, the GeoJSON of a
+landmark, the area's tiles and the health panel's rates. References are independent:
+scipy's chi-square quantile, pyproj's geodesic (WGS84) for metre offsets.
 """
 
 from __future__ import annotations
@@ -15,16 +15,15 @@ from scipy.stats import chi2
 
 from hdmap.cli import build_parser
 from hdmap.cli.dashboard import area_tiles
+from hdmap.geo.area import BBox
+from hdmap.geo.ellipse import CHI2_2DOF_95
 from hdmap.ops.dashboard.geometry import (
-    CHI2_2DOF_95,
-    bbox_tiles,
-    ellipse_axes,
+    MAX_AREA_TILES,
     ellipse_rings,
     facing_arrow,
     landmark_features,
     metres_to_degrees,
     offset_point,
-    parse_bbox,
     service_row,
     status_label,
 )
@@ -66,54 +65,6 @@ def enu_offsets(ring: np.ndarray) -> np.ndarray:
     )
     a = np.radians(az)
     return np.stack([dist * np.sin(a), dist * np.cos(a)], axis=1)
-
-
-def test_the_95_percent_level_is_the_chi_square_2_quantile():
-    assert CHI2_2DOF_95 == pytest.approx(chi2.ppf(0.95, 2), rel=1e-12)
-
-
-def test_axes_of_an_axis_aligned_covariance():
-    # sigma_E 3 m, sigma_N 1 m: semi-axes 3 k and 1 k, the major one East (azimuth 90)
-    major, minor, az = ellipse_axes(np.array([[9.0, 0.0, 1.0]]))
-    k = math.sqrt(chi2.ppf(0.95, 2))
-    assert major[0] == pytest.approx(3.0 * k, rel=1e-12)
-    assert minor[0] == pytest.approx(1.0 * k, rel=1e-12)
-    assert az[0] == pytest.approx(90.0)
-    # sigma_N the larger one: the major axis points North (azimuth 0)
-    _, _, az = ellipse_axes(np.array([[1.0, 0.0, 9.0]]))
-    assert az[0] == pytest.approx(0.0)
-
-
-def test_axes_of_a_rotated_covariance_match_its_eigen_decomposition():
-    rng = np.random.default_rng(3)
-    for _ in range(50):
-        a = rng.normal(size=(2, 2)) * rng.uniform(0.1, 5.0)
-        c = a @ a.T
-        major, minor, az = ellipse_axes(np.array([[c[0, 0], c[0, 1], c[1, 1]]]))
-        w, v = np.linalg.eigh(c)
-        k2 = chi2.ppf(0.95, 2)
-        assert major[0] == pytest.approx(math.sqrt(k2 * w[1]), rel=1e-9)
-        assert minor[0] == pytest.approx(math.sqrt(k2 * max(w[0], 0.0)), rel=1e-6, abs=1e-9)
-        e, n = v[:, 1]  # the major eigenvector (east, north)
-        expected = math.degrees(math.atan2(e, n)) % 180.0
-        diff = (az[0] - expected + 90.0) % 180.0 - 90.0  # an axis: 0 and 180 are one
-        assert abs(diff) < 1e-6
-
-
-def test_a_known_rotated_ellipse():
-    # major axis along azimuth 30 (clockwise from North), sigmas 4 m and 1 m
-    t = math.radians(30.0)
-    u, v = np.array([math.sin(t), math.cos(t)]), np.array([-math.cos(t), math.sin(t)])
-    c = 16.0 * np.outer(u, u) + 1.0 * np.outer(v, v)
-    major, minor, az = ellipse_axes(np.array([[c[0, 0], c[0, 1], c[1, 1]]]))
-    k = math.sqrt(chi2.ppf(0.95, 2))
-    assert (major[0], minor[0], az[0]) == pytest.approx((4.0 * k, 1.0 * k, 30.0))
-
-
-def test_degenerate_covariances_give_finite_axes():
-    major, minor, _ = ellipse_axes(np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 4.0], [1.0, 1.0, 1.0]]))
-    assert np.isfinite(major).all() and np.isfinite(minor).all()
-    assert major[0] == 0.0 and minor[2] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_ring_vertices_lie_on_the_95_percent_contour():
@@ -189,17 +140,6 @@ def test_status_labels():
     assert status_label(2, 1) == "retired"
 
 
-def test_bbox_tiles_and_its_limit():
-    bbox = parse_bbox("24.93,60.165,24.95,60.175")
-    tiles = bbox_tiles(bbox, 16)
-    assert tiles and all(len(t) == 16 for t in tiles)
-    with pytest.raises(ValueError, match="at most 10"):
-        bbox_tiles(bbox, 18, limit=10)
-    for bad in ("1,2,3", "25,60,24,61", "a,b,c,d", "0,89,1,90"):
-        with pytest.raises(ValueError):
-            parse_bbox(bad)
-
-
 def stats(accepted: float, rejected: float, service: str = "ingest") -> Stats:
     counters = {"backlog": 3, "rejected": rejected, "uptime_s": 10.0}
     counters["accepted" if service == "ingest" else "entries_applied"] = accepted
@@ -222,7 +162,7 @@ def test_the_cli_area():
     def parse(*argv: str):
         return build_parser("dashboard").parse_args(["dashboard", *argv])
 
-    town = bbox_tiles(parse_bbox("24.938,60.169,24.941,60.171"), 16)
+    town = BBox.parse("24.938,60.169,24.941,60.171").tiles(16, MAX_AREA_TILES)
     assert area_tiles(parse("--bbox", "24.938,60.169,24.941,60.171")) == tuple(town)
     assert area_tiles(parse("--tiles", f"{town[-1]},{town[0]}", "--tiles", town[0])) == (
         town[0],

@@ -12,14 +12,14 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
+from hdmap.geo.area import BBox
+from hdmap.geo.ellipse import CHI2_2DOF_95
 from hdmap.geo.signs import CATALOG, SignCatalog, SignClass
-from hdmap.ops.export import Bbox, Fetched, landmarks_in
+from hdmap.ops.export import Fetched, landmarks_in
 from hdmap.ops.export_formats import (
-    CHI2_2DOF_95,
     CSV_COLUMNS,
     ExportRow,
     csv_text,
-    ellipse95,
     export_rows,
     geojson,
     osm_direction,
@@ -118,23 +118,6 @@ def test_ids_beyond_2_53_survive_as_strings() -> None:
 
 
 # -- the uncertainty ----------------------------------------------------------------------------
-
-
-def test_ellipse_axes_and_azimuth_match_an_eigen_decomposition() -> None:
-    rng = np.random.default_rng(5)
-    for _ in range(200):
-        a = rng.normal(0, 2, (2, 2))
-        cov = a @ a.T + np.eye(2) * 1e-3
-        ee, en, nn = cov[0, 0], cov[0, 1], cov[1, 1]
-        major, minor, az = ellipse95(ee, en, nn)
-        lam, vec = np.linalg.eigh(cov)
-        assert major == pytest.approx(math.sqrt(CHI2_2DOF_95 * lam[1]), rel=1e-9)
-        assert minor == pytest.approx(math.sqrt(CHI2_2DOF_95 * lam[0]), rel=1e-9, abs=1e-12)
-        assert 0 <= az < 180
-        # the major axis's direction (east, north) = (sin az, cos az) is the eigenvector
-        d = np.array([math.sin(math.radians(az)), math.cos(math.radians(az))])
-        assert abs(float(d @ vec[:, 1])) == pytest.approx(1.0, abs=1e-6)
-    assert CHI2_2DOF_95 == pytest.approx(5.991464547107979)
 
 
 def test_sigma_is_the_major_axis_one_sigma_and_isotropic_has_azimuth_0_to_180() -> None:
@@ -284,10 +267,10 @@ def test_landmarks_in_keeps_the_box_and_the_newest_revision_of_each_id() -> None
     lm.revision[:] = np.array([1, 1, 7, 9, 1, 1], np.uint64)
     a = MapSnapshot("0" * 16, 3, lm.take(np.arange(3)))
     b = MapSnapshot("1" * 16, 5, lm.take(np.arange(3, 6)))
-    got = landmarks_in(Fetched(snapshots={"a": a, "b": b}), Bbox(24.9, 60.12, 25.0, 60.2))
+    got = landmarks_in(Fetched(snapshots={"a": a, "b": b}), BBox(24.9, 60.12, 25.0, 60.2))
     assert got.id.tolist() == [2, 3, 5]  # 1 is south of the box, 4 north of it
     assert int(got.revision[got.id == 3][0]) == 9
-    assert len(landmarks_in(Fetched(), Bbox(24.9, 60.12, 25.0, 60.2))) == 0
+    assert len(landmarks_in(Fetched(), BBox(24.9, 60.12, 25.0, 60.2))) == 0
 
 
 def test_a_landmarks_table_without_facing_or_existence_exports_as_unknown() -> None:
@@ -297,16 +280,3 @@ def test_a_landmarks_table_without_facing_or_existence_exports_as_unknown() -> N
     for r in export_rows(plain):
         assert r.facing_deg is None and r.exist_state == "unknown" and r.p_exist is None
         assert r.first_seen is None
-
-
-def test_bbox_parse_refuses_what_it_cannot_export() -> None:
-    for bad in ("1,2,3", "a,b,c,d", "10,60,9,61", "10,61,11,60", "10,86,11,87", "nan,1,2,3"):
-        with pytest.raises(ValueError, match="--bbox"):
-            Bbox.parse(bad)
-    box = Bbox.parse("24.93,60.16,24.96,60.18")
-    tiles = box.tiles(16)
-    assert tiles and all(len(t) == 16 for t in tiles)
-    assert box.contains(np.array([60.17, 60.2]), np.array([24.94, 24.94])).tolist() == [
-        True,
-        False,
-    ]

@@ -1,9 +1,8 @@
 """What the dashboard draws, computed from landmark rows: no I/O, no bus, no state.
 
-- **95 % ellipse** of a landmark's horizontal position: the 2x2 east/north block of its
-  ENU covariance (``Landmarks.cov`` = ee en eu nn nu uu, m^2), scaled to the
-  chi-square(2) 0.95 quantile ``k^2 = -2 ln 0.05 = 5.991`` (for 2 dof the quantile has that
-  closed form): semi-axes ``sqrt(k^2 lambda_i)`` along the eigenvectors.
+- **95 % ellipse** of a landmark's horizontal position: its semi-axes and azimuth from
+  :mod:`hdmap.geo.ellipse` (the east/north block of its ENU covariance, scaled to the
+  chi-square(2) 0.95 quantile), drawn as a ring of vertices around it.
 - **facing arrow**: a short line from the landmark along its facing azimuth (the direction
   the sign is *seen from*, degrees clockwise from true North,
   :class:`schemas.map.MapLandmarks`, :mod:`hdmap.mapping.facing`), with a head at the tip;
@@ -12,10 +11,6 @@
   first order; the offsets are metres, the error is far below a millimetre);
 - the GeoJSON features of a landmark (``kind`` point / ellipse / arrow), its display
   status, and a service's row of the health panel from its :class:`schemas.Stats`.
-
->>> a, b, az = ellipse_axes(np.array([[4.0, 0.0, 1.0]]))  # sigma_E 2 m, sigma_N 1 m
->>> round(float(a[0]), 3), round(float(b[0]), 3), round(float(az[0]), 1)
-(4.895, 2.448, 90.0)
 """
 
 from __future__ import annotations
@@ -29,58 +24,23 @@ import mercantile
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hdmap.geo.ellipse import ellipse_axes, horizontal_cov
 from schemas import Stats
 from schemas.map import MapLandmarks, as_map_landmarks
 from schemas.tables import STATUS_CANDIDATE, STATUS_RETIRED
 
 Array = NDArray[np.float64]
 
-CHI2_2DOF_95 = -2.0 * math.log(0.05)
-"""chi-square(2) 0.95 quantile (5.9915): the 95 % region of a 2-D normal."""
 WGS84_A = 6_378_137.0
 WGS84_E2 = 6.694379990141317e-3
 STATUSES = ("candidate", "located", "confirmed", "doubtful", "retired")
 """Display statuses (:func:`status_label`), in the legend's order."""
 MAX_AREA_TILES = 4096
-"""Most tiles a ``--bbox`` may cover (each is one subscription and one snapshot)."""
+"""Most tiles the area may cover (``--bbox``, ``--tiles``, the tiles followed without
+one): each is one subscription and one snapshot."""
 
 
 # -- ellipses and arrows -----------------------------------------------------------------
-
-
-def chi2_2dof(level: float) -> float:
-    """chi-square(2) quantile at ``level``: ``-2 ln(1 - level)``.
-
-    >>> round(chi2_2dof(0.95), 4), round(chi2_2dof(0.3934693), 4)
-    (5.9915, 1.0)
-    """
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
-    return -2.0 * math.log1p(-level)
-
-
-def horizontal_cov(cov6: ArrayLike) -> Array:
-    """(N, 3) east-east, east-north, north-north of (N, 6) ENU covariances (ee en eu nn nu
-    uu)."""
-    c = np.asarray(cov6, float).reshape(-1, 6)
-    return np.stack([c[:, 0], c[:, 1], c[:, 3]], axis=1)
-
-
-def ellipse_axes(cov_en: ArrayLike, level: float = 0.95) -> tuple[Array, Array, Array]:
-    """(semi-major m, semi-minor m, azimuth of the major axis in degrees clockwise from North
-    in [0, 180)) of the ``level`` ellipses of (N, 3) covariances (ee, en, nn) in m^2.
-
-    Non-finite entries count as 0; a negative eigenvalue (rounding) as 0."""
-    c = np.nan_to_num(np.asarray(cov_en, float).reshape(-1, 3), nan=0.0, posinf=0.0, neginf=0.0)
-    ee, en, nn = c[:, 0], c[:, 1], c[:, 2]
-    mean = 0.5 * (ee + nn)
-    half = np.hypot(0.5 * (ee - nn), en)
-    k2 = chi2_2dof(level)
-    major = np.sqrt(k2 * np.maximum(mean + half, 0.0))
-    minor = np.sqrt(k2 * np.maximum(mean - half, 0.0))
-    theta = 0.5 * np.arctan2(2.0 * en, ee - nn)  # major axis, radians from East toward North
-    azimuth = np.mod(90.0 - np.degrees(theta), 180.0)
-    return major, minor, azimuth
 
 
 def metres_to_degrees(lat: ArrayLike, d_east: ArrayLike, d_north: ArrayLike) -> tuple[Array, Array]:
@@ -239,50 +199,7 @@ def feature_collection(features: list[dict[str, Any]]) -> dict[str, Any]:
     return {"type": "FeatureCollection", "features": features}
 
 
-# -- area ----------------------------------------------------------------------------------
-
-
-def parse_bbox(text: str) -> tuple[float, float, float, float]:
-    """``minlon,minlat,maxlon,maxlat`` -> floats, checked.
-
-    >>> parse_bbox("24.9,60.1,25.0,60.2")
-    (24.9, 60.1, 25.0, 60.2)
-    """
-    try:
-        parts = tuple(float(p) for p in text.split(","))
-    except ValueError:
-        parts = ()
-    if len(parts) != 4 or not all(math.isfinite(p) for p in parts):
-        raise ValueError(f"need minlon,minlat,maxlon,maxlat, got {text!r}")
-    w, s, e, n = parts
-    if not (-180.0 <= w < e <= 180.0 and -85.05 <= s < n <= 85.05):
-        raise ValueError(
-            f"need -180 <= minlon < maxlon <= 180, -85 <= minlat < maxlat <= 85: {text!r}"
-        )
-    return w, s, e, n
-
-
-def bbox_tiles(
-    bbox: tuple[float, float, float, float], zoom: int, limit: int = MAX_AREA_TILES
-) -> list[str]:
-    """Quadkeys of the tiles at ``zoom`` touching ``bbox`` (w, s, e, n); ValueError beyond
-    ``limit`` tiles."""
-    w, s, e, n = bbox
-    ul = mercantile.tile(w, n, zoom)
-    lr = mercantile.tile(e, s, zoom)
-    count = (lr.x - ul.x + 1) * (lr.y - ul.y + 1)
-    if count > limit:
-        raise ValueError(f"the box covers {count} tiles at zoom {zoom}; at most {limit}")
-    return sorted(mercantile.quadkey(t) for t in mercantile.tiles(w, s, e, n, zoom))
-
-
-def tiles_bounds(tiles: list[str]) -> list[float] | None:
-    """[w, s, e, n] around quadkeys, None for none."""
-    if not tiles:
-        return None
-    b = [mercantile.bounds(mercantile.quadkey_to_tile(t)) for t in tiles]
-    return [min(x.west for x in b), min(x.south for x in b), max(x.east for x in b),
-            max(x.north for x in b)]  # fmt: skip
+# -- tiles ---------------------------------------------------------------------------------
 
 
 def tile_features(versions: dict[str, int]) -> list[dict[str, Any]]:

@@ -45,6 +45,7 @@ from typing import Any
 
 import zenoh
 
+from hdmap.geo.area import BBox
 from hdmap.geo.tiles import DEFAULT_ZOOM
 from hdmap.ops.dashboard.geometry import (
     MAX_AREA_TILES,
@@ -52,7 +53,6 @@ from hdmap.ops.dashboard.geometry import (
     feature_collection,
     service_row,
     tile_features,
-    tiles_bounds,
 )
 from hdmap.ops.dashboard.view import MapView
 from hdmap.ops.status import collect
@@ -268,9 +268,10 @@ class Dashboard:
 
     def tiles_json(self) -> dict[str, Any]:
         versions = self.client.versions()
+        around = BBox.of_tiles(versions)
         return {
             "tiles": feature_collection(tile_features(versions)),
-            "bounds": tiles_bounds(sorted(versions)),
+            "bounds": None if around is None else list(around.as_tuple()),
         }
 
     # -- stats ------------------------------------------------------------------------------
