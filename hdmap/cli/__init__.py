@@ -23,7 +23,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "export": ("hdmap.cli.export", "the published map of an area as GeoJSON, OSM XML or CSV"),
     "dashboard": ("hdmap.cli.dashboard", "a live web page of the map and the services' health"),
     "region": ("hdmap.cli.region", "split a live region into sub-regions, or merge regions"),
-    "eval": ("hdmap.cli.eval", "accuracy evaluations (paper simulation, fleet)"),
+    "eval": (
+        "hdmap.cli.eval",
+        "evaluations (paper simulation, fleet, map changes, localisation against the map)",
+    ),
     "loadtest": ("hdmap.cli.loadtest", "a simulated fleet against a running stack"),
     "calibrate-gnss": (
         "hdmap.cli.calibrate",

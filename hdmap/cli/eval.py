@@ -12,6 +12,10 @@ registered in :data:`EVALUATIONS`):
   that follows the map drives a town: passes until the map shows each change, false and
   rogue revocations (``DIR/changes.json``, ``DIR/changes.png``;
   :mod:`fleetsim.evaluation.changes_runs`).
+- ``localize``: a vehicle localised against the map its fleet built (detections matched
+  to the map's landmarks, the GNSS offset estimated): raw GNSS against map-aided errors,
+  coverage of the reported 95 % ellipse, share of time with a map-aided fix
+  (``DIR/localize.json``, ``DIR/localize.png``; :mod:`fleetsim.evaluation.localize_runs`).
 
 The evaluation modules are imported when a command runs, so ``hdmap eval --help`` stays
 fast.
@@ -250,6 +254,41 @@ def run_changes_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_localize_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument(
+        "--gnss",
+        choices=["fleet", "gsdc"],
+        default="fleet",
+        help="GNSS errors of the fleet and the localised vehicles: the simulated receiver "
+        "(default) or real phone errors replayed (GSDC 2020, fleetsim/gnss_replay.py)",
+    )
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--seeds", type=seed_list, metavar="S,S,...", help="several seeds, pooled")
+    p.add_argument(
+        "--map-passes", type=positive_int, default=None, help="passes that build the map (300)"
+    )
+    p.add_argument(
+        "--held-out", type=positive_int, default=None, help="passes localised per seed (16)"
+    )
+    p.add_argument("--quick", action="store_true", help="small run for the test suite")
+
+
+def run_localize_command(args: argparse.Namespace) -> int:
+    from fleetsim.evaluation.localize_eval import LocalizeEvalConfig
+    from fleetsim.evaluation.localize_runs import run_localize_job
+
+    out = Path(args.out)
+    cfg = LocalizeEvalConfig.quick(out) if args.quick else LocalizeEvalConfig(out)
+    cfg = replace(cfg, gnss=args.gnss, seeds=tuple(args.seeds or (args.seed,)))
+    if args.map_passes is not None:
+        cfg = replace(cfg, map_passes=args.map_passes)
+    if args.held_out is not None:
+        cfg = replace(cfg, held_out=args.held_out)
+    run_localize_job(cfg)
+    return 0
+
+
 EVALUATIONS: dict[str, tuple[Callable, Callable, str]] = {
     "changes": (
         add_changes_arguments,
@@ -260,6 +299,11 @@ EVALUATIONS: dict[str, tuple[Callable, Callable, str]] = {
         add_fleet_arguments,
         run_fleet_command,
         "central Helsinki through the real pipeline: error, coverage, recall per passes",
+    ),
+    "localize": (
+        add_localize_arguments,
+        run_localize_command,
+        "a vehicle localised against its fleet's map: raw GNSS vs map-aided, coverage",
     ),
     "paper-sim": (
         add_paper_sim_arguments,
