@@ -233,7 +233,13 @@ def add_changes_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--seeds", type=seed_list, help="several seeds, one after another (0,1,2,3)")
     p.add_argument("--passes", type=positive_int, default=480, help="passes of the fleet")
-    p.add_argument("--rounds", type=positive_int, default=48, help="checks of the map")
+    p.add_argument(
+        "--rounds",
+        type=positive_int,
+        default=48,
+        help="checks of the map (48: every 10 passes; as many as --passes: after every pass, "
+        "exact passes to reflect a change, about 4x the time)",
+    )
     p.add_argument("--vehicles", type=positive_int, default=8)
     p.add_argument("--no-rogue", action="store_true", help="no vehicle turns blind")
     p.add_argument("--quick", action="store_true", help="small run for the test suite")
