@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from hdmap.cli.common import add_bus_arguments, bus_from_args
+from hdmap.cli.common import add_bus_arguments, bus_from_args, bus_unreachable
 from hdmap.cli.service import service_config
 from hdmap.geo.geodesy import EnuFrame
 from hdmap.geo.signs import CATALOG, UnknownSignClass
@@ -147,8 +147,7 @@ def run(args: argparse.Namespace) -> int:
             finally:
                 client.close()
     except zenoh.ZError as exc:
-        print(f"calibrate-map: cannot reach the bus: {exc}", file=sys.stderr)
-        return 2
+        return bus_unreachable("hdmap calibrate-map", bus, exc)
     try:
         art = floor_from_map(lms, ctl, ctl_class, args, solver)
     except ValueError as exc:

@@ -30,6 +30,14 @@ def bus_from_args(args: argparse.Namespace) -> BusConfig:
     return BusConfig(mode=args._bus_mode, connect=connect, config_file=config_file)
 
 
+def bus_unreachable(command: str, bus: BusConfig, exc: Exception) -> int:
+    """One line on stderr for a bus that cannot be reached (no router there), not a
+    traceback; the exit status to return (2)."""
+    where = ", ".join(bus.connect) or "the configured endpoints"
+    print(f"{command}: cannot reach the bus at {where}: {exc}", file=sys.stderr)
+    return 2
+
+
 def setup_logging(level: str = "INFO") -> None:
     logging.basicConfig(
         level=getattr(logging, level.upper(), logging.INFO),

@@ -18,7 +18,13 @@ import threading
 
 import zenoh
 
-from hdmap.cli.common import add_bus_arguments, bus_from_args, positive_float, setup_logging
+from hdmap.cli.common import (
+    add_bus_arguments,
+    bus_from_args,
+    bus_unreachable,
+    positive_float,
+    setup_logging,
+)
 from hdmap.geo.area import BBox
 from hdmap.geo.tiles import DEFAULT_ZOOM, MAX_ZOOM, valid_quadkey
 from hdmap.ops.dashboard.geometry import MAX_AREA_TILES
@@ -125,10 +131,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         serve(bus, host, port, config, stop, ready)
-    except zenoh.ZError as exc:  # no router there: one line, not a traceback
-        where = ", ".join(bus.connect) or "the configured endpoints"
-        print(f"hdmap dashboard: cannot reach the bus at {where}: {exc}", file=sys.stderr)
-        return 2
+    except zenoh.ZError as exc:
+        return bus_unreachable("hdmap dashboard", bus, exc)
     except OSError as exc:
         print(f"hdmap dashboard: cannot listen on {args.listen}: {exc}", file=sys.stderr)
         return 2

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import zenoh
 
-from hdmap.cli.common import add_bus_arguments, bus_from_args, positive_float
+from hdmap.cli.common import add_bus_arguments, bus_from_args, bus_unreachable, positive_float
 from hdmap.geo.area import BBox
 from hdmap.geo.tiles import DEFAULT_ZOOM
 from hdmap.ops.export import MAX_TILES, export_map
@@ -70,9 +70,7 @@ def run(args: argparse.Namespace) -> int:
         with open_session(bus) as session, bar:
             exp = export_map(session, bbox, args.format, args.zoom, args.timeout, bar.update, tiles)
     except zenoh.ZError as exc:
-        where = ", ".join(bus.connect) or "the configured endpoints"
-        print(f"hdmap export: cannot reach the bus at {where}: {exc}", file=sys.stderr)
-        return 2
+        return bus_unreachable("hdmap export", bus, exc)
     except ValueError as exc:
         print(f"hdmap export: {exc}", file=sys.stderr)
         return 2

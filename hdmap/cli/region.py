@@ -12,7 +12,7 @@ from pathlib import Path
 
 import zenoh
 
-from hdmap.cli.common import add_bus_arguments, bus_from_args
+from hdmap.cli.common import add_bus_arguments, bus_from_args, bus_unreachable
 from hdmap.geo.tiles import region_label, valid_quadkey
 from hdmap.ops.region import HandoverError, Timing, handover, parse_region, resume
 from hdmap.runtime.bus import open_session
@@ -68,8 +68,7 @@ def run(args: argparse.Namespace) -> int:
                     print("the paused instances apply their input again", file=sys.stderr)
                 return 1
     except zenoh.ZError as exc:
-        print(f"hdmap region: cannot reach the bus: {exc}", file=sys.stderr)
-        return 2
+        return bus_unreachable("hdmap region", bus, exc)
     print(f"paused for {report.pause_s:.1f} s so far; start the new instances:")
     bus_args = " ".join(f"--connect {shlex.quote(c)}" for c in bus.connect)
     for r in new:

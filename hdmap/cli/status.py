@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 import zenoh
 
-from hdmap.cli.common import add_bus_arguments, bus_from_args
+from hdmap.cli.common import add_bus_arguments, bus_from_args, bus_unreachable
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session
 
@@ -24,10 +23,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         with open_session(bus) as session:
             stats = collect(session, args.timeout)
-    except zenoh.ZError as exc:  # no router there: one line, not a traceback
-        where = ", ".join(bus.connect) or "the configured endpoints"
-        print(f"hdmap status: cannot reach the bus at {where}: {exc}", file=sys.stderr)
-        return 2
+    except zenoh.ZError as exc:
+        return bus_unreachable("hdmap status", bus, exc)
     if args.json:
         print(json.dumps([s._encode() for s in stats], indent=2, default=float))
         return 0
