@@ -17,17 +17,28 @@ linked rays to it (which puts it in view too). Each landmark counts both. Once
 ``p_min`` with one-sided confidence ``confidence`` (the exact binomial bound) is retired:
 neither a copy nor a sign that is gone keeps a share a real sign has.
 
+Against a neighbour: a copy along its sign's line of sight gets the sign's stray rays
+from a steady fraction of the passes (13-22 % in a 30-hour soak, 8-45 m from the sign:
+above ``p_min`` for ever). Two signs of one class that the same passes drive by, seen
+from the same side, are detected at like rates; a landmark whose share's upper bound is
+under ``rel_share`` times the lower bound of such a neighbour's share (within
+``rel_radius_m``, facings within ``rel_max_deg``) is retired too (counted
+``retired_outshone``; :func:`outshone`).
+
 Pitfalls: in view is judged from the rays alone (the matcher has no trajectory), so a
 pass that saw nothing near the landmark does not count, for or against; ``range_m`` ends
 well inside the range where every catalogue sign's box is big enough to detect
 (``VehicleModel.min_box_px``), or small signs far from the road would look unseen;
 occlusion is not modelled (a sign hidden from one street by a corner and seen from the
-other keeps the other street's share only where its facing tells the streets apart).
+other keeps the other street's share only where its facing tells the streets apart); a
+real sign detected at under half its neighbour's rate (a small panel next to a large one
+of its class, one behind a tree) goes with the copies.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +65,15 @@ class SightingConfig:
     """A real sign is detected by at least this share of the units that have it in view."""
     confidence: float = 0.999
     """One-sided confidence of the binomial bound that must lie below ``p_min``."""
+    rel_share: float = 0.5
+    """A landmark detected by under this fraction of the share of a same-class neighbour
+    seen from the same side (both bounds at ``confidence``) is that neighbour's strays
+    (:func:`outshone`; 0: off)."""
+    rel_radius_m: float = 50.0
+    """How far such a neighbour may be (a copy sits up to tens of metres along the line of
+    sight of its sign)."""
+    rel_max_deg: float = 45.0
+    """Largest angle between the two facings (both known) for the comparison."""
 
     def __post_init__(self) -> None:
         lo, hi = self.range_m
@@ -143,6 +163,41 @@ def _binom_cdf(s: int, n: int, p: float) -> float:
     ]
     top = max(terms)
     return min(1.0, math.exp(top) * sum(math.exp(t - top) for t in terms))
+
+
+def share_lower_bound(seen: int, n: int, confidence: float) -> float:
+    """One-sided exact lower bound of a binomial share (:func:`share_upper_bound` of the
+    misses).
+
+    >>> round(share_lower_bound(20, 20, 0.999), 3)
+    0.708
+    """
+    return 1.0 - share_upper_bound(n - seen, n, confidence)
+
+
+def outshone(
+    seen: int, n_in_view: int, others_seen: Sequence[int], others_in_view: Sequence[int],
+    cfg: SightingConfig,
+) -> bool:  # fmt: skip
+    """Whether a landmark's share is binomially below ``rel_share`` times the share of one
+    of ``others`` (its same-class neighbours seen from the same side, the caller's choice):
+    two signs of one class that the same passes drive by are detected at like rates, and a
+    landmark detected at a fraction of its neighbour's rate is made of that neighbour's
+    stray rays (a copy along its line of sight; issue 18's ghosts).
+
+    >>> cfg = SightingConfig()
+    >>> outshone(44, 212, [420], [500], cfg), outshone(300, 500, [450], [500], cfg)
+    (True, False)
+    """
+    if cfg.rel_share <= 0.0 or n_in_view < cfg.min_in_view:
+        return False
+    best = 0.0
+    for s_o, n_o in zip(others_seen, others_in_view, strict=True):
+        if n_o >= cfg.min_in_view:
+            best = max(best, share_lower_bound(int(s_o), int(n_o), cfg.confidence))
+    if seen >= cfg.rel_share * best * n_in_view:
+        return False  # the bound is never below the share itself
+    return share_upper_bound(seen, n_in_view, cfg.confidence) < cfg.rel_share * best
 
 
 def unseen(seen: int, n_in_view: int, cfg: SightingConfig) -> bool:

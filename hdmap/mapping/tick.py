@@ -60,7 +60,7 @@ from hdmap.mapping.linking import refresh
 from hdmap.mapping.matching import Matching
 from hdmap.mapping.merge import merge_touched
 from hdmap.mapping.pending import initiate_waiting
-from hdmap.mapping.sightings import unseen
+from hdmap.mapping.sightings import SightingConfig, outshone, unseen
 
 Array = NDArray[np.float64]
 
@@ -156,14 +156,49 @@ def end_tick(m: Matching) -> None:
 
 
 def retire_unseen(m: Matching, ids: list[int]) -> set[int]:
-    """Retire the landmarks of ``ids`` whose sightings say they are not there; returns them."""
+    """Retire the landmarks of ``ids`` whose sightings say they are not there, alone or
+    against a same-class neighbour seen from the same side; returns them."""
+    cfg = m.config.sightings
     gone: set[int] = set()
     for lid in ids:
         lm = m.state.landmarks.get(lid)
-        if lm is None or not unseen(lm.seen, lm.in_view, m.config.sightings):
+        if lm is None:
+            continue
+        if unseen(lm.seen, lm.in_view, cfg):
+            m.tally("retired_unseen", 1)
+        elif _outshone(m, lm, cfg):
+            m.tally("retired_outshone", 1)
+        else:
             continue
         m.state.remove(lm)
         m.out[lm.home].ended.append(lm.id)
-        m.tally("retired_unseen", 1)
         gone.add(lm.id)
     return gone
+
+
+def _outshone(m: Matching, lm: Landmark, cfg: SightingConfig) -> bool:
+    """:func:`hdmap.mapping.sightings.outshone` against the landmarks of ``lm``'s class
+    within ``rel_radius_m`` whose facing (known, as ``lm``'s) is within ``rel_max_deg``."""
+    if cfg.rel_share <= 0.0 or lm.in_view < cfg.min_in_view or lm.facing[3] <= 0.0:
+        return False
+    if lm.seen >= cfg.rel_share * lm.in_view:
+        return False  # no neighbour's share bound exceeds 1: most landmarks stop here
+    others = [
+        o
+        for o in m.state.landmarks.values()
+        if o.cls == lm.cls and o.id != lm.id and o.in_view >= cfg.min_in_view
+        and o.facing[3] > 0.0
+    ]  # fmt: skip
+    if not others:
+        return False
+    x = np.array([o.x for o in others])
+    near = np.linalg.norm(x - lm.x, axis=1) <= cfg.rel_radius_m
+    az = np.array([o.facing[0] for o in others])
+    apart = np.abs((az - lm.facing[0] + np.pi) % (2.0 * np.pi) - np.pi)
+    keep = near & (apart <= np.radians(cfg.rel_max_deg))
+    if not keep.any():
+        return False
+    idx = np.flatnonzero(keep)
+    return outshone(
+        lm.seen, lm.in_view, [others[k].seen for k in idx], [others[k].in_view for k in idx], cfg
+    )
