@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from hdmap.geo.geodesy import EnuFrame
+from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import create, to_local
 from hdmap.mapping.matching import AssocOutput
 from hdmap.mapping.sightings import (
@@ -73,12 +75,7 @@ def test_a_copy_seen_by_a_fraction_of_its_signs_passes_is_outshone(
     the copy 12 m along the road: a share (0.3) above ``p_min`` that the absolute test
     keeps for ever, but under half the sign's: retired as outshone once the bounds part
     (about 100 passes); the sign stays. Seen from another side, the copy would be kept."""
-    m = service(tmp_path)
-    tile = tile_of(m.opts.zoom)
-    frame = m.frames(tile)
-    m.matching.out = defaultdict(AssocOutput)
-    sign = create(m.matching, tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3))
-    ghost = create(m.matching, tile, CLS, frame.to_ecef(GHOST[None])[0], np.eye(3))
+    m, frame, sign, ghost = sign_and_copy(tmp_path)
     sign.facing = np.array([np.pi, 0.02, 0.1, 1.0])  # seen from the south (passes go north)
     ghost.facing = np.array([ghost_facing, 0.02, 0.1, 1.0])
     rng = np.random.default_rng(5)
@@ -102,6 +99,18 @@ def test_a_copy_seen_by_a_fraction_of_its_signs_passes_is_outshone(
     assert m.counters["retired_outshone"] == 1
 
 
+def sign_and_copy(path: Path) -> tuple[MatcherService, EnuFrame, Landmark, Landmark]:
+    """The scene's matcher with two landmarks of the sign's class: at the sign and 12 m
+    beyond it along the road (the tile's frame, the two landmarks)."""
+    m = service(path)
+    tile = tile_of(m.opts.zoom)
+    frame = m.frames(tile)
+    m.matching.out = defaultdict(AssocOutput)
+    sign = create(m.matching, tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3))
+    ghost = create(m.matching, tile, CLS, frame.to_ecef(GHOST[None])[0], np.eye(3))
+    return m, frame, sign, ghost
+
+
 def service(path: Path) -> MatcherService:
     cfg = MatcherConfig(trust=TrustConfig(probation_passes=0))
     svc = MatcherService(ServiceOptions(data_dir=path), cfg)
@@ -112,12 +121,7 @@ def service(path: Path) -> MatcherService:
 def test_a_second_copy_that_passes_never_detect_is_retired(tmp_path: Path) -> None:
     """Each pass links its rays to the sign (as the association does); the copy 12 m
     along the road is in view of the pass's last rays and gets none."""
-    m = service(tmp_path)
-    tile = tile_of(m.opts.zoom)
-    frame = m.frames(tile)
-    m.matching.out = defaultdict(AssocOutput)
-    sign = create(m.matching, tile, CLS, frame.to_ecef(SIGN[None])[0], np.eye(3))
-    ghost = create(m.matching, tile, CLS, frame.to_ecef(GHOST[None])[0], np.eye(3))
+    m, frame, sign, ghost = sign_and_copy(tmp_path)
     rng = np.random.default_rng(3)
     for p in range(1, 41):
         if p == 11:  # restart: the counts are stored with the landmarks
