@@ -65,6 +65,7 @@ from fleetsim.loadgen import (
 )
 from fleetsim.score import score
 from fleetsim.town_run import follow_town
+from hdmap.cli.common import add_progress_argument
 from hdmap.ops.progress import Progress, progress_wanted
 from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import SERVICE_NAMES, Stack
@@ -326,11 +327,7 @@ def main() -> int:
     )
     ap.add_argument("--json", type=Path)
     ap.add_argument("--png", type=Path)
-    ap.add_argument(
-        "--no-progress",
-        action="store_true",
-        help="no progress line of the samples on stderr (also HDMAP_NO_PROGRESS=1)",
-    )
+    add_progress_argument(ap)
     args = ap.parse_args()
     if args.quick:
         args.minutes, args.rate, args.sample_s = 2.0, 500.0, 10.0

@@ -193,7 +193,6 @@ def run_changes_eval(
                         f"({rounds[-1]['doubtful']} doubtful), changes reflected {done}/{due}, "
                         f"false revocations {len(scorer.lost)}, {rounds[-1]['wall_s']:.0f} s"
                     )
-                bar.close()
                 services = totals(collect(session))
             finally:
                 bar.close()

@@ -342,7 +342,6 @@ def run_fleet_eval(
                         f"coverage {row['coverage95'] or float('nan'):.2f}, "
                         f"{row['wall_s']:.0f} s"
                     )
-                bar.close()
                 links = replay_links(session)
                 services = totals(collect(session))
             finally:

@@ -30,6 +30,16 @@ def bus_from_args(args: argparse.Namespace) -> BusConfig:
     return BusConfig(mode=args._bus_mode, connect=connect, config_file=config_file)
 
 
+def add_progress_argument(p: argparse.ArgumentParser) -> None:
+    """``--no-progress``: no progress line (:mod:`hdmap.ops.progress`)."""
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress line on stderr (also HDMAP_NO_PROGRESS=1); on a terminal it is "
+        "redrawn in place, elsewhere (CI logs) a line every 10 %%",
+    )
+
+
 def bus_unreachable(command: str, bus: BusConfig, exc: Exception) -> int:
     """One line on stderr for a bus that cannot be reached (no router there), not a
     traceback; the exit status to return (2)."""

@@ -30,6 +30,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from hdmap.cli.common import (
+    add_progress_argument,
     non_negative_float,
     non_negative_int,
     positive_float,
@@ -37,15 +38,6 @@ from hdmap.cli.common import (
     seed_list,
 )
 from hdmap.ops.progress import progress_wanted
-
-
-def add_progress_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--no-progress",
-        action="store_true",
-        help="no progress line on stderr (also HDMAP_NO_PROGRESS=1); on a terminal it is "
-        "redrawn in place, elsewhere (CI logs) a line every 10 %%",
-    )
 
 
 def wants_progress(args: argparse.Namespace) -> bool:

@@ -20,7 +20,13 @@ from pathlib import Path
 
 import zenoh
 
-from hdmap.cli.common import add_bus_arguments, bus_from_args, bus_unreachable, positive_float
+from hdmap.cli.common import (
+    add_bus_arguments,
+    add_progress_argument,
+    bus_from_args,
+    bus_unreachable,
+    positive_float,
+)
 from hdmap.geo.area import BBox
 from hdmap.geo.tiles import DEFAULT_ZOOM
 from hdmap.ops.export import MAX_TILES, export_map
@@ -49,11 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="seconds for fetching every tile (default 60; a large box needs more: the "
         "publisher answers one client about 20 snapshots/s)",
     )
-    p.add_argument(
-        "--no-progress",
-        action="store_true",
-        help="no progress line on stderr (also HDMAP_NO_PROGRESS=1)",
-    )
+    add_progress_argument(p)
     add_bus_arguments(p)
 
 

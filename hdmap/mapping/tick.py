@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from hdmap.mapping.facing import Facing
+from hdmap.mapping.facing import Facing, angle_between
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
 from hdmap.mapping.matching import Matching
@@ -185,7 +185,7 @@ def _outshone(m: Matching, lm: Landmark, cfg: SightingConfig) -> bool:
         return False  # no neighbour's share bound exceeds 1: most landmarks stop here
     others = [
         o
-        for o in m.state.landmarks.values()
+        for o in m.state.near(m.area(lm.tile))  # the tile and its neighbours: > 50 m around
         if o.cls == lm.cls and o.id != lm.id and o.in_view >= cfg.min_in_view
         and o.facing[3] > 0.0
     ]  # fmt: skip
@@ -193,8 +193,7 @@ def _outshone(m: Matching, lm: Landmark, cfg: SightingConfig) -> bool:
         return False
     x = np.array([o.x for o in others])
     near = np.linalg.norm(x - lm.x, axis=1) <= cfg.rel_radius_m
-    az = np.array([o.facing[0] for o in others])
-    apart = np.abs((az - lm.facing[0] + np.pi) % (2.0 * np.pi) - np.pi)
+    apart = angle_between([o.facing[0] for o in others], lm.facing[0])
     keep = near & (apart <= np.radians(cfg.rel_max_deg))
     if not keep.any():
         return False
