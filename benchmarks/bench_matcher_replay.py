@@ -18,7 +18,7 @@ checksum of the final landmark table, so two code versions can be compared on th
 capture for both speed and result.
 
     .venv/bin/python benchmarks/bench_matcher_replay.py [--quick] [--capture DIR] \
-        [--passes N] [--batch N] [--json out/bench/matcher_replay.json]
+        [--passes N] [--batch N] [--set KEY=JSON ...] [--json out/bench/matcher_replay.json]
 """
 
 from __future__ import annotations
@@ -33,9 +33,18 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import json
+
 from benchmarks.common import machine, machine_line, write_json
 from schemas import LogEntry, ObsGroup
-from services.matcher.replay import landmark_digest, open_matcher, read_obs_log, replay
+from services.matcher.replay import (
+    landmark_digest,
+    matcher_config,
+    open_matcher,
+    read_obs_log,
+    replay,
+)
+from services.matcher.service import MatcherConfig
 
 
 def capture(out: Path, passes: int, rounds: int) -> Path:
@@ -50,9 +59,11 @@ def capture(out: Path, passes: int, rounds: int) -> Path:
     return db
 
 
-def timed_replay(entries: list[LogEntry], batch: int, data_dir: Path) -> dict:
+def timed_replay(
+    entries: list[LogEntry], batch: int, data_dir: Path, config: MatcherConfig | None = None
+) -> dict:
     """Apply ``entries`` to a fresh matcher in batches; CPU and wall seconds, counts."""
-    svc = open_matcher(data_dir)
+    svc = open_matcher(data_dir, config)
     n_obs = sum(len(ObsGroup.from_bytes(e.body).obs) for e in entries)
     every = max(1, len(entries) // 20)
 
@@ -82,11 +93,11 @@ def timed_replay(entries: list[LogEntry], batch: int, data_dir: Path) -> dict:
     return out
 
 
-def state_memory(data_dir: Path) -> dict:
+def state_memory(data_dir: Path, config: MatcherConfig | None = None) -> dict:
     """Bytes the matcher allocates to hold the saved state (a reload, traced)."""
     tracemalloc.start()
     before = tracemalloc.get_traced_memory()[0]
-    svc = open_matcher(data_dir)
+    svc = open_matcher(data_dir, config)
     held = tracemalloc.get_traced_memory()[0] - before
     tracemalloc.stop()
     n_lm, n_pend = len(svc.state.landmarks), svc.state.pending_count()
@@ -106,8 +117,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--log", type=Path, default=None, help="an ingest state.sqlite to replay")
     ap.add_argument("--passes", type=int, default=160)
     ap.add_argument("--batch", type=int, default=64, help="entries per transaction")
+    ap.add_argument(
+        "--set",
+        metavar="KEY=JSON",
+        action="append",
+        default=[],
+        help="a matcher setting for the replay (dotted for nested: gate.chi2_gate=12; "
+        "repeatable), to compare settings on one capture",
+    )
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
+    overrides = {k: json.loads(v) for k, _, v in (kv.partition("=") for kv in args.set)}
+    config = matcher_config(overrides)
     passes, rounds = (24, 1) if args.quick else (args.passes, 1)
     with tempfile.TemporaryDirectory(prefix="bench-matcher-") as tmp:
         db = args.log or capture(args.capture or Path(tmp) / "capture", passes, rounds)
@@ -115,9 +136,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"matcher replay: {len(entries)} obs entries from {db}", file=sys.stderr)
         print(machine_line(machine()), file=sys.stderr)
         data_dir = Path(tmp) / "matcher"
-        result = timed_replay(entries, args.batch, data_dir)
-        result["memory"] = state_memory(data_dir)
-    result = {"machine": machine(), "source": str(db), "replay": result}
+        result = timed_replay(entries, args.batch, data_dir, config)
+        result["memory"] = state_memory(data_dir, config)
+    result = {"machine": machine(), "source": str(db), "settings": overrides, "replay": result}
     r = result["replay"]
     print(
         f"{r['observations']} observations in {r['entries']} entries: {r['cpu_s']:.1f} s CPU, "

@@ -128,15 +128,18 @@ class MatchingConfig:
     tried as seeds of new landmarks, and the landmarks they touched are re-solved and
     merged, when the clock enters the next tick. 0: after every unit (one unit, one
     tick)."""
-    tick_lag_s: float = 3.0
+    tick_lag_s: float = 120.0
     """A unit at most this far behind the matcher's clock (event time) joins the clock's
     gating tick; one further behind (a late or bulk upload) goes by its own time
-    (:func:`hdmap.mapping.tick.tick_of`). Live uploads reach the matcher seconds out of
-    event-time order (vehicles pace and batch their uploads, ingest batches them): with the
-    lag at ``tick_s`` (1 s) a load test at 2,000-8,000 obs/s cut every second of traffic
-    into 4-18 ticks of 13 units (each late unit ended the live tick and the next live unit
-    ended its tick); from 3 s on its ticks are the seconds of the clock (2 s: two a
-    second)."""
+    (:func:`hdmap.mapping.tick.tick_of`). A vehicle uploads a pass when it ends, so the
+    pass's first tiles reach the matcher up to the pass's length behind the clock (a
+    load test's pass: up to 90 s; the fleet evaluation's paced uploads: median 18 s, 75 %
+    within 54 s), and uploads are seconds out of order besides. With a lag shorter than
+    that each such unit ended the live tick and had one of its own: a load test at 8,000
+    obs/s ran 4,252 ticks of about one unit (177 us CPU per observation in a replay);
+    with 120 s, 21 ticks (77 us), the same confirmed map on the fleet evaluation's replays
+    (docs/experiments/2026-12-tick-lag.md). A day's drives uploaded late stay far beyond
+    it."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
     matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see

@@ -31,22 +31,15 @@ from fleetsim.truth import match_map
 from hdmap.runtime.config import from_mapping, load_toml
 from hdmap.runtime.service import ServiceOptions
 from schemas import STATUS_CONFIRMED, Landmarks, LandmarkUpdates, LogEntry
-from services.matcher.replay import Sink, open_matcher, read_log, read_obs_log, replay
-from services.matcher.service import MatcherConfig
+from services.matcher.replay import (
+    Sink,
+    matcher_config,
+    open_matcher,
+    read_log,
+    read_obs_log,
+    replay,
+)
 from services.solver.service import SolverConfig, SolverService
-
-
-def matcher_config(overrides: dict[str, object]) -> MatcherConfig:
-    """``MatcherConfig`` with dotted keys (``gate.chi2_gate``) set, through the services'
-    own typed config loading."""
-    table: dict[str, object] = {}
-    for key, value in overrides.items():
-        *heads, last = key.split(".")
-        node = table
-        for h in heads:
-            node = node.setdefault(h, {})  # type: ignore[assignment]
-        node[last] = value  # type: ignore[index]
-    return from_mapping(MatcherConfig, table)
 
 
 def final_map(entries: list[LogEntry]) -> Landmarks:
@@ -101,6 +94,13 @@ def main(root: Path, seed: int, args: list[str]) -> None:
     )
     est = world.frame.from_geodetic(lm.lat, lm.lon, lm.h).reshape(-1, 3)
     signs = world.signs
+    confirmed = np.asarray(lm.status) == STATUS_CONFIRMED
+    err = np.linalg.norm(match.error_enu, axis=1)
+    print(
+        f"  all landmarks: unpaired {int((~paired).sum())} "
+        f"(confirmed {int((confirmed & ~paired).sum())}); paired {int(paired.sum())}, "
+        f"mean error {err.mean():.3f} m"
+    )
     for j in np.flatnonzero(mature & ~paired).tolist():
         same = np.flatnonzero(signs.sign_class == lm.sign_class[j])
         d = np.hypot(*(signs.position[same, :2] - est[j, :2]).T)

@@ -19,6 +19,7 @@ import sqlite3
 from collections.abc import Callable
 from pathlib import Path
 
+from hdmap.runtime.config import from_mapping
 from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry
 from services.matcher.service import MatcherConfig, MatcherService
@@ -56,6 +57,19 @@ def read_log(db: Path, stage: str) -> list[LogEntry]:
     finally:
         conn.close()
     return [LogEntry(stage, producer, tile, seq, gseq, body) for gseq, tile, seq, body in rows]
+
+
+def matcher_config(overrides: dict[str, object]) -> MatcherConfig:
+    """``MatcherConfig`` with dotted keys (``gate.chi2_gate``) set, through the services'
+    own typed config loading (an unknown key is an error naming it)."""
+    table: dict[str, object] = {}
+    for key, value in overrides.items():
+        *heads, last = key.split(".")
+        node = table
+        for h in heads:
+            node = node.setdefault(h, {})  # type: ignore[assignment]
+        node[last] = value  # type: ignore[index]
+    return from_mapping(MatcherConfig, table)
 
 
 def open_matcher(data_dir: Path, config: MatcherConfig | None = None) -> MatcherService:
