@@ -137,6 +137,8 @@ class Uploader:
         self._retry_at = -float("inf")  # nothing is sent before this (last retry_after_s)
         self._backoff = 0.0  # the last wait after a permanent refusal (0: none in a row)
         self._refusals = 0  # batches refused for now (retry later) since the last accepted one
+        self._refusal_warned_at = -np.inf  # clock of the last refusal warning
+        self._refused_since_warning = 0
         self.fault: str = ""
         """Why ingest refuses for good (a permanent refusal, until an upload is accepted)."""
         self._db = connect(queue_path)
@@ -232,6 +234,24 @@ class Uploader:
         rows = np.frombuffer(b"".join(r[0] for r in recs), dtype=_ABSENCE_REC)
         return Absences.CODEC.from_records(rows)
 
+    REFUSAL_WARN_EVERY_S = 60.0
+    """At most one warning a minute for refusals to retry later: a bulk upload paced by
+    the rate limit is refused every other batch, and each line would say the same."""
+
+    def _note_refusal(self, ack: UploadAck) -> None:
+        """Log a refusal to retry later: a warning for the first of a streak unless one
+        was given within ``REFUSAL_WARN_EVERY_S`` (it then counts those refused since),
+        the others at debug level."""
+        self._refused_since_warning += 1
+        now = self._clock()
+        if self._refusals == 1 and now - self._refusal_warned_at >= self.REFUSAL_WARN_EVERY_S:
+            more = self._refused_since_warning - 1
+            since = f" ({more} more batch(es) refused since the last warning)" if more else ""
+            log.warning("%s: batch refused: %s%s", self.vehicle_id, ack.error, since)
+            self._refusal_warned_at, self._refused_since_warning = now, 0
+        else:
+            log.debug("%s: batch refused: %s", self.vehicle_id, ack.error)
+
     def flush(
         self, session: zenoh.Session, timeout: float = 5.0, max_batches: int = 1000
     ) -> UploadResult:
@@ -260,11 +280,8 @@ class Uploader:
                 if ack is not None and ack.permanent:
                     self._hold_after_permanent(ack, res)
                 elif ack is not None:
-                    # one warning per streak: a bulk upload paced by the rate limit is
-                    # refused once per batch, and each retry would say the same thing
                     self._refusals += 1
-                    level = logging.WARNING if self._refusals == 1 else logging.DEBUG
-                    log.log(level, "%s: batch refused: %s", self.vehicle_id, ack.error)
+                    self._note_refusal(ack)
                     res.refused = f"{ack.error.field}: {ack.error.reason}"
                     if ack.retry_after_s > 0:
                         self._retry_at = self._clock() + ack.retry_after_s

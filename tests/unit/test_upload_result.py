@@ -3,6 +3,7 @@ named, one log line per field and batch, the batch refusal itself, and the rows 
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 from fleetsim.synthetic import make_observations
@@ -70,4 +71,34 @@ def test_a_refusal_streak_warns_once_and_says_when_it_ends(tmp_path, monkeypatch
     assert len(warned) == 1 and "batch refused: rate" in warned[0].getMessage()
     assert sum("batch refused" in r.getMessage() for r in caplog.records) == 3
     assert any("accepted again after 3 refused" in r.getMessage() for r in caplog.records)
+    up.close()
+
+
+def test_refusals_paced_by_the_rate_limit_warn_once_a_minute(tmp_path, monkeypatch, caplog):
+    """A bulk upload the rate limit paces is refused every other batch: streaks of one.
+    One warning a minute, the next one counting the refusals in between."""
+    clock = Clock()
+    up = Uploader("veh-1", tmp_path / "q.sqlite", batch_size=1, clock=clock)
+    up.enqueue(1, make_observations(40, seed=4))
+    refuse = itertools.cycle([True, False])
+
+    def send(_session, batch: ObservationBatch, _timeout: float) -> UploadAck:
+        if next(refuse):
+            err = DecodeError("rate", "vehicle 'veh-1' sends too much; retry after 0.1 s")
+            return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id[:0], error=err,
+                             retry_after_s=0.1)  # fmt: skip
+        return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id)
+
+    monkeypatch.setattr(up, "_send", send)
+    with caplog.at_level(logging.DEBUG, logger="vehicle.uploader"):
+        for _ in range(40):  # 20 refusals within 8 s
+            up.flush(None, max_batches=1)
+            clock.t += 0.2
+        clock.t += 60.0
+        while up.pending:
+            up.flush(None, max_batches=1)
+            clock.t += 0.2
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 2 and all("batch refused: rate" in w for w in warned)
+    assert "more batch(es) refused since the last warning" in warned[1]
     up.close()
