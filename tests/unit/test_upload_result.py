@@ -46,22 +46,27 @@ def test_refused_rows_are_counted_by_field_and_logged(tmp_path, monkeypatch, cap
     up.close()
 
 
+def rate_limited(refuse):
+    """A stand-in for ``Uploader._send``: each batch refused for its rate (retry after
+    0.1 s) or accepted whole, as ``refuse`` (an iterator of booleans) says."""
+
+    def send(_session, batch: ObservationBatch, _timeout: float) -> UploadAck:
+        if next(refuse):
+            err = DecodeError("rate", "vehicle 'veh-1' sends too much; retry after 0.1 s")
+            return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id[:0], error=err,
+                             retry_after_s=0.1)  # fmt: skip
+        return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id)
+
+    return send
+
+
 def test_a_refusal_streak_warns_once_and_says_when_it_ends(tmp_path, monkeypatch, caplog):
     """A bulk upload paced by the rate limit is refused once per batch; each retry would
     say the same, so the streak warns once and ends with one line."""
     clock = Clock()
     up = Uploader("veh-1", tmp_path / "q.sqlite", batch_size=5, clock=clock)
     up.enqueue(1, make_observations(10, seed=3))
-    refuse = [True, True, True, False, False]
-
-    def send(_session, batch: ObservationBatch, _timeout: float) -> UploadAck:
-        if refuse.pop(0):
-            err = DecodeError("rate", "vehicle 'veh-1' sends too much; retry after 0.1 s")
-            return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id[:0], error=err,
-                             retry_after_s=0.1)  # fmt: skip
-        return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id)
-
-    monkeypatch.setattr(up, "_send", send)
+    monkeypatch.setattr(up, "_send", rate_limited(iter([True, True, True, False, False])))
     with caplog.at_level(logging.DEBUG, logger="vehicle.uploader"):
         for _ in range(5):
             res = up.flush(None)
@@ -80,16 +85,7 @@ def test_refusals_paced_by_the_rate_limit_warn_once_a_minute(tmp_path, monkeypat
     clock = Clock()
     up = Uploader("veh-1", tmp_path / "q.sqlite", batch_size=1, clock=clock)
     up.enqueue(1, make_observations(40, seed=4))
-    refuse = itertools.cycle([True, False])
-
-    def send(_session, batch: ObservationBatch, _timeout: float) -> UploadAck:
-        if next(refuse):
-            err = DecodeError("rate", "vehicle 'veh-1' sends too much; retry after 0.1 s")
-            return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id[:0], error=err,
-                             retry_after_s=0.1)  # fmt: skip
-        return UploadAck("veh-1", batch.batch_id, batch.obs.obs_id)
-
-    monkeypatch.setattr(up, "_send", send)
+    monkeypatch.setattr(up, "_send", rate_limited(itertools.cycle([True, False])))
     with caplog.at_level(logging.DEBUG, logger="vehicle.uploader"):
         for _ in range(40):  # 20 refusals within 8 s
             up.flush(None, max_batches=1)
