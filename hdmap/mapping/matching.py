@@ -128,21 +128,24 @@ class MatchingConfig:
     tried as seeds of new landmarks, and the landmarks they touched are re-solved and
     merged, when the clock enters the next tick. 0: after every unit (one unit, one
     tick)."""
-    tick_lag_s: float = 60.0
+    tick_lag_s: float = 3.0
     """A unit at most this far behind the matcher's clock (event time) joins the clock's
     gating tick; one further behind (a late or bulk upload) goes by its own time
-    (:func:`hdmap.mapping.tick.tick_of`). A vehicle uploads a pass when it ends, so the
-    pass's first tiles reach the matcher up to the pass's length behind the clock (a load
-    test: median 14 s, p90 61 s; the fleet evaluation's paced uploads: median 18 s, p75 54
-    s), and each unit further behind than the lag ends the live tick and has one of its
-    own. Replay of a load test at 8,000 obs/s: 3 s, 4,252 ticks, 177 us CPU per
-    observation; 30 s, 2,736, 130 us; 60 s, 789 ticks, 87 us; 120 s, 21 ticks, 77 us.
-    Longer ticks make longer tick ends, which the units behind them wait for (end to end
-    the p99 at 6,000 obs/s: 0.69 s at 60 s, 1.07 s at 120 s), and let more passes share a
-    tick without seeing each other's new landmarks (real phone errors, seed 0, 1,200
-    passes: 51 landmarks paired with no sign at 60 s, 52 at 3 s, 70 at 120 s; the same
-    confirmed map). docs/experiments/2026-12-tick-lag.md. A day's drives uploaded late
-    stay far beyond it."""
+    (:func:`hdmap.mapping.tick.tick_of`). Live uploads reach the matcher seconds out of
+    event-time order (vehicles pace and batch their uploads, ingest batches them): with the
+    lag at ``tick_s`` (1 s) a load test cut every second of traffic into 4-18 ticks. A
+    vehicle that uploads a pass when it ends sends its first tiles up to the pass's length
+    behind the clock, and each of them ends the live tick and has one of its own (a load
+    test at 8,000 obs/s: 4,252 ticks of about one unit, 177 us CPU per observation in a
+    replay; with 60 s, 789 ticks and 87 us, end to end 7,000 obs/s against 4,000).
+
+    Pitfall, why it is not longer: a merged region's matcher (``hdmap region merge``)
+    takes the later of its parts' clocks, and the part that was behind catches up with
+    units up to the parts' gap behind it; within the lag they join the leading part's
+    tick instead of having their own, so the merged map is not the unsplit one
+    (tests/integration/test_region_split.py fails at 60 s). A longer lag needs the parts
+    cut at one log position, or a tick rule that does not depend on other regions'
+    units (docs/experiments/2026-12-tick-lag.md)."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
     matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see

@@ -3,7 +3,7 @@ re-solved and its waiting rays start landmarks.
 
 Event time is cut into ticks of ``MatchingConfig.tick_s`` seconds. A unit belongs to the
 tick of the matcher's clock (:meth:`hdmap.mapping.matching.Matching.entry_time`) when its
-own event time is at most ``tick_lag_s`` (60 s) behind the clock, else to the tick of its
+own event time is at most ``tick_lag_s`` (3 s) behind the clock, else to the tick of its
 own event time (:func:`enter`); a run of consecutive units of one tick is a *gating tick*. Every
 unit of it is associated with the landmarks as they stood when it began: the set of
 landmarks, their gating estimates (position, covariance) and facings
@@ -27,13 +27,14 @@ and landmarks started early by a pass over its pending budget
 pass alone until the tick ends): what :func:`hdmap.mapping.unit.signature` checks, and
 what lets the units of a tick be associated together.
 
-Live traffic at a high rate puts hundreds of units in one tick: a pass's upload at its
-end (its first tiles up to the pass's length behind the clock) and uploads seconds out of
-order included, as long as they are within ``tick_lag_s``; with a lag of a few seconds
-each of them ended the live tick and a load test ran a tick per unit. An upload that
-comes late (a day's drives sent at once) goes by its own event times, so its units do not
-pile into the live tick (they would not see each other's new landmarks): where late and
-live entries interleave, ticks are short, down to one unit.
+Live traffic at a high rate puts hundreds of units in one tick (uploads seconds out of
+order included: a lag of ``tick_s`` alone cut a load test's every second into 4-18
+ticks, each straggler ending the live tick); an upload that comes late (a day's drives
+sent at once) goes by its own event times, so its units do not pile into the live tick
+(they would not see each other's new landmarks): where late and live entries interleave,
+ticks are short, down to one unit. So are a pass's first tiles when it is uploaded at
+its end (more than ``tick_lag_s`` behind the clock): see the pitfall of
+``MatchingConfig.tick_lag_s`` for why the lag is not the length of a pass.
 
 ``tick_s = 0``: every unit is its own tick, ended at the end of the unit (initiation,
 sightings, re-solve and merge after each unit, with a vehicle's settlement re-solving at
