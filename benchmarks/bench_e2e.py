@@ -45,6 +45,7 @@ from fleetsim.loadgen import LoadConfig, build_pool, upload_payloads
 from fleetsim.loadtest import run_load
 from hdmap.ops.stack import Stack
 from hdmap.runtime.bus import open_session
+from services.matcher.replay import matcher_config
 
 ROOT = Path(__file__).resolve().parent.parent
 RATES = (1_000, 2_000, 5_000, 10_000, 20_000, 30_000, 50_000, 100_000)
@@ -62,17 +63,31 @@ def vehicles_for(rate: float) -> int:
 
 
 def fleet_admission(
-    workdir: Path, linger_s: float | None = None, publish_interval_s: float | None = None
+    workdir: Path,
+    linger_s: float | None = None,
+    publish_interval_s: float | None = None,
+    matcher_set: dict[str, object] | None = None,
 ) -> dict[str, list[str]]:
     """``Stack(extra_service_args=...)`` for an ingest that admits the load generator's
     fleet at once: its vehicles are new in every run (a fresh run tag), and up to 200 of
     them start together, past ingest's default budget of new vehicles (50 at once). With
     ``linger_s``, the stage services' batches linger that long (``[NAME.batching]``;
     None: their default); with ``publish_interval_s``, the publisher coalesces a tile's
-    changes that long (``[publisher] interval_s``)."""
+    changes that long (``[publisher] interval_s``); ``matcher_set``: matcher settings
+    (dotted keys for nested tables, ``gate.chi2_gate``), checked by the matcher's own
+    config loading before the stack starts."""
     workdir.mkdir(parents=True, exist_ok=True)
     cfg = workdir / "stack.toml"
     text = "[ingest.rate_limit]\nnew_vehicle_burst = 1000.0\n"
+    if matcher_set:
+        matcher_config(matcher_set)  # an unknown key or a wrong type: an error naming it
+        tables: dict[str, list[str]] = {}
+        for key, value in matcher_set.items():
+            head, _, last = key.rpartition(".")
+            tables.setdefault(f"matcher.{head}" if head else "matcher", []).append(
+                f"{last} = {toml_value(value)}"
+            )
+        text += "".join(f"[{t}]\n" + "\n".join(rows) + "\n" for t, rows in tables.items())
     if publish_interval_s is not None:
         text += f"[publisher]\ninterval_s = {float(publish_interval_s)!r}\n"
     if linger_s is not None:
@@ -80,6 +95,17 @@ def fleet_admission(
             text += f"[{name}.batching]\nlinger_s = {float(linger_s)!r}\n"
     cfg.write_text(text)
     return {name: ["--config", str(cfg)] for name in ("ingest", "matcher", "solver", "publisher")}
+
+
+def toml_value(value: object) -> str:
+    """A JSON scalar as a TOML value."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    raise ValueError(f"a matcher setting must be a number, a boolean or a string: {value!r}")
 
 
 def load_config(rate: float, seconds: float, **kw) -> LoadConfig:
@@ -312,13 +338,18 @@ def raw_zenoh(stack: Stack, payload: bytes, n_obs: int, seconds: float) -> dict:
 
 
 def profile_service(
-    service: str, rate: float, seconds: float, drain_timeout: float, workdir: Path
+    service: str,
+    rate: float,
+    seconds: float,
+    drain_timeout: float,
+    workdir: Path,
+    admission: dict[str, list[str]],
 ) -> dict:
-    """The load step at ``rate`` again, on a fresh stack, ``service`` under cProfile."""
+    """The load step at ``rate`` again, on a fresh stack with the services' arguments
+    ``admission`` (:func:`fleet_admission`), ``service`` under cProfile."""
     prof_dir = workdir / "profile"
     python = profiling_python(prof_dir, [service])
     print(f"\nprofiling {service} at {rate:.0f} obs/s for {seconds:.0f} s (fresh stack) ...")
-    admission = fleet_admission(workdir)
     with Stack(workdir / "stack-profiled", python=python, extra_service_args=admission) as st:
         st.start_all()
         with open_session(st.bus) as s:
@@ -370,6 +401,14 @@ def main() -> int:
         type=float,
         help="the publisher's coalescing interval (s; default: its own, [publisher] interval_s)",
     )
+    ap.add_argument(
+        "--matcher-set",
+        metavar="KEY=JSON",
+        action="append",
+        default=[],
+        help="a matcher setting for the stack (dotted for nested: gate.chi2_gate=12; "
+        "repeatable), e.g. tick_lag_s=60",
+    )
     ap.add_argument("--progress", action="store_true", help="live progress lines")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--data-dir", type=Path, help="keep the stack's state and logs here")
@@ -377,6 +416,7 @@ def main() -> int:
     seconds = args.seconds or (6.0 if args.quick else 20.0)
     rates = args.rates or (RATES[:3] if args.quick else RATES)
     profile = args.profile or ("none" if args.quick else "auto")
+    matcher_set = {k: json.loads(v) for k, _, v in (kv.partition("=") for kv in args.matcher_set)}
     out: dict = {
         "machine": bench_zenoh.machine(),
         "load_average_start": load_average(),
@@ -385,12 +425,13 @@ def main() -> int:
         "p99_max_s": P99_MAX_S,
         "linger_s": args.linger_s,
         "publish_interval_s": args.publish_interval_s,
+        "matcher_settings": matcher_set,
         "steps": [],
     }
     print(json.dumps(out["machine"]), "load average", out["load_average_start"], flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.data_dir or Path(tmp)
-        admit = fleet_admission(work, args.linger_s, args.publish_interval_s)
+        admit = fleet_admission(work, args.linger_s, args.publish_interval_s, matcher_set)
         with Stack(work / "stack", extra_service_args=admit) as st:
             st.start_all()
             payload, n = reference_payload(load_config(rates[0], seconds))
@@ -436,7 +477,9 @@ def main() -> int:
             profile = max(failing["services"], key=lambda s: failing["services"][s]["cpu_share"])
         if profile not in ("none", "auto"):
             rate = failing["target_per_s"] if failing else rates[-1]
-            out["profile"] = profile_service(profile, rate, seconds, args.drain_timeout, work)
+            out["profile"] = profile_service(
+                profile, rate, seconds, args.drain_timeout, work, admit
+            )
     out["load_average_end"] = load_average()
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
