@@ -45,6 +45,7 @@ from fleetsim.loadgen import LoadConfig, build_pool, upload_payloads
 from fleetsim.loadtest import run_load
 from hdmap.ops.stack import Stack
 from hdmap.runtime.bus import open_session
+from hdmap.runtime.config import parse_settings
 from services.matcher.replay import matcher_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -416,7 +417,7 @@ def main() -> int:
     seconds = args.seconds or (6.0 if args.quick else 20.0)
     rates = args.rates or (RATES[:3] if args.quick else RATES)
     profile = args.profile or ("none" if args.quick else "auto")
-    matcher_set = {k: json.loads(v) for k, _, v in (kv.partition("=") for kv in args.matcher_set)}
+    matcher_set = parse_settings(args.matcher_set)
     out: dict = {
         "machine": bench_zenoh.machine(),
         "load_average_start": load_average(),

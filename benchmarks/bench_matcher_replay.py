@@ -33,9 +33,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import json
-
 from benchmarks.common import machine, machine_line, write_json
+from hdmap.runtime.config import parse_settings
 from schemas import LogEntry, ObsGroup
 from services.matcher.replay import (
     landmark_digest,
@@ -127,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    overrides = {k: json.loads(v) for k, _, v in (kv.partition("=") for kv in args.set)}
+    overrides = parse_settings(args.set)
     config = matcher_config(overrides)
     passes, rounds = (24, 1) if args.quick else (args.passes, 1)
     with tempfile.TemporaryDirectory(prefix="bench-matcher-") as tmp:

@@ -137,7 +137,7 @@ class Uploader:
         self._retry_at = -float("inf")  # nothing is sent before this (last retry_after_s)
         self._backoff = 0.0  # the last wait after a permanent refusal (0: none in a row)
         self._refusals = 0  # batches refused for now (retry later) since the last accepted one
-        self._refusal_warned_at = -np.inf  # clock of the last refusal warning
+        self._refusal_warned_at = -float("inf")  # clock of the last refusal warning
         self._refused_since_warning = 0
         self.fault: str = ""
         """Why ingest refuses for good (a permanent refusal, until an upload is accepted)."""

@@ -16,6 +16,7 @@ hdmap.runtime.config.ConfigError: c: unknown key (known: a, b)
 from __future__ import annotations
 
 import dataclasses
+import json
 import tomllib
 import typing
 from collections.abc import Mapping
@@ -108,3 +109,38 @@ def load_toml(path: str | Path) -> dict[str, Any]:
             return tomllib.load(f)
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"{path}: {exc}") from exc
+
+
+def parse_settings(pairs: list[str]) -> dict[str, Any]:
+    """``KEY=JSON`` pairs (a command line's repeated ``--set``) as a mapping of dotted keys
+    to values; a pair without ``=`` or with a value that is not JSON is an error naming it.
+
+    >>> parse_settings(["tick_s=0.5", "gate.chi2_gate=12"])
+    {'tick_s': 0.5, 'gate.chi2_gate': 12}
+    """
+    out: dict[str, Any] = {}
+    for kv in pairs:
+        key, eq, value = kv.partition("=")
+        if not eq or not key:
+            raise ConfigError(f"{kv!r}: expected KEY=JSON")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{key}: {value!r} is not JSON ({exc.msg})") from exc
+    return out
+
+
+def dotted_table(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """Dotted keys as nested tables, what :func:`from_mapping` takes.
+
+    >>> dotted_table({"tick_s": 0.5, "gate.chi2_gate": 12})
+    {'tick_s': 0.5, 'gate': {'chi2_gate': 12}}
+    """
+    table: dict[str, Any] = {}
+    for key, value in settings.items():
+        *heads, last = key.split(".")
+        node = table
+        for h in heads:
+            node = node.setdefault(h, {})
+        node[last] = value
+    return table

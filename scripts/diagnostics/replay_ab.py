@@ -16,7 +16,6 @@ invariant of ``services/matcher/replay.py``), up to the solver's batches.
 
 from __future__ import annotations
 
-import json
 import sys
 import tempfile
 import time
@@ -28,7 +27,7 @@ import numpy as np
 from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
 from fleetsim.score import duplicate_mask
 from fleetsim.truth import match_map
-from hdmap.runtime.config import from_mapping, load_toml
+from hdmap.runtime.config import from_mapping, load_toml, parse_settings
 from hdmap.runtime.service import ServiceOptions
 from schemas import STATUS_CONFIRMED, Landmarks, LandmarkUpdates, LogEntry
 from services.matcher.replay import (
@@ -62,7 +61,7 @@ def main(root: Path, seed: int, args: list[str]) -> None:
         if key == "gnss":
             gnss = value
         else:
-            overrides[key] = json.loads(value)
+            overrides |= parse_settings([kv])
     run = root / f"seed-{seed}" / "run"
     known = {f.name for f in fields(SolverConfig)}
     solver_toml = {k: v for k, v in load_toml(run / "services.toml").get("solver", {}).items()}

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import hashlib
 import sqlite3
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from hdmap.runtime.config import from_mapping
+from hdmap.runtime.config import dotted_table, from_mapping
 from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry
 from services.matcher.service import MatcherConfig, MatcherService
@@ -59,17 +59,10 @@ def read_log(db: Path, stage: str) -> list[LogEntry]:
     return [LogEntry(stage, producer, tile, seq, gseq, body) for gseq, tile, seq, body in rows]
 
 
-def matcher_config(overrides: dict[str, object]) -> MatcherConfig:
+def matcher_config(overrides: Mapping[str, object]) -> MatcherConfig:
     """``MatcherConfig`` with dotted keys (``gate.chi2_gate``) set, through the services'
     own typed config loading (an unknown key is an error naming it)."""
-    table: dict[str, object] = {}
-    for key, value in overrides.items():
-        *heads, last = key.split(".")
-        node = table
-        for h in heads:
-            node = node.setdefault(h, {})  # type: ignore[assignment]
-        node[last] = value  # type: ignore[index]
-    return from_mapping(MatcherConfig, table)
+    return from_mapping(MatcherConfig, dotted_table(overrides))
 
 
 def open_matcher(data_dir: Path, config: MatcherConfig | None = None) -> MatcherService:
