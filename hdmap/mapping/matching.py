@@ -128,24 +128,31 @@ class MatchingConfig:
     tried as seeds of new landmarks, and the landmarks they touched are re-solved and
     merged, when the clock enters the next tick. 0: after every unit (one unit, one
     tick)."""
-    tick_lag_s: float = 3.0
+    tick_lag_s: float = 60.0
     """A unit at most this far behind the matcher's clock (event time) joins the clock's
     gating tick; one further behind (a late or bulk upload) goes by its own time
     (:func:`hdmap.mapping.tick.tick_of`). Live uploads reach the matcher seconds out of
     event-time order (vehicles pace and batch their uploads, ingest batches them): with the
     lag at ``tick_s`` (1 s) a load test cut every second of traffic into 4-18 ticks. A
     vehicle that uploads a pass when it ends sends its first tiles up to the pass's length
-    behind the clock, and each of them ends the live tick and has one of its own (a load
-    test at 8,000 obs/s: 4,252 ticks of about one unit, 177 us CPU per observation in a
-    replay; with 60 s, 789 ticks and 87 us, end to end 7,000 obs/s against 4,000).
+    behind the clock: with 3 s each of them ended the live tick and had one of its own (a
+    load test at 8,000 obs/s: 4,252 ticks of about one unit, 177 us CPU per observation in
+    a replay; with 60 s, 789 ticks and 87 us; end to end 7,000 obs/s against 4,000:
+    docs/experiments/2026-12-tick-lag.md).
 
-    Pitfall, why it is not longer: a merged region's matcher (``hdmap region merge``)
-    takes the later of its parts' clocks, and the part that was behind catches up with
-    units up to the parts' gap behind it; within the lag they join the leading part's
-    tick instead of having their own, so the merged map is not the unsplit one
-    (tests/integration/test_region_split.py fails at 60 s). A longer lag needs the parts
-    cut at one log position, or a tick rule that does not depend on other regions'
-    units (docs/experiments/2026-12-tick-lag.md)."""
+    Pitfalls, why it is not longer: the passes of one tick do not see each other's new
+    landmarks (a sign first seen by two passes of a tick gets one landmark from the first
+    and the other's rays adopted, or a second, young copy where adoption refuses them):
+    with 120 s the real phone errors left 18 more young landmarks paired with no sign, 60 s
+    none; and a tick's end is one burst the units behind it wait for (p99 latency 0.31 s
+    with 120 s against 0.70 at 3,000 obs/s). A region merge brings its parts to one
+    position of ingest's log first (:func:`hdmap.ops.region.cut_at_one_position`): a part
+    left behind would apply its backlog within the lag of the other's later clock, in
+    one tick where the unsplit region gave each pass its own. What a split does not
+    keep: a part's clock is the latest of its own units, so a unit of one part that the
+    whole would have seen behind another part's later units (within the lag) joins its
+    part's tick, not the whole's; the same map only where the regions' traffic is in
+    event-time order (tests/integration/test_region_split.py)."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
     matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see

@@ -3,7 +3,8 @@
 A split hands a running region's matcher and solver state to sub-region instances:
 
 1. pause the region's matcher (:mod:`hdmap.runtime.handover`): it applies nothing more,
-   its last state is checkpointed; ingest keeps logging observations;
+   its last state is checkpointed; ingest keeps logging observations; regions to be
+   merged are then brought to one position of ingest's log (:func:`cut_at_one_position`);
 2. wait until every consumer of the matcher's log (the solver) has applied it to its
    head (their marks, which they send every ``catchup_interval_s``);
 3. pause the solver the same way and wait until its consumers (publishers) have its log;
@@ -109,10 +110,10 @@ def covers(whole: Sequence[str], parts: Sequence[Sequence[str]]) -> str | None:
 
 
 def ask(session: zenoh.Session, service: str, region: str, op: str, offset: int = 0,
-        timeout: float = 10.0) -> HandoverReply:  # fmt: skip
+        timeout: float = 10.0, cut: tuple[tuple[str, int], ...] = ()) -> HandoverReply:  # fmt: skip
     """One handover request to the region's instance; exactly one must answer."""
-    got = query(session, keys.handover(service, region), HandoverRequest(op, offset).to_bytes(),
-                timeout)  # fmt: skip
+    got = query(session, keys.handover(service, region),
+                HandoverRequest(op, offset, cut).to_bytes(), timeout)  # fmt: skip
     if not got:
         raise HandoverError(f"no {service} of region {region} answered (is it running?)")
     if len(got) > 1:
@@ -146,6 +147,45 @@ def wait_drained(session: zenoh.Session, service: str, region: str, timing: Timi
                 f"{timing.drain_s:g} s (behind: {behind or 'none with a fresh mark'})"
             )
         time.sleep(0.5)
+
+
+def cut_at_one_position(
+    session: zenoh.Session,
+    paused: Sequence[HandoverReply],
+    timing: Timing,
+    progress: Callable[[str], None],
+) -> dict[str, int]:
+    """Bring paused instances of regions to be joined to one position of their input: per
+    producer the furthest any of them applied; each applies its region's entries up to it
+    and holds (``cut``). Returned: the cut.
+
+    Why: a joined instance goes on from the latest of its parts' clocks (the matcher's
+    event time). A part stopped behind the others would apply its catch-up against that
+    later clock, where the unsplit region had applied it at its own time (the matcher's
+    gating ticks: :attr:`hdmap.mapping.matching.MatchingConfig.tick_lag_s`)."""
+    cut: dict[str, int] = {}
+    for r in paused:
+        for p, g in r.inputs:
+            cut[p] = max(cut.get(p, 0), g)
+    items = tuple(sorted(cut.items()))
+    for r in paused:
+        ask(session, r.service, r.region, "cut", timeout=timing.reply_s, cut=items)
+    deadline = time.monotonic() + timing.drain_s
+    todo = list(paused)
+    while todo:
+        r = todo[0]
+        now = ask(session, r.service, r.region, "status", timeout=timing.reply_s)
+        if now.at_cut:
+            progress(f"{r.service} {r.region}: holds at the cut {dict(now.inputs)}")
+            todo.pop(0)
+            continue
+        if time.monotonic() > deadline:
+            raise HandoverError(
+                f"{r.service} {r.region}: did not reach the cut {cut} in {timing.drain_s:g} s "
+                f"(applied {dict(now.inputs)})"
+            )
+        time.sleep(0.2)
+    return cut
 
 
 def fetch_state(session: zenoh.Session, service: str, region: str, out: Path,
@@ -191,9 +231,14 @@ def handover(
     report = Report()
     t0 = time.monotonic()
     for svc, rules in SERVICES:
+        paused = []
         for label in labels:
             r = ask(session, svc, label, "pause", timeout=timing.reply_s)
             progress(f"{svc} {label} ({r.instance}) paused at log head {r.head}")
+            paused.append(r)
+        if len(paused) > 1:
+            cut_at_one_position(session, paused, timing, progress)
+        for label in labels:
             wait_drained(session, svc, label, timing, need_consumer=svc == "matcher")
             progress(f"{svc} {label}: its consumers have applied its log")
         parts = []

@@ -11,8 +11,14 @@ answers :class:`schemas.HandoverRequest`:
   producer's log keeps them for whoever takes the region over) and no catch-up runs. The
   service still serves its own log and takes its consumers' marks, so they drain it; its
   own marks on its producers' logs stay where they were.
+- ``cut`` (paused only; regions being joined): apply the region's input entries up to
+  the given position of every producer's log (``gseq``; a producer not named: none of
+  its entries), none past it, then hold there: ``before_handover`` runs again and the
+  checkpoint is taken anew (``at_cut`` in the reply). A cut below an entry the instance
+  has applied is refused (field ``cut``); ``state`` and ``stop`` wait for the cut.
 - ``status``: paused or not, the output log's head and the consumers' marks (from
-  ``log_marks``, with their age).
+  ``log_marks``, with their age), the input position (per producer, the last ``gseq``
+  applied) and whether it holds at a cut.
 - ``state``: ``CHUNK_BYTES`` of the checkpoint from ``offset`` (paused only).
 - ``resume``: the handover is called off; the service applies its input again (a
   catch-up fetches what it dropped while paused). It also resumes by itself when no
@@ -21,10 +27,11 @@ answers :class:`schemas.HandoverRequest`:
   (a mark at ``gseq`` 0: it no longer holds their logs; the instances that took its
   region over mark for themselves).
 
-Invariant: the checkpoint is the state after the last transaction before the pause and
-nothing is applied after it, so an instance started from it and from the producers' logs
-after its offsets neither loses nor applies twice an entry. A bad request is answered with
-an :class:`schemas.ErrorReply` naming the field and counted (``rejected[handover.<field>]``).
+Invariant: the checkpoint is the state after the last transaction before the pause (or
+the cut) and nothing is applied after it, so an instance started from it and from the
+producers' logs after its offsets neither loses nor applies twice an entry. A bad request
+is answered with an :class:`schemas.ErrorReply` naming the field and counted
+(``rejected[handover.<field>]``).
 """
 
 from __future__ import annotations
@@ -64,6 +71,8 @@ class Handover:
         data_dir: Path,
         head: Callable[[], int],
         clock: Callable[[], float] = time.monotonic,
+        inputs: Callable[[], dict[str, int]] = dict,
+        hold: Callable[[dict[str, int] | None], None] = lambda _cut: None,
     ):
         self.name, self.instance, self.region_label = name, instance, region_label
         self.db = db
@@ -76,6 +85,31 @@ class Handover:
         """When the last handover request came (the pause's lease)."""
         self.stop: threading.Event | None = None
         """Set by ``stop`` (the service's run loop watches it)."""
+        self.inputs = inputs
+        """Per producer of the input, the last ``gseq`` applied."""
+        self.hold = hold
+        """Holds the input at a cut (None: lets it go)."""
+        self.cut: dict[str, int] | None = None
+        self.at_cut = False
+        """The input up to :attr:`cut` is applied and checkpointed."""
+
+    @property
+    def advancing(self) -> bool:
+        """Paused, applying its input up to a cut it has not reached yet."""
+        return self.paused and self.cut is not None and not self.at_cut
+
+    @property
+    def applying(self) -> bool:
+        """Whether input entries are applied (not paused, or paused and advancing)."""
+        return not self.paused or self.advancing
+
+    def reach_cut(self, prepare: Callable[[], None]) -> None:
+        """The input is applied up to the cut: make the database whole and checkpoint it."""
+        prepare()
+        self._checkpoint()
+        self.at_cut = True
+        log.info("%s %s: holds at the cut %s (log head %d)", self.name, self.instance,
+                 self.cut, self.head())  # fmt: skip
 
     def key(self) -> str:
         return keys.handover(self.name, self.region_label)
@@ -116,8 +150,12 @@ class Handover:
                      self.head())  # fmt: skip
         elif req.op == "resume" and self.paused:
             self._resume("handover called off")
-        elif req.op in ("state", "stop") and not self.paused:
+        elif req.op in ("state", "stop", "cut") and not self.paused:
             raise DecodeError("op", f"{req.op}: not paused (pause first)")
+        elif req.op in ("state", "stop") and self.advancing:
+            raise DecodeError("op", f"{req.op}: still applying up to the cut (ask status)")
+        elif req.op == "cut":
+            self._cut(dict(req.cut))
         size = self.path.stat().st_size if self.paused else 0
         data = b""
         if req.op == "state":
@@ -136,7 +174,21 @@ class Handover:
             size,
             req.offset,
             data,
+            tuple(sorted(self.inputs().items())),
+            self.at_cut,
         )
+
+    def _cut(self, cut: dict[str, int]) -> None:
+        if cut == self.cut:
+            return  # asked again
+        for p, g in sorted(self.inputs().items()):
+            if g > cut.get(p, 0):
+                raise DecodeError(
+                    "cut", f"{p}: applied up to gseq {g}, past the cut at {cut.get(p, 0)}"
+                )
+        self.cut, self.at_cut = cut, False
+        self.hold(cut)
+        log.info("%s %s: applying up to the cut %s", self.name, self.instance, cut)
 
     def lease_over(self) -> bool:
         """Paused, and no request for :data:`LEASE_S`: the tool is gone; the caller
@@ -148,6 +200,9 @@ class Handover:
 
     def _resume(self, why: str, level: int = logging.INFO) -> None:
         self.paused = False
+        if self.cut is not None:
+            self.cut, self.at_cut = None, False
+            self.hold(None)
         self.path.unlink(missing_ok=True)
         log.log(level, "%s %s: %s: applying again", self.name, self.instance, why)
 

@@ -91,6 +91,8 @@ class StageService(Service):
             self.db,
             self.data_dir,
             lambda: self.writer.gseq if self.writer else 0,
+            inputs=self.consumer.positions,
+            hold=self.consumer.hold_at,
         )
         self._paused_dropped = 0
         """Live entries dropped while paused for a handover (the producers' logs keep them)."""
@@ -182,16 +184,11 @@ class StageService(Service):
 
     def _handover(self, it: Item, deliver: list[LogEntry]) -> None:
         """Apply what came before a handover request, then serve it."""
-        if not self.handover.paused and not self.backoff.waiting(self.clock()):
+        if self.handover.applying and not self.backoff.waiting(self.clock()):
             self._deliver(deliver)
         deliver.clear()
-
-        def prepare() -> None:
-            with self.transaction(self.participants()):
-                self.before_handover()
-
         was_paused = self.handover.paused
-        self.handover.answer(it, prepare, self.reject)
+        self.handover.answer(it, self._prepare_handover, self.reject)
         if was_paused and not self.handover.paused:  # resumed: fetch what was dropped
             self.consumer.need_catchup = True
         if self.handover.stop is not None and self.handover.stop.is_set():
@@ -200,6 +197,10 @@ class StageService(Service):
                 self.pubs.put(
                     keys.mark(self.input_stage, producer, self.instance), leave.to_bytes()
                 )
+
+    def _prepare_handover(self) -> None:
+        with self.transaction(self.participants()):
+            self.before_handover()
 
     def teardown(self) -> None:
         if self.catchups is not None:
@@ -243,8 +244,8 @@ class StageService(Service):
                 if waiting:  # the rollback rewound the consumer: the retry replays it
                     self._deferred += 1
                     continue
-                if self.handover.paused:  # handed over: the producer's log keeps it
-                    self._paused_dropped += 1
+                if not self.handover.applying or self.consumer.past_cut(entry):
+                    self._paused_dropped += 1  # handed over: the producer's log keeps it
                     continue
                 deliver += self.consumer.offer(entry)
             elif it.kind == "handover":
@@ -255,8 +256,10 @@ class StageService(Service):
                 self.retention.take(self, [it])
             elif it.kind != "kick":
                 others.append(it)
-        if not waiting and not self.handover.paused:
+        if not waiting and self.handover.applying:
             self._deliver(deliver)
+            if self.handover.advancing and self.consumer.at_cut():
+                self.handover.reach_cut(self._prepare_handover)
         if others:
             self.handle_other(others)
 

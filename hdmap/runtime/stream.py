@@ -161,6 +161,9 @@ class LogConsumer:
         self._pending_wm: dict[str, tuple[int, tuple[int, int]]] = {}
         self._seen: dict[tuple[str, str], int] = {}
         self.stats = ConsumerStats()
+        self.cut: dict[str, int] | None = None
+        """Set while a handover holds the consumer at one position of its producers' logs
+        (:meth:`hold_at`): no entry past it is delivered."""
         self._rewind()
 
     def _rewind(self) -> None:
@@ -196,7 +199,7 @@ class LogConsumer:
 
     def offer(self, entry: LogEntry) -> list[LogEntry]:
         """A live entry -> the entries now deliverable in order (maybe none, maybe several)."""
-        if not in_region(entry.tile, self.prefixes):
+        if not in_region(entry.tile, self.prefixes) or self.past_cut(entry):
             return []
         k = (entry.producer, entry.tile)
         epoch = self._epochs.get(k, 0)
@@ -235,6 +238,38 @@ class LogConsumer:
         self._uncommitted.add(k)
         self._note(out[-1], out[-1].seq)
         return out
+
+    # -- a cut (a handover joining regions) -------------------------------------------------
+
+    def hold_at(self, cut: dict[str, int] | None) -> None:
+        """Deliver entries up to ``cut`` (producer -> ``gseq``; a producer not named: none)
+        and none past it, or every entry again (None). Entries past the cut are not
+        delivered (a replay and live traffic alike: they stay in their producer's log),
+        and a producer's watermark stops at its cut, so catch-ups go on until the region's
+        entries up to the cut are delivered (:meth:`at_cut`). A catch-up follows."""
+        self.cut = None if cut is None else dict(cut)
+        self.need_catchup = True
+
+    def past_cut(self, entry: LogEntry) -> bool:
+        return self.cut is not None and entry.gseq > self.cut.get(entry.producer, 0)
+
+    def at_cut(self) -> bool:
+        """Held at a cut, with what was delivered committed and, per producer named, the
+        region's entries up to its cut delivered (the committed watermark is there) or the
+        entry at the cut itself (this consumer was the one furthest in that log: it is no
+        less complete than it was when it stopped; a producer that has gone away answers
+        no catch-up)."""
+        if self.cut is None or self._uncommitted:
+            return False
+        top = self.positions()
+        return all(
+            max(self._committed_wm.get(p, 0), top.get(p, 0)) >= g for p, g in self.cut.items()
+        )
+
+    def positions(self) -> dict[str, int]:
+        """Per producer, the ``gseq`` of the last entry delivered from its current run
+        (what an instance that is not applying has applied; its input position)."""
+        return {p: g for p, (_e, g) in self._top.items() if g > 0}
 
     def _resync(self, k: tuple[str, str], entry: LogEntry) -> None:
         """The producer's run of ``entry`` began below what this consumer has of the tile:
@@ -465,7 +500,8 @@ class LogConsumer:
                 complete = False  # asked again from the lowered watermark
                 continue
             self._advance(p, h.through)
-            complete = complete and h.complete
+            held = self.cut is not None and self._watermark.get(p, 0) >= self.cut.get(p, 0)
+            complete = complete and (h.complete or held)  # what is past a cut is not wanted
         return out, complete
 
     def _refused(self, data: bytes) -> None:
@@ -516,7 +552,10 @@ class LogConsumer:
 
     def _advance(self, producer: str, through: int) -> None:
         """The producer's answer is delivered up to ``through``: raise its watermark there,
-        below any entry still waiting behind a gap (its missing ones are below it)."""
+        below any entry still waiting behind a gap (its missing ones are below it), and not
+        past a cut (:meth:`hold_at`: the entries past it were not delivered)."""
+        if self.cut is not None:
+            through = min(through, self.cut.get(producer, 0))
         waiting = [
             min(buf.values(), key=lambda e: e.gseq).gseq - 1
             for (p, _t), buf in self._ahead.items()

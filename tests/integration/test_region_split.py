@@ -183,12 +183,21 @@ def marks_on(data_dir) -> set[str]:
 
 
 def merge_back(stack, up) -> None:
-    """Split at a quarter of the uploads, merge back into one region at half of them."""
+    """Split at a quarter of the uploads, merge back into one region at half of them, with
+    one part behind the other: its matcher paused from its start until the merge. The
+    merge brings both to one position of ingest's log first (``cut``: the paused part
+    applies its backlog, then both hold), so the joined matcher goes on from a state the
+    unsplit one had (tests/unit/test_partition.py shows what a join apart changes)."""
     split_midway(stack, up)
+    with open_session(stack.bus) as s:
+        assert ask(s, "matcher", "1", "pause").paused
     assert wait_until(lambda: up.sent >= len(up.uploads) // 2, 120.0)
     at = up.sent
     r = region_cmd(stack, "merge", "--from", "1", "--from", "0+2+3", "--into", "all")
     assert r.returncode == 0, r.stderr + r.stdout
+    print(r.stdout)
+    held = re.findall(r"matcher (\S+): holds at the cut", r.stdout)
+    assert sorted(held) == ["0+2+3", "1"]
     assert up.sent > at
     for part in PARTS:
         for svc in ("matcher", "solver"):

@@ -21,7 +21,14 @@ from hdmap.runtime.partition import merge, split
 from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry, ObsGroup
 from services.matcher.partition import RULES as MATCHER
-from services.matcher.replay import Sink, open_matcher, read_log, replay
+from services.matcher.replay import (
+    Sink,
+    landmark_digest,
+    matcher_config,
+    open_matcher,
+    read_log,
+    replay,
+)
 from services.matcher.service import MatcherService
 from services.solver.partition import RULES as SOLVER
 from services.solver.service import SolverService
@@ -38,9 +45,14 @@ def tile(quadrant: str, zoom: int) -> str:
     return str(quadkeys_of(np.array([lat]), np.array([lon]), zoom)[0])
 
 
-def traffic(m: MatcherService) -> list[LogEntry]:
+LATE = SIGN + np.array([-20.0, 30.0, 0.0])
+"""A sign put up during the log: town 1's passes from the 25th on see it (``late``)."""
+
+
+def traffic(m: MatcherService, late: bool = False) -> list[LogEntry]:
     """40 passes alternating between the towns, vehicles 0-1 in one, 2-3 in the other;
-    each pass also sees a stray sign no other pass does (its rays stay pending)."""
+    each pass also sees a stray sign no other pass does (its rays stay pending); with
+    ``late``, town 1's passes from the 25th on also see the sign :data:`LATE`."""
     out = []
     for k in range(40):
         q = "1" if k % 2 == 0 else "3"
@@ -53,7 +65,11 @@ def traffic(m: MatcherService) -> list[LogEntry]:
         stray = SIGN + np.array([40.0, -20.0 + 7.0 * (k % 6), 0.0])  # one pass each: pending
         o3 = sign_rays(frame, k + 1, rng, n=3, at=stray, image0=80)
         o3 = replace(o3, obs_id=o3.obs_id + 800, sign_class=o3.sign_class + 5)
-        obs = type(obs).concat([obs, o2, o3])
+        parts = [obs, o2, o3]
+        if late and q == "1" and k >= 24:
+            o4 = sign_rays(frame, k + 1, rng, at=LATE, image0=110)
+            parts.append(replace(o4, obs_id=o4.obs_id + 1200, sign_class=o4.sign_class + 2))
+        obs = type(obs).concat(parts)
         at = T0 + 5.0 * k
         obs = replace(obs, t=at - np.linspace(2.0, 0.0, len(obs)))
         vehicle = f"veh-{(k // 2) % 2 + (0 if q == '1' else 2)}"
@@ -169,3 +185,41 @@ def test_a_solver_cut_in_two_publishes_what_the_whole_does(tmp_path, logs) -> No
     assert got == want
     merge(cps, db_of(SolverService, tmp_path / "joined", []), SOLVER)
     assert landmarks(open_part(SolverService, tmp_path / "joined", [])) == want
+
+
+@pytest.mark.parametrize(
+    ("stops", "lag", "same"),
+    [((34, 34), 60.0, True), ((24, 34), 60.0, False), ((24, 34), 3.0, True)],
+    ids=["one_position", "apart", "apart_short_lag"],
+)
+def test_parts_joined_at_one_position_go_on_as_the_whole(tmp_path, stops, lag, same) -> None:
+    """Why a merge brings its parts to one position of ingest's log (``hdmap region
+    merge``, :func:`hdmap.ops.region.cut_at_one_position`). Cut at the 20th entry; town
+    1's passes from the 25th see a new sign. Joined at one position (both parts at the
+    34th), the joined matcher goes on as the whole: the same landmarks, gating positions
+    to the bit. Joined apart (town 1's part stopped at the 24th), it applies town 1's
+    backlog (5 passes, 4 s of capture time apart) against the other part's later clock,
+    within ``tick_lag_s`` of it: one gating tick where the whole gave each pass its own,
+    and the map differs (millimetres here); with a lag shorter than the passes' spacing
+    the backlog's passes have ticks of their own and it does not."""
+    config = matcher_config({"tick_lag_s": lag})
+    gen = open_matcher(tmp_path / "gen")
+    entries = traffic(gen, late=True)
+    gen.db.close()
+    whole = open_matcher(tmp_path / "whole", config)
+    replay(whole, entries[:20], 4)
+    cp = checkpoint(whole, tmp_path / "m.sqlite")
+    replay(whole, entries[20:], 4)
+    cps = []
+    for i, (part, stop) in enumerate(zip(PARTS, stops, strict=True)):
+        split(cp, db_of(MatcherService, tmp_path, part), part, MATCHER, first=i == 0)
+        svc = MatcherService(ServiceOptions(data_dir=tmp_path, region=tuple(part)), config)
+        svc.pubs = Sink()  # type: ignore[assignment]
+        replay(svc, [e for e in entries[20:stop] if in_part(e, part)], 4)
+        cps.append(checkpoint(svc, tmp_path / f"part{i}.sqlite"))
+        svc.db.close()
+    merge(cps, db_of(MatcherService, tmp_path / "joined", []), MATCHER)
+    joined = open_matcher(tmp_path / "joined", config)
+    replay(joined, entries[min(stops) :], 4)  # what a part applied is skipped (offsets)
+    assert len(whole.state.landmarks) == 5  # the late sign included
+    assert (landmark_digest(joined) == landmark_digest(whole)) is same
