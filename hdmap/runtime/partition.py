@@ -8,7 +8,9 @@ function of the part's prefixes) and the runtime's own tables:
 
 - the output log (``log_out``, ``log_heads``, ``log_epochs``, ``log_marks``) and the
   instance id go: each part is a new producer (a new instance id on first start, its
-  log from ``seq`` 1), whose consumers start its log from the beginning;
+  log from ``seq`` 1), whose consumers start its log from the beginning; its first
+  entries are what the service gives a new log of a state it holds
+  (:meth:`hdmap.runtime.stage.StageService.first_output`: the solver's published map);
 - the input offsets keep the part's tiles (it goes on where the region left off); the
   watermarks are kept (each part's region is inside the old one);
 - the durable counters and the dead letters go to the first part only, so totals over

@@ -34,6 +34,7 @@ import queue
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from itertools import pairwise
 
 import zenoh
@@ -119,6 +120,12 @@ class StageService(Service):
         """Make the database the whole state before a handover's checkpoint (inside a
         transaction; :mod:`hdmap.runtime.handover`)."""
 
+    def first_output(self) -> None:
+        """What a service whose output log is new but whose state is not (a part of a split
+        or a merge: :mod:`hdmap.runtime.partition` starts each part as a new producer)
+        writes as its log's first entries with :meth:`emit` (inside a transaction): by
+        default nothing. A consumer reads a new producer's log from its start."""
+
     def handle_other(self, items: list[Item]) -> None:
         """Items that are not stage entries (queries of this service)."""
         for it in items:
@@ -154,6 +161,7 @@ class StageService(Service):
             )
         if self.hands_over:
             self.serve(self.handover.key(), "handover")
+        self.start_log()
         self.every(self.opts.catchup_interval_s, lambda _now: self._mark_catchup())
         self.every(self.opts.catchup_interval_s, lambda _now: self.publish_marks())
         self.use_fetch(bus_fetch(self.session))
@@ -334,15 +342,31 @@ class StageService(Service):
         log.exception("%s: entry %s failed; dead-lettered", self.name, _describe(entries[0]))
         return self._dead_letter(entries[0])
 
+    def start_log(self) -> None:
+        """:meth:`first_output` in one transaction when the output log is new (nothing
+        written yet, ``gseq`` 0), its entries published after the commit."""
+        if self.writer is None or self.writer.gseq > 0:
+            return
+        self._in_transaction(self.first_output)
+
     def _apply_in_transaction(self, entries: list[LogEntry]) -> None:
+        def work() -> None:
+            self.apply(entries)
+            self.consumer.record(entries)
+            self.count("entries_applied", len(entries))
+
+        self._in_transaction(work)
+
+    def _in_transaction(self, work: Callable[[], None]) -> None:
+        """``work`` in one transaction with the consumer, the log writer and the
+        subclass's participants; the output entries it appended published after the
+        commit (none if it raises)."""
         participants = [self.consumer] + ([self.writer] if self.writer else [])
         participants += self.participants()
         self._outbox = []
         try:
             with self.transaction(participants):
-                self.apply(entries)
-                self.consumer.record(entries)
-                self.count("entries_applied", len(entries))
+                work()
                 self.count("log_entries", len(self._outbox))
         except BaseException:
             self._outbox = []

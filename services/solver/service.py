@@ -292,6 +292,19 @@ class SolverService(StageService):
         if new_of is not None:
             self.count("sums_rows_dropped", int((new_of < 0).sum()))
 
+    def first_output(self) -> None:
+        """A part of a split or a merge starts a new update log with the landmarks it has
+        published (each at its next revision, as solved now): a publisher that reads the
+        log from its start (one started later, after retention folded the first entries
+        into checkpoints) gets the part's whole map, not only what changed since."""
+        ids = sorted(i for i, lm in self.state.landmarks.items() if lm.tile)
+        if not ids:
+            return
+        self._retired, self._source = [], {}
+        self._publish(ids)
+        self.state.save(self.sums.pack_rows)
+        self.count("republished", len(ids))
+
     def _apply_group(self, g: AssocGroup) -> set[int]:
         touched: set[int] = set()
         c = g.created

@@ -19,7 +19,7 @@ import pytest
 from hdmap.geo.tiles import quadkeys_of, region_label
 from hdmap.runtime.partition import merge, split
 from hdmap.runtime.service import ServiceOptions
-from schemas import LogEntry, ObsGroup
+from schemas import LandmarkUpdates, LogEntry, ObsGroup
 from services.matcher.partition import RULES as MATCHER
 from services.matcher.replay import (
     Sink,
@@ -95,6 +95,23 @@ def checkpoint(svc, path: Path) -> Path:
     return path
 
 
+def published(entries: list[LogEntry]) -> dict[int, tuple]:
+    """The map a solver's update entries leave (each landmark's last row, less removals):
+    id -> (tile, lat, lon, h, cov, status, n_obs, n_passes)."""
+    out: dict[int, tuple] = {}
+    for e in entries:
+        u = LandmarkUpdates.from_bytes(e.body)
+        lm = u.landmarks
+        for k, i in enumerate(lm.id.tolist()):
+            out[i] = (e.tile, *(np.asarray(getattr(lm, c)[k]).tolist() for c in ROW))
+        for i in u.removed.id.tolist():
+            out.pop(i, None)
+    return out
+
+
+ROW = ("lat", "lon", "h", "cov", "status", "n_obs", "n_passes")
+
+
 def in_part(e: LogEntry, part: list[str]) -> bool:
     return any(e.tile.startswith(p) for p in part)
 
@@ -168,6 +185,7 @@ def test_a_solver_cut_in_two_publishes_what_the_whole_does(tmp_path, logs) -> No
     whole = open_part(SolverService, tmp_path / "whole", [])
     replay(whole, assoc[:half], 3)  # type: ignore[arg-type]
     cp = checkpoint(whole, tmp_path / "s.sqlite")
+    at_split = published(read_log(whole.db_path, "update"))
     replay(whole, assoc[half:], 3)  # type: ignore[arg-type]
     want = landmarks(whole)
     assert len(want) == 4
@@ -178,6 +196,16 @@ def test_a_solver_cut_in_two_publishes_what_the_whole_does(tmp_path, logs) -> No
         svc = open_part(SolverService, tmp_path, part)
         assert all(in_part(LogEntry("obs", "x", lm.home, 1, 1, b""), part)
                    for lm in svc.state.landmarks.values())  # fmt: skip
+        # a new update log opens with the part's published map (a publisher reading it
+        # from its start gets the whole of it), once
+        svc.start_log()
+        mine = {
+            i: v for i, v in at_split.items() if in_part(LogEntry("u", "x", v[0], 1, 1, b""), part)
+        }
+        assert mine and published(read_log(svc.db_path, "update")) == mine
+        head = svc.writer.gseq
+        svc.start_log()
+        assert svc.writer.gseq == head
         replay(svc, [e for e in assoc[half:] if in_part(e, part)], 3)  # type: ignore[arg-type]
         got.update(landmarks(svc))
         cps.append(checkpoint(svc, tmp_path / f"s{i}.sqlite"))
