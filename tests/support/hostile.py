@@ -2,7 +2,8 @@
 mutations of them (flipped bytes, truncation, wrong types, NaN/inf, huge arrays, duplicate
 ids, far timestamps, unknown classes, zero directions, coordinates outside their tile).
 
-Shared by tests/test_fuzz_decoders.py and tests/test_fuzz_endpoints.py; the observation
+Shared by tests/unit/test_fuzz_decoders.py, tests/integration/test_fuzz_endpoints.py and
+tests/integration/test_fuzz_internal.py; the observation
 builder is the attack generators' (:mod:`fleetsim.attacks`).
 """
 
