@@ -4,7 +4,7 @@ They run over a real stack (router + the four services as processes) while an ho
 vehicle uploads *during* the fuzz; afterwards every process must be alive, have its
 liveliness token and answer stats, and the honest vehicle must have had every upload
 acknowledged and applied by the matcher. This module holds those checks, the honest
-vehicle, the ``live_stack`` the tests' ``live`` fixture opens, and ``rejected_delta``
+vehicle, the ``live`` fixture, and ``rejected_delta``
 (what a service counted in ``Stats.rejected``, by reason, between two stats).
 """
 
@@ -15,8 +15,8 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
-from contextlib import contextmanager
 
+import pytest
 import zenoh
 
 from hdmap.ops.stack import SERVICE_NAMES, Stack, tail
@@ -133,11 +133,10 @@ class HonestVehicle(threading.Thread):
         assert wait_until(applied, timeout=60.0), "the matcher did not apply the honest uploads"
 
 
-@contextmanager
-def live_stack(stack: Stack) -> Iterator[tuple[Stack, zenoh.Session, HonestVehicle]]:
-    """The whole stack, a client session and an honest vehicle uploading meanwhile.
-
-    A test module's ``live`` fixture yields what this yields."""
+@pytest.fixture
+def live(stack: Stack) -> Iterator[tuple[Stack, zenoh.Session, HonestVehicle]]:
+    """The whole stack, a client session and an honest vehicle uploading meanwhile (the
+    fuzz modules' fixture: tests/integration/conftest.py makes it theirs)."""
     stack.start_all()
     with open_session(stack.bus) as s:
         honest = HonestVehicle(stack)

@@ -25,7 +25,6 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from collections.abc import Iterator
 from typing import Any
 
 import msgpack
@@ -37,7 +36,7 @@ from hypothesis import strategies as st
 
 from hdmap.geo.tiles import route_rays
 from hdmap.ops.quiesce import totals, wait_quiet
-from hdmap.ops.stack import SERVICE_NAMES, Stack
+from hdmap.ops.stack import SERVICE_NAMES
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import query
 from schemas import (
@@ -57,9 +56,7 @@ from schemas import (
 )
 from services.ingest.admission import AdmissionPolicy, admit, check_header
 from tests.integration.fuzz_support import (
-    HonestVehicle,
     assert_all_alive,
-    live_stack,
     rejected_delta,
     stats_by_service,
 )
@@ -73,14 +70,6 @@ from tests.support.hostile import (
     named_batches,
     observations,
 )
-
-
-@pytest.fixture
-def live(stack: Stack) -> Iterator[tuple[Stack, zenoh.Session, HonestVehicle]]:
-    """The whole stack, a client session and an honest vehicle uploading meanwhile."""
-    with live_stack(stack) as it:
-        yield it
-
 
 # --- the upload queryable -----------------------------------------------------------------------
 

@@ -27,16 +27,14 @@ import math
 import sqlite3
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import msgpack
 import pytest
-import zenoh
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hdmap.ops.stack import Stack
 from hdmap.runtime.bus import Publishers
 from hdmap.runtime.stream import LogConsumer
 from schemas import (
@@ -51,9 +49,7 @@ from schemas import (
     keys,
 )
 from tests.integration.fuzz_support import (
-    HonestVehicle,
     assert_all_alive,
-    live_stack,
     read_db,
     rejected_delta,
     stats_by_service,
@@ -70,14 +66,6 @@ from tests.support.hostile import (
     landmark_updates,
     obs_group,
 )
-
-
-@pytest.fixture
-def live(stack: Stack) -> Iterator[tuple[Stack, zenoh.Session, HonestVehicle]]:
-    """The whole stack, a client session and an honest vehicle uploading meanwhile."""
-    with live_stack(stack) as it:
-        yield it
-
 
 # --- internal stage subscribers (forged log entries) ---------------------------------------------
 
