@@ -128,31 +128,34 @@ class MatchingConfig:
     tried as seeds of new landmarks, and the landmarks they touched are re-solved and
     merged, when the clock enters the next tick. 0: after every unit (one unit, one
     tick)."""
-    tick_lag_s: float = 60.0
+    tick_lag_s: float = 3.0
     """A unit at most this far behind the matcher's clock (event time) joins the clock's
     gating tick; one further behind (a late or bulk upload) goes by its own time
     (:func:`hdmap.mapping.tick.tick_of`). Live uploads reach the matcher seconds out of
     event-time order (vehicles pace and batch their uploads, ingest batches them): with the
     lag at ``tick_s`` (1 s) a load test cut every second of traffic into 4-18 ticks. A
     vehicle that uploads a pass when it ends sends its first tiles up to the pass's length
-    behind the clock: with 3 s each of them ended the live tick and had one of its own (a
-    load test at 8,000 obs/s: 4,252 ticks of about one unit, 177 us CPU per observation in
-    a replay; with 60 s, 789 ticks and 87 us; end to end 7,000 obs/s against 4,000:
+    behind the clock, and each of them ends the live tick and has one of its own (a load
+    test at 8,000 obs/s: 4,252 ticks of about one unit, 177 us CPU per observation in a
+    replay; with 60 s, 789 ticks and 87 us; end to end 7,000 obs/s against 4,000:
     docs/experiments/2026-12-tick-lag.md).
 
-    Pitfalls, why it is not longer: the passes of one tick do not see each other's new
-    landmarks (a sign first seen by two passes of a tick gets one landmark from the first
-    and the other's rays adopted, or a second, young copy where adoption refuses them):
-    with 120 s the real phone errors left 18 more young landmarks paired with no sign, 60 s
-    none; and a tick's end is one burst the units behind it wait for (p99 latency 0.31 s
-    with 120 s against 0.70 at 3,000 obs/s). A region merge brings its parts to one
-    position of ingest's log first (:func:`hdmap.ops.region.cut_at_one_position`): a part
-    left behind would apply its backlog within the lag of the other's later clock, in
-    one tick where the unsplit region gave each pass its own. What a split does not
-    keep: a part's clock is the latest of its own units, so a unit of one part that the
-    whole would have seen behind another part's later units (within the lag) joins its
-    part's tick, not the whole's; the same map only where the regions' traffic is in
-    event-time order (tests/integration/test_region_split.py)."""
+    Pitfall, why it is not longer: the passes of one tick do not see each other's new
+    landmarks. A sign first seen by two passes of a tick gets a landmark from the first; the
+    other's rays are offered to it by adoption, which associates the pass's waiting rays
+    alone (in a tick of its own the pass's unit would bring the offset its other rays give
+    it), and where adoption refuses them they start a second landmark (the likely mechanism,
+    not traced landmark by landmark). With 60 s the fleet evaluation's logs replayed (the
+    same uploads, 1,200 passes) kept two more confirmed duplicates on seeds 2 and 3 and 6-8
+    more landmarks paired with no sign than with 3 s; 120 s left 18 more young ones on the
+    real phone errors. A longer lag needs initiation that gives a tick's later passes what a
+    tick of their own would (their offsets), first. A region merge brings its parts to one
+    position of ingest's log (:func:`hdmap.ops.region.cut_at_one_position`), so the lag is
+    no longer limited by merges. What a split does not keep, at any lag: a part's clock is
+    the latest of its own units, so a unit of one part that the whole would have seen behind
+    another part's later units (within the lag) joins its part's tick, not the whole's: the
+    same map only where the regions' traffic is in event-time order
+    (tests/integration/test_region_split.py)."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
     matcher's wall clock does not move the matcher's clock (counted ``time_clamped``; see

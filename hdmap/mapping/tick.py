@@ -3,7 +3,7 @@ re-solved and its waiting rays start landmarks.
 
 Event time is cut into ticks of ``MatchingConfig.tick_s`` seconds. A unit belongs to the
 tick of the matcher's clock (:meth:`hdmap.mapping.matching.Matching.entry_time`) when its
-own event time is at most ``tick_lag_s`` (60 s) behind the clock, else to the tick of its
+own event time is at most ``tick_lag_s`` (3 s) behind the clock, else to the tick of its
 own event time (:func:`enter`); a run of consecutive units of one tick is a *gating tick*. Every
 unit of it is associated with the landmarks as they stood when it began: the set of
 landmarks, their gating estimates (position, covariance) and facings
