@@ -143,16 +143,16 @@ class MatchingConfig:
     Pitfall, why it is not longer: with 60 s the fleet evaluation's logs replayed (the same
     uploads, 1,200 passes) kept two more confirmed duplicates on seeds 2 and 3 and 6-8 more
     landmarks paired with no sign than with 3 s; 120 s left 18 more young ones on the real
-    phone errors. Why is not understood: the passes of one tick do not see each other's new
-    landmarks, but of seed 2's three confirmed duplicates at 60 s one was born in a tick of
-    a single pass and two at a pass's upload over its pending budget inside a tick (such
-    births 33 -> 40 in the replay, adoptions 3,483 -> 5,111;
-    docs/experiments/2026-12-tick-lag.md). A region merge brings its parts to one position
-    of ingest's log (:func:`hdmap.ops.region.cut_at_one_position`), so merges no longer
-    limit the lag. What a split does not keep, at any lag: a part's clock is the latest of
-    its own units, so a unit of one part that the whole would have seen behind another
-    part's later units (within the lag) joins its part's tick, not the whole's: the same map
-    only where the regions' traffic is in event-time order
+    phone errors. Mostly the pending budget: a pass's upload into a tile without landmarks
+    waits whole in one long tick, passes ``pending_max_per_pass`` and starts its landmarks
+    at once, inside the tick (two of seed 2's three were born so); with the budget at 1024 the
+    60 s replays gave the 3 s maps (docs/experiments/2026-12-tick-lag.md), but the budget
+    bounds what a flooding pass costs. A region merge brings its parts to one position of
+    ingest's log (:func:`hdmap.ops.region.cut_at_one_position`), so merges no longer limit
+    the lag. What a split does not keep, at any lag: a part's clock is the latest of its own
+    units, so a unit of one part that the whole would have seen behind another part's later
+    units (within the lag) joins its part's tick, not the whole's: the same map only where
+    the regions' traffic is in event-time order
     (tests/integration/test_region_split.py)."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the
