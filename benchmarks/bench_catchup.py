@@ -8,7 +8,7 @@ ten new entries are written and, side by side in one run, fetched with:
 
 - ``per_tile``: the query form that lists every tile's offset (what consumers sent
   before the watermark; the producer answers it by scanning every tile it wrote);
-- ``watermark``: :meth:`hdmap.runtime.stream.LogConsumer.catch_up` (the tiles active
+- ``watermark``: :func:`hdmap.runtime.catchup.catch_up` (the tiles active
   since the last catch-up and a ``gseq`` watermark per producer).
 
 It reports the query's size and the seconds per catch-up for each N, and checks both
@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import machine, machine_line, write_json
 from hdmap.ops.stack import Stack
 from hdmap.runtime.bus import open_session, query
+from hdmap.runtime.catchup import catch_up
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.store import connect, transaction
 from hdmap.runtime.stream import LogConsumer
@@ -69,7 +70,7 @@ def _one(st: Stack, tmp: Path, n_tiles: int) -> dict:
         server = LogServer(s, tmp / f"p{n_tiles}.sqlite", "obs", PRODUCER)
         try:
             time.sleep(0.3)
-            got = consumer.catch_up(s, timeout=60)
+            got = catch_up(consumer, s, timeout=60)
             with transaction(cons, [consumer]):
                 consumer.record(got)
             assert len(got) == n_tiles, (len(got), n_tiles)
@@ -83,7 +84,7 @@ def _one(st: Stack, tmp: Path, n_tiles: int) -> dict:
                         size, n = _per_tile(s, consumer)
                     else:
                         size = len(consumer.query(2000).to_bytes())
-                        n = len(consumer.catch_up(s, timeout=60))
+                        n = len(catch_up(consumer, s, timeout=60))
                     secs.append(time.perf_counter() - t0)
                     sizes.append(size)
                     counts.append(n)

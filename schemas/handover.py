@@ -2,11 +2,11 @@
 a matcher or solver instance, on ``hdmap/v1/handover/<service>/<region>``.
 
 The tool asks an instance to ``pause`` (it applies nothing more: its input stays in its
-producers' logs; it still serves its own log, so its consumers drain it). Several regions
-joined into one are first brought to one position of their input (``cut``: each applies
-its entries up to the same ``gseq`` of every producer, then holds; ``at_cut`` in the
-reply), so that the joined instance goes on from a state the unsplit region had. It watches the
-``status`` until every consumer's mark reached the instance's log head, reads its
+producers' logs; it still serves its own log, so its consumers drain it). Several
+regions joined into one are first brought to one position of their input (``cut``: each
+applies its entries up to the same ``gseq`` of every producer, then holds; ``at_cut`` in
+the reply), so that the joined instance goes on from a state the unsplit region had. The
+tool watches the ``status`` until every consumer's mark reached the instance's log head, reads its
 checkpoint (its database as of the pause) in ``state`` chunks from ``offset``, and tells it
 to ``stop`` (or ``resume``, to call the handover off).
 
@@ -69,7 +69,8 @@ class HandoverRequest(Message):
         )
 
     def __repr__(self) -> str:
-        return f"HandoverRequest(op={self.op!r}, offset={self.offset})"
+        cut = f", cut={self.cut!r}" if self.cut else ""
+        return f"HandoverRequest(op={self.op!r}, offset={self.offset}{cut})"
 
 
 @dataclass(frozen=True, eq=False)

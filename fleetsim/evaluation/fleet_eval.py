@@ -60,6 +60,7 @@ from hdmap.ops.quiesce import totals, wait_quiet
 from hdmap.ops.stack import Stack
 from hdmap.ops.status import collect
 from hdmap.runtime.bus import open_session
+from hdmap.runtime.catchup import catch_up
 from hdmap.runtime.stream import LogConsumer
 from schemas import AssocGroup, Landmarks
 from services.solver.service import SolverConfig
@@ -222,7 +223,7 @@ def replay_links(session) -> list[ObsKeys]:
     consumer = LogConsumer(sqlite3.connect(":memory:"), "assoc", [""])
     out: list[ObsKeys] = []
     successor: dict[int, int] = {}
-    for e in consumer.catch_up(session, timeout=30.0):
+    for e in catch_up(consumer, session, timeout=30.0):
         g = AssocGroup.from_bytes(e.body)
         for vi, vid in enumerate(g.vehicles):
             mine = g.links.vehicle == vi

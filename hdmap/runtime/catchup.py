@@ -20,7 +20,8 @@ from concurrent.futures import Executor, Future, ThreadPoolExecutor
 
 import zenoh
 
-from hdmap.runtime.stream import LogConsumer, fetch
+from hdmap.runtime.bus import query
+from hdmap.runtime.stream import LogConsumer
 from schemas import LogEntry
 
 log = logging.getLogger(__name__)
@@ -114,5 +115,41 @@ class InlineExecutor(Executor):
 
 
 def bus_fetch(session: zenoh.Session, timeout: float = 5.0) -> Fetch:
-    """Rounds asked on the bus (:func:`hdmap.runtime.stream.fetch`)."""
+    """Rounds asked on the bus (:func:`fetch`)."""
     return lambda selectors, request: fetch(session, selectors, request, timeout)
+
+
+def fetch(
+    session: zenoh.Session, selectors: list[str], request: bytes, timeout: float
+) -> list[bytes]:
+    """One catch-up round: the producers' replies to ``request``, their refusals
+    (:class:`~schemas.ErrorReply`) included."""
+    out = []
+    for sel in selectors:
+        for _key, ok, err in query(session, sel, request, timeout=timeout):
+            if ok is not None or err is not None:
+                out.append(ok if ok is not None else err)
+    return out
+
+
+def catch_up(
+    consumer: LogConsumer,
+    session: zenoh.Session,
+    timeout: float = 5.0,
+    limit: int = 2000,
+    max_rounds: int = 1000,
+) -> list[LogEntry]:
+    """On the caller's thread: fetch what the producers have that ``consumer`` has not;
+    return it deliverable, in order (tools and tests; services use
+    :class:`BackgroundCatchUp`). Bounded: at most ``max_rounds`` queries of ``limit``
+    entries per producer."""
+    consumer.begin_catchup()
+    out: list[LogEntry] = []
+    for _ in range(max_rounds):
+        request = consumer.query(limit).to_bytes()
+        delivered, complete = consumer.absorb(fetch(session, consumer.selector(), request, timeout))
+        out += delivered
+        consumer.end_round(complete, consumer.clock())
+        if complete:
+            break
+    return out

@@ -35,10 +35,7 @@ from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-import zenoh
-
 from hdmap.geo.tiles import in_region
-from hdmap.runtime.bus import query
 from hdmap.runtime.log_policy import GapPolicy
 from schemas import (
     DecodeError,
@@ -447,28 +444,6 @@ class LogConsumer:
             listed.setdefault(p, {})[t] = self._delivered.get((p, t), 0)
         return LogQuery(self.stage, listed, self.prefixes, limit, dict(self._watermark))
 
-    def catch_up(
-        self,
-        session: zenoh.Session,
-        timeout: float = 5.0,
-        limit: int = 2000,
-        max_rounds: int = 1000,
-    ) -> list[LogEntry]:
-        """Fetch what producers have that we have not; return it deliverable, in order.
-
-        Bounded: at most ``max_rounds`` queries of ``limit`` entries per producer.
-        """
-        self.begin_catchup()
-        out: list[LogEntry] = []
-        for _ in range(max_rounds):
-            replies = fetch(session, self.selector(), self.query(limit).to_bytes(), timeout)
-            delivered, complete = self.absorb(replies)
-            out += delivered
-            self.end_round(complete, self.clock())
-            if complete:
-                break
-        return out
-
     def absorb(self, replies: Iterable[bytes]) -> tuple[list[LogEntry], bool]:
         """One round's replies -> (entries now deliverable, whether every producer that
         answered sent all it had). Entries are offered in each producer's ``gseq`` order;
@@ -599,16 +574,3 @@ class LogConsumer:
     def watermarks(self) -> dict[str, int]:
         """Committed watermarks per producer."""
         return dict(self._committed_wm)
-
-
-def fetch(
-    session: zenoh.Session, selectors: list[str], request: bytes, timeout: float
-) -> list[bytes]:
-    """One catch-up round: the producers' replies to ``request``, their refusals
-    (:class:`~schemas.ErrorReply`) included."""
-    out = []
-    for sel in selectors:
-        for _key, ok, err in query(session, sel, request, timeout=timeout):
-            if ok is not None or err is not None:
-                out.append(ok if ok is not None else err)
-    return out

@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from hdmap.runtime.catchup import catch_up
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.log_policy import RetentionPolicy
 from hdmap.runtime.retention import LogRetention, truncated_through
@@ -113,16 +114,16 @@ def test_a_consumer_behind_a_truncated_log_is_refused_naming_after_gseq(tmp_path
     server = LogServer(router_session, tmp_path / "p.sqlite", "obs", P)
     try:
         ok = LogConsumer(connect(tmp_path / "ok.sqlite"), "obs", [])
-        assert len(ok.catch_up(router_session, timeout=5.0)) == 40
+        assert len(catch_up(ok, router_session, timeout=5.0)) == 40
         wall.t += 10.0
         with transaction(conn):
             r.on_mark(mark("matcher-a", 40, w))
             assert r.truncate() == 40
         write(conn, w, 10)
-        got = ok.catch_up(router_session, timeout=5.0)
+        got = catch_up(ok, router_session, timeout=5.0)
         assert [e.gseq for e in got] == list(range(41, 51)) and ok.stats.replay_refused == 0
         late = LogConsumer(connect(tmp_path / "late.sqlite"), "obs", [])  # never marked
-        assert late.catch_up(router_session, timeout=5.0) == []
+        assert catch_up(late, router_session, timeout=5.0) == []
         assert late.stats.replay_refused == 1
     finally:
         server.close()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from hdmap.runtime.catchup import catch_up
 from hdmap.runtime.log_out import LogServer, LogWriter
 from hdmap.runtime.store import StorageError, connect, transaction
 from hdmap.runtime.stream import LogConsumer
@@ -93,11 +94,11 @@ def test_catch_up_replays_what_a_consumer_missed(tmp_path, router_session):
     try:
         cons = connect(tmp_path / "c.sqlite")
         c = LogConsumer(cons, "obs", ["1202"])
-        got = c.catch_up(router_session, timeout=5.0, limit=4)
+        got = catch_up(c, router_session, timeout=5.0, limit=4)
         assert [e.seq for e in got] == list(range(1, 13))
         assert all(e.tile == "1202" for e in got)
         assert [e.gseq for e in got] == sorted(e.gseq for e in got)
-        assert c.catch_up(router_session, timeout=5.0) == []
+        assert catch_up(c, router_session, timeout=5.0) == []
         cons.close()
     finally:
         server.close()
