@@ -159,9 +159,6 @@ class LandmarkTable:
         self.tick_counted: set[int] = set()
         """Landmarks a unit of the current tick had in view: their sightings are checked when
         it ends."""
-        self.tick_born: dict[int, int] = {}
-        """Landmarks started in the current tick, with the :func:`pass_key` of the pass that
-        started them (the only one that sees them before the tick ends)."""
         self._tick_dirty = False
         """The current tick changed (its index, or it ended): a store rewrites its marks."""
         self._tick_ids: set[int] = set()
@@ -264,16 +261,13 @@ class LandmarkTable:
 
     # -- the gating tick -------------------------------------------------------------------
 
-    def note_tick(self, touched: set[int], counted: list[int], born: set[int], key: int) -> None:
-        """A unit of the current tick touched, had in view and started these landmarks
-        (started by the pass ``key``)."""
+    def note_tick(self, touched: set[int], counted: list[int]) -> None:
+        """A unit of the current tick touched (linked to or started) and had in view these
+        landmarks."""
         self.tick_touched |= touched
         self.tick_counted.update(counted)
-        for lid in born:
-            self.tick_born[lid] = key
         self._tick_ids |= touched
         self._tick_ids.update(counted)
-        self._tick_ids |= born
 
     def start_tick(self, tick_id: int) -> None:
         """The current gating tick is now ``tick_id``."""
@@ -283,7 +277,7 @@ class LandmarkTable:
     def take_tick(self) -> tuple[list[int], list[int]]:
         """End the tick: its touched and counted landmarks (sorted), forgotten here."""
         out = sorted(self.tick_touched), sorted(self.tick_counted)
-        self.tick_touched, self.tick_counted, self.tick_born = set(), set(), {}
+        self.tick_touched, self.tick_counted = set(), set()
         self._tick_ids = set()
         self._tick_dirty = True
         return out

@@ -204,6 +204,6 @@ def refresh_due(m: Matching, ids: list[int]) -> None:
     """Re-solve ``ids`` now with ``tick_s = 0``, else when the gating tick ends
     (:mod:`hdmap.mapping.tick`)."""
     if m.config.tick_s > 0:
-        m.state.note_tick(set(ids), [], set(), 0)
+        m.state.note_tick(set(ids), [])
     else:
         refresh(m, ids)

@@ -93,7 +93,7 @@ def initiate(
     that pools it or at its tick's end (its class is among ``classes``), so these are the
     rays pooled since, and the work is (those rays) x (the pass's: at most 9 tiles' budgets
     and what it pooled in the tick, :func:`enforce_budget` runs after this; a pass over its
-    budget is tried at its upload, :func:`over_budget`). Invariant:
+    budget ends its tick at its upload, :func:`over_budget`). Invariant:
     every tried ray of the pool has been a seed against the pool as it was then, and made
     nothing. Since then the pass's pool changed only by (a) rays added: a candidate that
     needs one of them contains one, and growing from any member of a cluster finds the
@@ -198,6 +198,12 @@ def over_budget(m: Matching, tile: str, vehicle: str, pass_id: int) -> bool:
         return True
     key = pass_key(vehicle, pass_id)
     return cfg.pending_max_per_pass > 0 and p.count_of(key) > cfg.pending_max_per_pass
+
+
+def quarantined(m: Matching, vehicle: str, pass_id: int) -> bool:
+    """Whether the pass is quarantined (:func:`initiate` makes nothing of its rays)."""
+    b = m.state.passes.get(pass_key(vehicle, pass_id))
+    return b is not None and bool(b.quarantined)
 
 
 def initiate_waiting(m: Matching) -> set[int]:

@@ -21,11 +21,19 @@ their event times), never on how they were batched, when they arrived or on a re
 (the tick's marks and its untried rays are saved with the table), so live processing, a
 bulk upload a day late and a replay give the same map. Within a tick a unit's
 association depends on the units before it only through its own vehicle's trust record
-(the correction of a suspect vehicle's origins), landmarks a vehicle's settlement emptied
-and landmarks started early by a pass over its pending budget
-(:func:`hdmap.mapping.pending.over_budget`: the only births inside a tick, seen by that
-pass alone until the tick ends): what :func:`hdmap.mapping.unit.signature` checks, and
-what lets the units of a tick be associated together.
+(the correction of a suspect vehicle's origins) and landmarks a vehicle's settlement
+emptied: what :func:`hdmap.mapping.unit.signature` checks, and what lets the units of a
+tick be associated together. No landmark is born inside a tick: a unit that leaves its
+pass over its pending budget (:func:`hdmap.mapping.pending.over_budget`; an honest pass
+uploaded whole into a tile without landmarks does) ends the tick after itself
+(:func:`split_tick`: every waiting ray tried, this pass's with the others, then the
+budget), and the units after it begin a new tick of the same index, seeing what it
+started. (Before, such a pass started its landmarks at once, seen by itself alone until
+the tick ended: the other passes of a long tick kept their rays waiting beside them and
+started second copies; the 1,200-pass fleet evaluation's logs replayed with a 60 s lag
+kept two more confirmed duplicates that way.) A pass that is quarantined does not end
+ticks (its attempts make nothing); one that floods a tile ends a tick at most
+``quarantine_after`` + 1 times.
 
 Live traffic at a high rate puts hundreds of units in one tick (uploads seconds out of
 order included: a lag of ``tick_s`` alone cut a load test's every second into 4-18
@@ -88,6 +96,16 @@ def enter(m: Matching, at: float) -> None:
         m.tick_serial += 1
 
 
+def split_tick(m: Matching) -> None:
+    """End the current tick here (:func:`end_tick`) and go on with a new one of the same
+    index: a pass over its pending budget inside a tick (counted ``tick_split``)."""
+    end_tick(m)
+    assert m.state.tick_id is not None  # a unit is in a tick (tick_s > 0)
+    m.state.start_tick(m.state.tick_id)
+    m.tick_serial += 1
+    m.tally("tick_split", 1)
+
+
 @dataclass(frozen=True)
 class Candidates:
     """Landmarks a unit sees and what association takes of them, as arrays in the unit's
@@ -109,10 +127,9 @@ class Candidates:
         )
 
 
-def candidates(m: Matching, tile: str, key: int) -> Candidates:
-    """The landmarks filed under ``tile``'s area (by id) that a unit of pass ``key`` sees
-    (those there when the tick began and those the pass started in it, over its budget),
-    as arrays in the tile's frame. A tile's arrays are built once and kept while the landmarks'
+def candidates(m: Matching, tile: str) -> Candidates:
+    """The landmarks filed under ``tile``'s area (by id), as the tick found them, as arrays
+    in the tile's frame. A tile's arrays are built once and kept while the landmarks'
     ``gating_version`` stays (within a gating tick, until a landmark is started, removed
     or re-solved); a conversion's rows do not depend on the rows converted with them, so
     kept rows are the ones building them anew gives."""
@@ -129,11 +146,6 @@ def candidates(m: Matching, tile: str, key: int) -> Candidates:
         )
         hit = m.candidate_arrays[tile] = (m.state.gating_version, built)
     c: Candidates = hit[1]
-    born = m.state.tick_born
-    if born:
-        keep = [k for k, lm in enumerate(c.lms) if born.get(lm.id, key) == key]
-        if len(keep) < len(c.lms):
-            return c.take(np.array(keep, np.int64))
     return c
 
 

@@ -11,8 +11,9 @@
 3. :func:`match_unit`: matched rays are linked (:func:`hdmap.mapping.linking.link`);
    unmatched rays join the pending pool, where they are tried as seeds of new landmarks
    with the tick's other rays of the pass when the tick ends
-   (:func:`hdmap.mapping.pending.initiate_waiting`), or at once when the pass or the
-   vehicle is over its pending budget (:func:`hdmap.mapping.pending.initiate`, then
+   (:func:`hdmap.mapping.pending.initiate_waiting`); a unit that leaves the pass or the
+   vehicle over its pending budget ends the tick after itself
+   (:func:`hdmap.mapping.tick.split_tick`, then
    :func:`hdmap.mapping.pending.enforce_budget`: what a pass pools stays bounded);
 4. the candidates the unit had in view count a sighting; what it touched, had in view and
    started is noted for the end of the gating tick (:mod:`hdmap.mapping.tick`: initiation,
@@ -36,12 +37,17 @@ from hdmap.mapping.initiation import triangulate_groups
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import link, to_local
 from hdmap.mapping.matching import Matching
-from hdmap.mapping.pending import enforce_budget, initiate, over_budget, touch_budget
+from hdmap.mapping.pending import (
+    enforce_budget,
+    initiate,
+    over_budget,
+    quarantined,
+    touch_budget,
+)
 from hdmap.mapping.probation import settle
 from hdmap.mapping.sightings import in_view
-from hdmap.mapping.tick import candidates, end_tick, gating_facings
+from hdmap.mapping.tick import candidates, end_tick, gating_facings, split_tick
 from hdmap.mapping.trust import VehicleTrust
-from schemas.ids import pass_key
 
 
 def shift_origins(frame: Any, obs: Any, d_en: np.ndarray) -> Any:
@@ -102,12 +108,12 @@ class Prepared:
         return _signature(self.applied, self.cands)
 
 
-def signature(m: Matching, tile: str, vehicle: str, pass_id: int) -> tuple[bytes, tuple[int, ...]]:
+def signature(m: Matching, tile: str, vehicle: str) -> tuple[bytes, tuple[int, ...]]:
     """What a unit's association depends on besides its rays and the landmark estimates of
     its tick (fixed while the tick lasts): the correction of its vehicle's origins and its
     candidates. A unit prepared earlier in the tick with the same signature is prepared
     as it would be now, and its association is the one it would get now."""
-    return _signature(correction(m, vehicle), candidates(m, tile, pass_key(vehicle, pass_id)).lms)
+    return _signature(correction(m, vehicle), candidates(m, tile).lms)
 
 
 def _signature(applied: np.ndarray, cands: list[Landmark]) -> tuple[bytes, tuple[int, ...]]:
@@ -142,7 +148,7 @@ def prepare_units(m: Matching, units: list[tuple[str, str, int, Any]]) -> list[P
     out = []
     for k, (t, v, pid, _obs) in enumerate(units):
         obs, applied, invalid = fixed[k]
-        c = candidates(m, t, pass_key(v, pid))
+        c = candidates(m, t)
         unit_input = UnitInput(rays[k], c.x, c.cov, c.cls, c.facing) if c.lms else None
         area = m.area(t)
         out.append(Prepared(t, v, pid, obs, applied, invalid, rays[k], area, c.lms, unit_input))
@@ -239,14 +245,17 @@ def match_unit(
     kept = np.hstack([u.rays.origin[wait], u.rays.direction[wait]])  # the pool's frame
     m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at, kept)
     born: set[int] = set()
-    if m.config.tick_s <= 0 or over_budget(m, tile, vehicle, pass_id):
+    cut = False  # over its budget inside a tick: the tick ends after this unit
+    if m.config.tick_s > 0 and over_budget(m, tile, vehicle, pass_id):
+        cut = not quarantined(m, vehicle, pass_id)
+    if m.config.tick_s <= 0 or (over_budget(m, tile, vehicle, pass_id) and not cut):
         new_classes = np.unique(obs.sign_class[wait])
         born = initiate(m, tile, u.area, vehicle, pass_id, new_classes)
         # after initiation took what it could: an honest upload's rays (all of them
         # waiting, in a tile with no landmark yet) are not evicted before they had their
         # chance
         enforce_budget(m, tile, vehicle, pass_id)
-    else:  # tried with the tick's other uploads of the pass when the tick ends
+    elif not cut:  # tried with the tick's other uploads of the pass when the tick ends
         touch_budget(m, vehicle, pass_id)
     counted: list[int] = []
     if cands and m.config.sightings.enabled:
@@ -254,9 +263,14 @@ def match_unit(
         # tick_s = 0 a settlement may have re-solved them in this unit
         arrays = u.input if m.config.tick_s > 0 else None
         counted = count_sightings(m, m.frames(tile), u.rays, cands, matched, arrays)
-    m.state.note_tick(touched | born, counted, born, pass_key(vehicle, pass_id))
+    m.state.note_tick(touched | born, counted)
     if m.config.tick_s <= 0:
         end_tick(m)
+    elif cut:
+        split_tick(m)
+        # the tick's end tried every waiting ray (this pass's first, by its key), then the
+        # budgets: what is left of the pass over its budget goes now
+        enforce_budget(m, tile, vehicle, pass_id)
 
 
 def count_sightings(

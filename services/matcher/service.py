@@ -332,16 +332,17 @@ class MatcherService(StageService):
         u: Prepared | None = None
         res: Checked | None = None
         hit = self._ahead_of.pop(index, None)
-        if hit is not None:
-            serial, (p, r) = hit
-            if serial == m.tick_serial and p.signature == signature(
-                m, tile, g.vehicle_id, g.pass_id
-            ):
+        stale = hit is not None and hit[0] != m.tick_serial  # a tick ended in between
+        if hit is not None and not stale:
+            p, r = hit[1]
+            if p.signature == signature(m, tile, g.vehicle_id):
                 u, res = p, r
                 self.count("assoc_ahead", 1)
-            else:  # its pass started a landmark, its vehicle's correction moved, ...
+            else:  # its vehicle's correction moved, a settlement emptied a landmark, ...
                 self.count("assoc_redone", 1)
         elif batch is not None and m.config.tick_s > 0:
+            if stale:  # a pass over its budget split the tick: associate again from here
+                self.count("assoc_redone", 1)
             (_i, (u, res)), *later = batch()
             self._ahead_of = {k: (m.tick_serial, a) for k, a in later}
         if u is None:

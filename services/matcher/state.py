@@ -57,8 +57,7 @@ CREATE TABLE IF NOT EXISTS facings (
 CREATE TABLE IF NOT EXISTS untried (
     vehicle TEXT NOT NULL, obs_id INTEGER NOT NULL, PRIMARY KEY (vehicle, obs_id)) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS tick (
-    id INTEGER PRIMARY KEY, touched INTEGER NOT NULL, counted INTEGER NOT NULL,
-    born_key INTEGER);
+    id INTEGER PRIMARY KEY, touched INTEGER NOT NULL, counted INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS sightings (
     id INTEGER PRIMARY KEY, in_view INTEGER NOT NULL, seen INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS covis (
@@ -328,20 +327,12 @@ class MatcherState(LandmarkTable):
             if self.tick_id is not None:
                 c.execute("INSERT INTO clock(name, t) VALUES ('tick', ?)", (float(self.tick_id),))
             c.execute("DELETE FROM tick")
-            ids = sorted(self.tick_touched | self.tick_counted | set(self.tick_born))
+            ids = sorted(self.tick_touched | self.tick_counted)
         else:
             ids = sorted(self._tick_ids)
         c.executemany(
-            "INSERT OR REPLACE INTO tick(id, touched, counted, born_key) VALUES (?,?,?,?)",
-            [
-                (
-                    id_to_sql(i),
-                    int(i in self.tick_touched),
-                    int(i in self.tick_counted),
-                    self.tick_born.get(i),
-                )
-                for i in ids
-            ],
+            "INSERT OR REPLACE INTO tick(id, touched, counted) VALUES (?,?,?)",
+            [(id_to_sql(i), int(i in self.tick_touched), int(i in self.tick_counted)) for i in ids],
         )
 
     def load(self, unpack_rows: Callable[[list[bytes]], np.ndarray]) -> None:
@@ -420,19 +411,15 @@ class MatcherState(LandmarkTable):
             if lm is not None:
                 lm.facing = np.array([az, sigma, spread, float(known)])
                 self.unfaced.discard(lm.id)
-        self.tick_touched, self.tick_counted, self.tick_born = set(), set(), {}
+        self.tick_touched, self.tick_counted = set(), set()
         tick = c.execute("SELECT t FROM clock WHERE name='tick'").fetchone()
         self.tick_id = None if tick is None else int(tick[0])
-        for i, touched, counted, born in c.execute(
-            "SELECT id, touched, counted, born_key FROM tick"
-        ):
+        for i, touched, counted in c.execute("SELECT id, touched, counted FROM tick"):
             lid = id_from_sql(i)
             if touched:
                 self.tick_touched.add(lid)
             if counted:
                 self.tick_counted.add(lid)
-            if born is not None:
-                self.tick_born[lid] = int(born)
         for i, n_in, n_seen in c.execute("SELECT id, in_view, seen FROM sightings"):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:

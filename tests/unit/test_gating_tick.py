@@ -17,7 +17,6 @@ import numpy as np
 from hdmap.mapping.tick import candidates, tick_of
 from hdmap.runtime.store import id_to_sql, u64_to_i64
 from schemas import LogEntry, ObsGroup
-from schemas.ids import pass_key
 from services.matcher.replay import landmark_digest, open_matcher, replay
 from services.matcher.service import MatcherConfig, MatcherService
 from tests.support.services import CLS, SIGN, sign_rays, tile_of
@@ -72,8 +71,8 @@ def test_a_landmark_is_born_when_its_tick_ends_and_takes_the_tick_s_rays_of_othe
     m = matcher(tmp_path)
     m._apply_in_transaction([entry(m, 1, "veh-a", T0)])
     m._apply_in_transaction([entry(m, 2, "veh-b", T0 + 0.3)])
-    assert not m.state.landmarks and not m.state.tick_born
-    assert candidates(m.matching, tile_of(m.opts.zoom), pass_key("veh-b", 2)).lms == []
+    assert not m.state.landmarks
+    assert candidates(m.matching, tile_of(m.opts.zoom)).lms == []
     pool = m.state.pending[tile_of(m.opts.zoom)]
     assert len(pool) == 20 and not pool.tried.any()  # tried when the tick ends
     m._apply_in_transaction([entry(m, 3, "veh-c", T0 + 1.5)])
@@ -82,7 +81,6 @@ def test_a_landmark_is_born_when_its_tick_ends_and_takes_the_tick_s_rays_of_othe
     assert m.counters["adopted"] >= 8  # the other pass's rays of the tick
     assert m.state.landmarks[lid].facing[3] == 1  # re-solved when the tick ended
     assert m.counters["associated"] >= 8  # the next tick's unit sees it
-    assert not m.state.tick_born
 
 
 def test_the_map_is_the_same_however_batched_and_across_a_restart_in_a_tick(
@@ -191,7 +189,7 @@ def _stored(svc: MatcherService) -> tuple[set, set]:
     """The tick marks and the untried rays as the matcher's database holds them."""
     conn = sqlite3.connect(f"file:{svc.db_path}?mode=ro", uri=True)
     try:
-        marks = set(conn.execute("SELECT id, touched, counted, born_key FROM tick").fetchall())
+        marks = set(conn.execute("SELECT id, touched, counted FROM tick").fetchall())
         untried = set(conn.execute("SELECT vehicle, obs_id FROM untried").fetchall())
     finally:
         conn.close()
@@ -200,11 +198,8 @@ def _stored(svc: MatcherService) -> tuple[set, set]:
 
 def _in_memory(svc: MatcherService) -> tuple[set, set]:
     st = svc.state
-    ids = st.tick_touched | st.tick_counted | set(st.tick_born)
-    marks = {
-        (id_to_sql(i), int(i in st.tick_touched), int(i in st.tick_counted), st.tick_born.get(i))
-        for i in ids
-    }
+    ids = st.tick_touched | st.tick_counted
+    marks = {(id_to_sql(i), int(i in st.tick_touched), int(i in st.tick_counted)) for i in ids}
     untried = {
         (v, i)
         for p in st.pending.values()

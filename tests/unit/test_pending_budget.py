@@ -140,6 +140,8 @@ def test_in_one_tick_a_parked_car_is_held_to_its_budget_by_upload(tmp_path: Path
         # tried from the first upload over the budget (which evicts and makes the pass's
         # budget record) until ``after`` more attempts failed (quarantined)
         assert (d.get("init_rays", 0) > 0) == (cap // PARKED <= k <= cap // PARKED + after)
+        # each attempt ends the tick there (every waiting ray tried); quarantined: no more
+        assert d.get("tick_split", 0) == (d.get("init_rays", 0) > 0)
     assert svc.counters["pending_evicted"] == 20 * PARKED - cap
     assert svc.counters["passes_quarantined"] == 1
 
@@ -248,3 +250,39 @@ def test_budget_knobs_are_checked() -> None:
     assert cfg.pending_max_per_pass == 0
     low = replace(cfg, init=InitConfig(min_rays=2), pending_max_per_pass=2)  # no raise
     assert low.pending_max_per_pass == 2
+
+
+def test_a_pass_over_its_budget_ends_the_tick_and_the_units_after_it_see_its_landmark(
+    tmp_path: Path,
+) -> None:
+    """An honest pass whose one upload passes the budget inside a tick (a pass uploaded at
+    its end, a tile without landmarks) starts its landmark at that upload, and the tick
+    ends there: the next pass's upload, stamped in the same tick, links to the landmark
+    instead of waiting beside it. Uploads applied one by one and in one batch (associated
+    ahead, then redone after the split) give the same map."""
+    t0 = float(int(time.time()) - 3600)  # a tick starts here
+    digests = set()
+    for batched in (False, True):
+        svc = service(tmp_path / str(batched), tick_s=1.0, pending_max_per_pass=8)
+        f = Feed(svc)
+        rng = np.random.default_rng(3)
+        ups = [
+            ("veh-a", 1, sign_rays(f.frame, 1, rng, n=12), t0),
+            ("veh-b", 2, sign_rays(f.frame, 2, rng), t0 + 0.2),
+        ]
+        if batched:
+            entries = []
+            for v, pid, obs, at in ups:
+                s = next(f.seq)
+                body = ObsGroup(v, pid, s, at, obs).to_bytes()
+                entries.append(LogEntry("obs", "ingest-t", f.tile, s, s, body))
+            svc._apply_in_transaction(entries)
+            assert svc.counters["assoc_redone"] == 1  # associated ahead with no landmark
+        else:
+            first = f.upload(*ups[0][:3], ups[0][3])
+            assert first["tick_split"] == 1 and first["created"] == 1
+            second = f.upload(*ups[1][:3], ups[1][3])
+            assert second["associated"] == 10 and second.get("tick_split", 0) == 0
+        assert len(svc.state.landmarks) == 1 and f.waiting("veh-b") == 0
+        digests.add(tuple(np.round(lm.x, 9).tobytes() for lm in svc.state.landmarks.values()))
+    assert len(digests) == 1
