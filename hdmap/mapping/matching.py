@@ -140,14 +140,17 @@ class MatchingConfig:
     replay; with 60 s, 789 ticks and 87 us; end to end 7,000 obs/s against 4,000:
     docs/experiments/2026-12-tick-lag.md).
 
-    Pitfall, why it is not longer: with 60 s the fleet evaluation's logs replayed (the same
-    uploads, 1,200 passes) kept two more confirmed duplicates on seeds 2 and 3 and 6-8 more
-    landmarks paired with no sign than with 3 s; 120 s left 18 more young ones on the real
-    phone errors. Mostly the pending budget: a pass's upload into a tile without landmarks
-    waits whole in one long tick, passes ``pending_max_per_pass`` and starts its landmarks
-    at once, inside the tick (two of seed 2's three were born so); with the budget at 1024 the
-    60 s replays gave the 3 s maps (docs/experiments/2026-12-tick-lag.md), but the budget
-    bounds what a flooding pass costs. A region merge brings its parts to one position of
+    Pitfall, why it is not longer: passes that share a tick do not see each other's new
+    landmarks; where adoption's gate refuses a pass's rays (it offers them alone, without
+    the offset the pass's other rays would fix) they start copies, merged later. With 60 s
+    the fleet evaluation's logs replayed (1,200 passes, four seeds each) give confirmed
+    maps on par with 3 s, but on the real phone errors 23 more young candidates paired
+    with no sign, all born from the last uploads before the map was read (bulk uploads
+    within the lag of the clock): a transient the evaluation counts as false landmarks
+    (docs/experiments/2026-12-tick-lag.md; 120 s: 18 more a seed). (A pass over its pending
+    budget no longer starts landmarks inside a tick: it ends the tick,
+    :func:`hdmap.mapping.tick.split_tick`; before that 60 s also kept more confirmed
+    duplicates.) A region merge brings its parts to one position of
     ingest's log (:func:`hdmap.ops.region.cut_at_one_position`), so merges no longer limit
     the lag. What a split does not keep, at any lag: a part's clock is the latest of its own
     units, so a unit of one part that the whole would have seen behind another part's later
