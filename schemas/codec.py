@@ -217,6 +217,40 @@ def col(dtype: str, width: int = 1, **kw: Any) -> Any:
 T = TypeVar("T")
 
 
+_MIN, _MAX = np.minimum.reduce, np.maximum.reduce
+"""Whole-array reductions without ``ndarray.min``'s wrapper (NaN propagates as there)."""
+
+
+@dataclass(frozen=True)
+class _ColPlan:
+    """What decoding and checking one column needs, worked out once per table."""
+
+    name: str
+    col: Col
+    wire: np.dtype
+    """The column's dtype on the wire (little-endian)."""
+    native: np.dtype | None
+    """The host's dtype when it is not the wire's (None: a copy of the wire bytes)."""
+    row_nbytes: int
+    finite_check: bool
+    """A float column without both bounds (the bounds' comparisons catch NaN otherwise)."""
+    ranged: bool
+
+    @classmethod
+    def of(cls, name: str, c: Col) -> _ColPlan:
+        wire = np.dtype(c.dtype).newbyteorder("<")
+        host = wire.newbyteorder("=")
+        return cls(
+            name,
+            c,
+            wire,
+            None if host == wire else host,
+            c.width * wire.itemsize,
+            c.is_float and (c.lo is None or c.hi is None),
+            c.lo is not None or c.hi is not None,
+        )
+
+
 class TableCodec:
     """Encoder/decoder for one table dataclass, built once.
 
@@ -229,6 +263,7 @@ class TableCodec:
         self.cls = cls
         self.cols: list[tuple[str, Col]] = [(f.name, f.metadata["col"]) for f in fields(cls)]  # type: ignore[arg-type]
         self.row_bytes = sum(np.dtype(c.dtype).itemsize * c.width for _, c in self.cols)
+        self._plan = [_ColPlan.of(name, c) for name, c in self.cols]
 
     def encode(self, obj: Any) -> dict[str, bytes]:
         out: dict[str, bytes] = {}
@@ -247,21 +282,23 @@ class TableCodec:
         if not isinstance(m, dict):
             raise DecodeError(path, f"expected a map of columns, got {type(m).__name__}")
         arrays: dict[str, np.ndarray] = {}
-        for name, c in self.cols:
-            fname = f"{path}.{name}" if path else name
+        for p in self._plan:
+            name, c = p.name, p.col
             raw = m.get(name)
-            if c.optional and name not in m:
-                arrays[name] = c.zeros(n)
-                continue
-            if raw is None:
-                raise DecodeError(fname, "missing column")
-            if not isinstance(raw, bytes):
+            if raw is None or not isinstance(raw, bytes):
+                fname = f"{path}.{name}" if path else name
+                if c.optional and name not in m:
+                    arrays[name] = c.zeros(n)
+                    continue
+                if raw is None:
+                    raise DecodeError(fname, "missing column")
                 raise DecodeError(fname, f"expected bin, got {type(raw).__name__}")
-            dt = np.dtype(c.dtype).newbyteorder("<")
-            expected = n * c.width * dt.itemsize
+            expected = n * p.row_nbytes
             if len(raw) != expected:
+                fname = f"{path}.{name}" if path else name
                 raise DecodeError(fname, f"{len(raw)} bytes, expected {expected} for {n} rows")
-            a = np.frombuffer(raw, dtype=dt).astype(dt.newbyteorder("="), copy=True)
+            a = np.frombuffer(raw, dtype=p.wire)
+            a = a.copy() if p.native is None else a.astype(p.native)
             arrays[name] = a.reshape(n, c.width) if c.width > 1 else a
         obj = self.cls(**arrays)
         if strict:
@@ -273,14 +310,15 @@ class TableCodec:
 
     def all_rows_ok(self, obj: Any) -> bool:
         """Fast path: one min/max reduction per column (NaN fails every comparison)."""
-        for name, c in self.cols:
-            a = getattr(obj, name)
+        for p in self._plan:
+            a = getattr(obj, p.name)
             if a.size == 0:
                 continue
-            if c.is_float and (c.lo is None or c.hi is None) and not np.isfinite(a).all():
+            c = p.col
+            if p.finite_check and not np.isfinite(a).all():
                 return False
-            if c.lo is not None or c.hi is not None:
-                mn, mx = a.min(), a.max()
+            if p.ranged:
+                mn, mx = _MIN(a, axis=None), _MAX(a, axis=None)
                 if c.lo is not None and not (mn > c.lo if c.lo_open else mn >= c.lo):
                     return False
                 if c.hi is not None and not mx <= c.hi:
