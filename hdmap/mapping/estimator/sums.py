@@ -55,9 +55,8 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from hdmap.mapping.estimator import packing
-from hdmap.mapping.estimator.box_noise import COMP, in_frame, noise_ratio
-from hdmap.mapping.estimator.frame_change import FrameChange
+from hdmap.mapping.estimator import packing, row_merge
+from hdmap.mapping.estimator.box_noise import COMP, noise_ratio
 from hdmap.mapping.estimator.model import (
     EstimatorConfig,
     Rays,
@@ -96,6 +95,8 @@ class LandmarkSums:
     Rows grow by capacity doubling; :meth:`accumulate` is vectorised over a batch of rays of
     many landmarks and passes, mixed and unsorted, at O(1) state per ray.
     """
+
+    ROW_ARRAYS = _ROW_ARRAYS
 
     def __init__(self, config: EstimatorConfig | None = None, capacity: int = 1024):
         self.config = config or EstimatorConfig()
@@ -436,8 +437,7 @@ class LandmarkSums:
             # a pass's weighting depends on its own sums only: the rays first, then the
             # passes closed on the way (each holds exactly the rays before its closing)
             add(0, n)
-            for _at, slot in closes:
-                self._close_detached(slot)
+            self._close_many([slot for _at, slot in closes])
             return
         done = 0  # inverse form: a closing pools the row's other open passes as they are
         for at, slot in closes:
@@ -459,6 +459,21 @@ class LandmarkSums:
             Rays.concat([p[2] for p in parts]),
             np.concatenate([np.asarray(p[3], np.int64).reshape(-1) for p in parts]),
         )
+
+    def _close_many(self, slots: list[int]) -> None:
+        """:meth:`_close_detached` of each slot, in order. Slots of distinct rows are folded
+        in one call: each row then gets exactly one slot's terms, added as alone (a pass's
+        weighting is its own: the same bits), and the slots go on the free list in the same
+        order; two slots of one row are folded one by one (their sum's order would differ)."""
+        if len(slots) > 1:
+            arr = np.array(slots, np.int64)
+            rows = self._open.row[arr]
+            if np.unique(rows).size == rows.size:
+                self._fold_slots(arr)
+                self._open.free_slots(arr)
+                return
+        for slot in slots:
+            self._close_detached(slot)
 
     def _close_detached(self, slot: int) -> None:
         """Fold a slot :meth:`OpenPasses.assign` detached and free it."""
@@ -531,7 +546,8 @@ class LandmarkSums:
 
         ``rotation`` R and ``translation`` t map ``src``'s frame to ``dst``'s (``x_dst = R
         x_src + t``; default: the same frame); every ray term moves exactly
-        (:class:`~hdmap.mapping.estimator.frame_change.FrameChange`).
+        (:class:`~hdmap.mapping.estimator.frame_change.FrameChange`;
+        :func:`hdmap.mapping.estimator.row_merge.merge_rows`).
 
         An open pass of ``src`` joins ``dst``'s open pass of the same cluster (one pass
         that saw "both" landmarks is one cluster again) or becomes a new open pass. The
@@ -539,45 +555,7 @@ class LandmarkSums:
         reference and a rotation about the vertical (the compensation is defined in az/el
         about the local up), the result equals one row fed every ray.
         """
-        if dst == src:
-            raise ValueError("cannot merge a row into itself")
-        d_row, s_row = self._check_rows([dst, src]).tolist()
-        frame = FrameChange.between(self._anchor[s_row], self._anchor[d_row], rotation, translation)
-        a6, b = frame.terms(self._a6[s_row], self._b[s_row])
-        self._a6[d_row] += a6
-        self._b[d_row] += b
-        self._j6[d_row] += frame.information(self._j6[s_row])
-        self._c1[d_row] += self._c1[s_row]  # a trace: the same in every frame
-        self._q2[d_row] += self._q2[s_row]  # scalars: the same in every frame
-        saa, sab, sbb = frame.sandwich(self._saa[s_row], self._sab[s_row], self._sbb[s_row])
-        self._saa[d_row] += saa
-        self._sab[d_row] += sab
-        self._sbb[d_row] += sbb
-        self._n_obs[d_row] += self._n_obs[s_row]
-        self._w1[d_row] += self._w1[s_row]
-        self._w2[d_row] += self._w2[s_row]
-        self._n_closed[d_row] += self._n_closed[s_row]
-        o = self._open
-        mine = o.of_row(s_row)
-        for sl in mine.tolist():
-            a6o, bo = frame.terms(o.a6[sl], o.b[sl])
-            key = (d_row, int(o.cluster[sl]))
-            to = o.slot.get(key)
-            if to is None:
-                to = self._alloc_slot(key)
-            o.fold(
-                to,
-                sl,
-                a6o,
-                bo,
-                frame.information(o.j6[sl]),
-                frame.scale(o.t5[sl]),
-                in_frame(o.k[sl], frame),
-            )
-        o.release(mine)
-        for name in _ROW_ARRAYS:
-            getattr(self, name)[s_row] = 0
-        self._evict(np.array([d_row], np.int64))
+        row_merge.merge_rows(self, dst, src, rotation, translation)
 
     # ------------------------------------------------------------------ persistence
     def pack_rows(self, rows: ArrayLike) -> list[bytes]:
