@@ -15,15 +15,19 @@ observations replayed over the CPU seconds. Also the memory the matcher's state 
 the end, per landmark and per pending ray (``tracemalloc`` over a reload of the final
 state into a second service, which allocates exactly what the state needs), and a
 checksum of the final landmark table, so two code versions can be compared on the same
-capture for both speed and result.
+capture for both speed and result. ``--solver``: the matcher's assoc log is then replayed
+through a fresh ``SolverService`` the same way (``--solver-batch`` entries a transaction),
+its CPU per observation received and a checksum of its final sums.
 
     .venv/bin/python benchmarks/bench_matcher_replay.py [--quick] [--capture DIR] \
-        [--passes N] [--batch N] [--set KEY=JSON ...] [--json out/bench/matcher_replay.json]
+        [--passes N] [--batch N] [--set KEY=JSON ...] [--solver [--solver-batch N]] \
+        [--json out/bench/matcher_replay.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import subprocess
 import sys
 import tempfile
@@ -35,15 +39,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine, machine_line, write_json
 from hdmap.runtime.config import parse_settings
+from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry, ObsGroup
 from services.matcher.replay import (
+    Sink,
     landmark_digest,
     matcher_config,
     open_matcher,
+    read_log,
     read_obs_log,
     replay,
 )
 from services.matcher.service import MatcherConfig
+from services.solver.service import SolverService
 
 
 def capture(out: Path, passes: int, rounds: int) -> Path:
@@ -92,6 +100,30 @@ def timed_replay(
     return out
 
 
+def timed_solver(matcher_db: Path, n_obs: int, batch: int, data_dir: Path) -> dict:
+    """Apply the matcher's assoc log to a fresh solver in batches; CPU per observation the
+    matcher received, and a checksum of the solver's final sums (every row array)."""
+    assoc = read_log(matcher_db, "assoc")
+    svc = SolverService(ServiceOptions(data_dir=data_dir))
+    svc.pubs = Sink()  # type: ignore[assignment]
+    cpu0 = time.process_time()
+    replay(svc, assoc, batch)
+    cpu = time.process_time() - cpu0
+    h = hashlib.sha256()
+    for name in svc.sums.ROW_ARRAYS:
+        h.update(getattr(svc.sums, name).tobytes())
+    out = {
+        "entries": len(assoc),
+        "batch_entries": batch,
+        "cpu_s": cpu,
+        "cpu_us_per_obs": 1e6 * cpu / n_obs if n_obs else None,
+        "landmarks": len(svc.state.landmarks),
+        "sums_digest": h.hexdigest()[:16],
+    }
+    svc.db.close()
+    return out
+
+
 def state_memory(data_dir: Path, config: MatcherConfig | None = None) -> dict:
     """Bytes the matcher allocates to hold the saved state (a reload, traced)."""
     tracemalloc.start()
@@ -124,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         help="a matcher setting for the replay (dotted for nested: gate.chi2_gate=12; "
         "repeatable), to compare settings on one capture",
     )
+    ap.add_argument("--solver", action="store_true", help="replay the assoc log in a solver")
+    ap.add_argument("--solver-batch", type=int, default=16, help="its entries per transaction")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     overrides = parse_settings(args.set)
@@ -137,6 +171,12 @@ def main(argv: list[str] | None = None) -> int:
         data_dir = Path(tmp) / "matcher"
         result = timed_replay(entries, args.batch, data_dir, config)
         result["memory"] = state_memory(data_dir, config)
+        if args.solver:
+            (db_file,) = data_dir.glob("*/state.sqlite")  # the service's own directory
+            solved = timed_solver(
+                db_file, result["observations"], args.solver_batch, Path(tmp) / "s"
+            )
+            result["solver"] = solved
     result = {"machine": machine(), "source": str(db), "settings": overrides, "replay": result}
     r = result["replay"]
     print(
@@ -148,6 +188,13 @@ def main(argv: list[str] | None = None) -> int:
         f"({r['memory']['bytes_per_landmark_and_pending_ray']:.0f} B per landmark or pending "
         f"ray); digest {r['landmark_digest']}"
     )
+    if "solver" in r:
+        sv = r["solver"]
+        print(
+            f"solver: {sv['entries']} assoc entries, {sv['cpu_s']:.1f} s CPU "
+            f"({sv['cpu_us_per_obs']:.1f} us per observation); {sv['landmarks']} landmarks; "
+            f"sums digest {sv['sums_digest']}"
+        )
     if args.json:
         write_json(args.json, result)
     return 0
