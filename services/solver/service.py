@@ -47,6 +47,7 @@ from schemas import (
     Landmarks,
     LandmarkUpdates,
     LogEntry,
+    Observations,
     Removals,
 )
 from schemas.ids import hold_key, home_tile, pass_key
@@ -55,6 +56,20 @@ from services.solver.checkpoint import fold_updates
 from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class _Links:
+    """One group's links of one home tile, held until :meth:`SolverService._flush`: the
+    landmarks' sum rows, the rays' pass and hold keys, and the observations (converted into
+    the home's frame at the flush)."""
+
+    rows: np.ndarray
+    keys: np.ndarray
+    holds: np.ndarray
+    home: str
+    obs: Observations
+    weight: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -214,7 +229,7 @@ class SolverService(StageService):
         self._snapshot_counts()
 
     def _reload(self) -> None:
-        self._unsummed: list[tuple[np.ndarray, np.ndarray, Rays, np.ndarray]] = []
+        self._unsummed: list[_Links] = []
         """Links of this batch not yet added to the sums (:meth:`_flush`)."""
         self.sums = LandmarkSums(self.config.estimator)
         self.state.load(self.sums.unpack_rows)
@@ -253,7 +268,42 @@ class SolverService(StageService):
         changes the sums (a settlement, a merge, a sweep, the batch's re-solve) costs one
         call per batch instead of one per group and gives the same map."""
         parts, self._unsummed = self._unsummed, []
-        self.sums.accumulate_parts(parts)
+        if not parts:
+            return
+        self.sums.accumulate_parts(
+            [(p.rows, p.keys, r, p.holds) for p, r in zip(parts, self._rays(parts), strict=True)]
+        )
+
+    def _rays(self, parts: list[_Links]) -> list[Rays]:
+        """The parts' observations as rays in their home frames, converted once per home
+        (a conversion's rows do not depend on the rows converted with them: the rays each
+        part gets alone)."""
+        by_home: dict[str, list[int]] = defaultdict(list)
+        for k, p in enumerate(parts):
+            by_home[p.home].append(k)
+        out: list[Rays | None] = [None] * len(parts)
+        for home, ks in by_home.items():
+            obs = type(parts[ks[0]].obs).concat([parts[k].obs for k in ks])
+            frame = self.frames(home)
+            x = frame.from_geodetic(obs.lat, obs.lon, obs.h)
+            d = frame.vectors_from_enu_at(obs.direction, obs.lat, obs.lon)
+            start = 0
+            for k in ks:
+                o, w = parts[k].obs, parts[k].weight
+                sl = slice(start, start + len(o))
+                start = sl.stop
+                out[k] = Rays(
+                    x[sl],
+                    d[sl],
+                    o.sigma_az,
+                    o.sigma_el,
+                    o.sigma_pos_h,
+                    o.sigma_pos_v,
+                    w,
+                    o.range_m,
+                    o.sigma_range_m,
+                )
+        return [r for r in out if r is not None]
 
     def on_commit(self) -> None:
         pass
@@ -332,20 +382,9 @@ class SolverService(StageService):
             sel = np.array(idx)
             mine = [found[k] for k in idx]
             obs = g.obs.take(sel)
-            frame = self.frames(home)
-            rays = Rays(
-                frame.from_geodetic(obs.lat, obs.lon, obs.h),
-                frame.vectors_from_enu_at(obs.direction, obs.lat, obs.lon),
-                obs.sigma_az,
-                obs.sigma_el,
-                obs.sigma_pos_h,
-                obs.sigma_pos_v,
-                g.links.weight[sel].astype(float),
-                obs.range_m,
-                obs.sigma_range_m,
-            )
             rows = np.array([lm.row for lm in mine], np.int64)
-            self._unsummed.append((rows, keys_[sel], rays, holds[sel]))
+            weight = g.links.weight[sel].astype(float)
+            self._unsummed.append(_Links(rows, keys_[sel], holds[sel], home, obs, weight))
             self.state.note_views(mine, obs.direction)
             lid, at = _latest(ids[sel], g.links.received_at[sel])
             for i, t in zip(lid.tolist(), at.tolist(), strict=True):
