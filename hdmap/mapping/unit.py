@@ -245,10 +245,9 @@ def match_unit(
     kept = np.hstack([u.rays.origin[wait], u.rays.direction[wait]])  # the pool's frame
     m.state.add_pending(tile, waiting, vehicle, pass_id, since, received_at, kept)
     born: set[int] = set()
-    cut = False  # over its budget inside a tick: the tick ends after this unit
-    if m.config.tick_s > 0 and over_budget(m, tile, vehicle, pass_id):
-        cut = not quarantined(m, vehicle, pass_id)
-    if m.config.tick_s <= 0 or (over_budget(m, tile, vehicle, pass_id) and not cut):
+    over = m.config.tick_s > 0 and over_budget(m, tile, vehicle, pass_id)
+    cut = over and not quarantined(m, vehicle, pass_id)  # the tick ends after this unit
+    if m.config.tick_s <= 0 or (over and not cut):  # (a quarantined pass: evicted only)
         new_classes = np.unique(obs.sign_class[wait])
         born = initiate(m, tile, u.area, vehicle, pass_id, new_classes)
         # after initiation took what it could: an honest upload's rays (all of them
@@ -268,8 +267,8 @@ def match_unit(
         end_tick(m)
     elif cut:
         split_tick(m)
-        # the tick's end tried every waiting ray (this pass's first, by its key), then the
-        # budgets: what is left of the pass over its budget goes now
+        # the tick's end tried every waiting ray (tile by tile, pass by pass key) and
+        # enforced the budgets of the passes it tried; this one's record is touched here
         enforce_budget(m, tile, vehicle, pass_id)
 
 
