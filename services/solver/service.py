@@ -283,7 +283,7 @@ class SolverService(StageService):
             by_home[p.home].append(k)
         out: list[Rays | None] = [None] * len(parts)
         for home, ks in by_home.items():
-            obs = type(parts[ks[0]].obs).concat([parts[k].obs for k in ks])
+            obs = Observations.concat([parts[k].obs for k in ks])
             frame = self.frames(home)
             x = frame.from_geodetic(obs.lat, obs.lon, obs.h)
             d = frame.vectors_from_enu_at(obs.direction, obs.lat, obs.lon)
