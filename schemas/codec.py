@@ -285,7 +285,7 @@ class TableCodec:
         for p in self._plan:
             name, c = p.name, p.col
             raw = m.get(name)
-            if raw is None or not isinstance(raw, bytes):
+            if not isinstance(raw, bytes):
                 fname = f"{path}.{name}" if path else name
                 if c.optional and name not in m:
                     arrays[name] = c.zeros(n)

@@ -143,19 +143,16 @@ class MatchingConfig:
     Pitfall, why it is not longer: passes that share a tick do not see each other's new
     landmarks; where adoption's gate refuses a pass's rays (it offers them alone, without
     the offset the pass's other rays would fix) they start copies, merged later. With 60 s
-    the fleet evaluation's logs replayed (1,200 passes, four seeds each) give confirmed
-    maps on par with 3 s, but on the real phone errors 23 more young candidates paired
-    with no sign, all born from the last uploads before the map was read (bulk uploads
-    within the lag of the clock): a transient the evaluation counts as false landmarks
-    (docs/experiments/2026-12-tick-lag.md; 120 s: 18 more a seed). (A pass over its pending
-    budget no longer starts landmarks inside a tick: it ends the tick,
-    :func:`hdmap.mapping.tick.split_tick`; before that 60 s also kept more confirmed
-    duplicates.) A region merge brings its parts to one position of
-    ingest's log (:func:`hdmap.ops.region.cut_at_one_position`), so merges no longer limit
-    the lag. What a split does not keep, at any lag: a part's clock is the latest of its own
-    units, so a unit of one part that the whole would have seen behind another part's later
-    units (within the lag) joins its part's tick, not the whole's: the same map only where
-    the regions' traffic is in event-time order
+    the fleet evaluation's logs replayed (1,200 passes, four seeds each) give confirmed maps
+    on par with 3 s, but on the real phone errors 23 more young candidates paired with no
+    sign, all born from the last uploads before the map was read (bulk uploads within the
+    lag of the clock): a transient the evaluation counts as false landmarks
+    (docs/experiments/2026-12-tick-lag.md; 120 s: 18 more a seed). A region merge brings its
+    parts to one position of ingest's log (:func:`hdmap.ops.region.cut_at_one_position`), so
+    merges no longer limit the lag. What a split does not keep, at any lag: a part's clock
+    is the latest of its own units, so a unit of one part that the whole would have seen
+    behind another part's later units (within the lag) joins its part's tick, not the
+    whole's: the same map only where the regions' traffic is in event-time order
     (tests/integration/test_region_split.py)."""
     time_tolerance_s: float = 300.0
     """An obs entry whose ingest time (``received_at``) is more than this ahead of the

@@ -118,7 +118,7 @@ def initiate(
         if p is not None and p.count_of(key):
             where.append((t, np.flatnonzero(p.key == key)))
     budget = m.state.passes.get(key)
-    if budget is not None and budget.quarantined:
+    if quarantined(m, vehicle, pass_id):
         m.tally("init_skipped_quarantined", 1)
         for t, i in where:
             m.state.mark_tried(t, i)  # no attempt is due for them at the tick's end

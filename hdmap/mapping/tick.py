@@ -28,12 +28,9 @@ pass over its pending budget (:func:`hdmap.mapping.pending.over_budget`; an hone
 uploaded whole into a tile without landmarks does) ends the tick after itself
 (:func:`split_tick`: every waiting ray tried, this pass's with the others, then the
 budget), and the units after it begin a new tick of the same index, seeing what it
-started. (Before, such a pass started its landmarks at once, seen by itself alone until
-the tick ended: the other passes of a long tick kept their rays waiting beside them and
-started second copies; the 1,200-pass fleet evaluation's logs replayed with a 60 s lag
-kept two more confirmed duplicates that way.) A pass that is quarantined does not end
-ticks (its attempts make nothing); one that floods a tile ends a tick at most
-``quarantine_after`` + 1 times.
+started (docs/experiments/2026-12-tick-lag.md: what births inside a tick cost). A pass
+that is quarantined does not end ticks (its attempts make nothing); one that floods a
+tile ends a tick at most ``quarantine_after`` + 1 times.
 
 Live traffic at a high rate puts hundreds of units in one tick (uploads seconds out of
 order included: a lag of ``tick_s`` alone cut a load test's every second into 4-18
@@ -116,15 +113,6 @@ class Candidates:
     cov: Array
     cls: NDArray[np.int64]
     facing: Facing
-
-    def take(self, rows: NDArray[np.int64]) -> Candidates:
-        return Candidates(
-            [self.lms[k] for k in rows.tolist()],
-            self.x[rows],
-            self.cov[rows],
-            self.cls[rows],
-            self.facing.take(rows),
-        )
 
 
 def candidates(m: Matching, tile: str) -> Candidates:

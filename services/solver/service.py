@@ -303,7 +303,9 @@ class SolverService(StageService):
                     o.range_m,
                     o.sigma_range_m,
                 )
-        return [r for r in out if r is not None]
+        rays = [r for r in out if r is not None]
+        assert len(rays) == len(parts)  # every part is of one home
+        return rays
 
     def on_commit(self) -> None:
         pass

@@ -24,6 +24,7 @@ from hdmap.runtime.config import ConfigError, from_mapping
 from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry, Observations, ObsGroup
 from schemas.ids import pass_key
+from services.matcher.replay import landmark_digest
 from services.matcher.service import MatcherConfig, MatcherService
 from tests.support.services import CLS, SIGN, Sink, sign_rays, tile_of
 
@@ -284,5 +285,5 @@ def test_a_pass_over_its_budget_ends_the_tick_and_the_units_after_it_see_its_lan
             second = f.upload(*ups[1][:3], ups[1][3])
             assert second["associated"] == 10 and second.get("tick_split", 0) == 0
         assert len(svc.state.landmarks) == 1 and f.waiting("veh-b") == 0
-        digests.add(tuple(np.round(lm.x, 9).tobytes() for lm in svc.state.landmarks.values()))
+        digests.add(landmark_digest(svc))
     assert len(digests) == 1
