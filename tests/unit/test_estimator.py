@@ -23,6 +23,7 @@ from hdmap.mapping.estimator import (
     triangulate,
 )
 from hdmap.mapping.estimator.model import sym_to_mat
+from hdmap.mapping.estimator.provisional import usable
 from hdmap.mapping.estimator.solve import loewner_max, meat_matrix
 from tests.support.estimator import random_batch, true_angles
 
@@ -472,3 +473,28 @@ def test_input_validation():
     assert meat_matrix(
         np.zeros((1, 3)), np.zeros((1, 21)), np.zeros((1, 6, 3)), np.zeros((1, 6))
     ).shape == (1, 3, 3)
+
+
+def test_an_estimate_far_from_its_frame_is_not_usable():
+    """Two landmarks seen alike, one at the frame's origin and one 12 km from it: both solve
+    ``ok`` (the conditioning cannot tell), only the near one is usable, with the default
+    ``max_offset_m`` (10 km) and neither with a bound below both."""
+    rng = np.random.default_rng(4)
+    far = np.array([12_000.0, 0.0, 0.0])
+    xs = [np.array([5.0, 0.0, 2.5]), np.array([5.0, 0.0, 2.5]) + far]
+    s = LandmarkSums()
+    s.new_rows(2, np.stack([x + 1.0 for x in xs]))
+    for p in range(20):
+        rays = []
+        for x in xs:
+            a = np.stack([np.zeros(8), np.linspace(-40, -8, 8), np.full(8, 1.4)], 1) + x - xs[0]
+            a[:, 0] += np.linspace(-6.0, 6.0, 8)
+            az, el = true_angles(x, a)
+            rays.append(Rays.from_angles(a + rng.normal(0, 0.5, 3), az, el, 0.02, 0.005, 0.5, 0.5))
+        s.accumulate(np.repeat([0, 1], 8), np.full(16, p), Rays.concat(rays))
+    sol = s.solve([0, 1])
+    assert sol.ok.tolist() == [True, True]
+    good, _prov, _cov = usable(sol, EstimatorConfig(), 2, (1.0, 1.0, 1.0))
+    assert good.tolist() == [True, False]
+    good, _prov, _cov = usable(sol, EstimatorConfig(max_offset_m=1.0), 2, (1.0, 1.0, 1.0))
+    assert good.tolist() == [False, False]

@@ -258,6 +258,13 @@ class EstimatorConfig:
     kept low because gating on ``A``'s own eigenvalues selects by the error)."""
     max_cond: float = 1e7
     """Largest condition number of the compensated information matrix ``A``."""
+    max_offset_m: float = 10_000.0
+    """Largest distance of a usable estimate from its frame's origin (the home tile's
+    centre, a few hundred metres from any sign filed there): a landmark whose rays do not
+    meet (4,600 rays of 227 passes under one id with real phone errors, its sigma 415 m
+    along the street) passed the conditioning test with an estimate 400 km away and 28 km
+    up, which the solver published and no reader could decode
+    (:func:`hdmap.mapping.estimator.provisional.usable`)."""
     min_significance: float = 3.0
     """Every eigenvalue of the information (``J`` or ``A``, see ``significance_basis``) must
     exceed this many standard errors of the compensated ``A`` in that direction (estimated

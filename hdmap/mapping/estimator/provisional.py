@@ -47,10 +47,13 @@ def prior_covariance(bias_sigma: ArrayLike, n_passes: ArrayLike) -> NDArray[np.f
 def usable(
     sol: Solution, cfg: EstimatorConfig, min_passes: int, bias_sigma: ArrayLike
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64]]:
-    """(usable, provisional, covariance): ``ok`` or provisional landmarks, and their
-    covariance (the solution's, plus the bias prior for the provisional ones)."""
-    prov = provisional(sol, cfg, min_passes)
+    """(usable, provisional, covariance): ``ok`` or provisional landmarks within
+    ``cfg.max_offset_m`` of their frame's origin, and their covariance (the solution's,
+    plus the bias prior for the provisional ones)."""
+    with np.errstate(invalid="ignore"):
+        near = np.linalg.norm(np.asarray(sol.x, float), axis=1) <= cfg.max_offset_m
+    prov = provisional(sol, cfg, min_passes) & near
     cov = np.array(sol.cov, float, copy=True)
     if prov.any():
         cov[prov] += prior_covariance(bias_sigma, np.asarray(sol.n_clusters)[prov])
-    return np.asarray(sol.ok, bool) | prov, prov, cov
+    return (np.asarray(sol.ok, bool) & near) | prov, prov, cov
