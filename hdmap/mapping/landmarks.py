@@ -62,6 +62,9 @@ class Landmark:
     view: np.ndarray = field(default_factory=lambda: np.zeros(2))
     """Sum of the horizontal unit directions (East, North) of its rays: the side it is
     seen from (two same-class signs back to back are never one)."""
+    ranges: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    """Its rays' box-range sums in its home tile's frame (:mod:`hdmap.mapping.box_ranges`):
+    their mean relative range at any point, which says which panel they saw."""
     in_view: int = 0
     """Units that had it in view (:mod:`hdmap.mapping.sightings`)."""
     seen: int = 0
@@ -231,6 +234,7 @@ class LandmarkTable:
         """``drop`` becomes part of ``keep``: its view, co-visibility and co-pass counts move
         over, its record is deleted (the caller merges the sums rows)."""
         keep.view = keep.view + drop.view
+        keep.ranges = keep.ranges + drop.ranges  # the caller put drop's in keep's frame
         keep.in_view, keep.seen = keep.in_view + drop.in_view, keep.seen + drop.seen
         for counts in (self.covis_pairs, self.copass):
             for other, n in counts.pop(drop.id).items():

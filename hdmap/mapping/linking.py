@@ -18,7 +18,7 @@ import numpy as np
 
 from hdmap.geo.geodesy import GEODESY
 from hdmap.geo.tiles import quadkeys_of
-from hdmap.mapping import presence
+from hdmap.mapping import box_ranges, presence
 from hdmap.mapping.association import LocalRays
 from hdmap.mapping.estimator import Rays
 from hdmap.mapping.estimator.provisional import prior_covariance, usable
@@ -111,6 +111,7 @@ def link(
             here = to_local(m.frames(home), sub)
         rows = np.array([lms[k].row for k in idx], np.int64)
         rays = to_rays(here, np.full(len(idx), gating) if gating < 1.0 else None)
+        note_ranges(m, here, [lms[k] for k in idx])
         _, first, inv = np.unique(rows, return_index=True, return_inverse=True)
         first_ids = [lms[idx[f]].id for f in first.tolist()]
         ids = np.array(first_ids, np.uint64)[inv.reshape(-1)]
@@ -131,6 +132,24 @@ def link(
         if held:
             m.state.hold_home(vehicle, home)
         out.obs.append(sub)
+
+
+def note_ranges(m: Matching, here: LocalRays, lms: list[Landmark]) -> None:
+    """The rays' box ranges into their landmarks' range sums (``here``: the rays in the
+    landmarks' home frame, row ``k`` linked to ``lms[k]``)."""
+    h, w = box_ranges.ray_terms(
+        here.origin,
+        here.direction,
+        here.range_m,
+        here.sigma_range_m,
+        here.sigma_pos_h,
+        m.config.estimator.panel_rel_sigma,
+    )
+    if not w.any():
+        return
+    first, sums = box_ranges.summed(np.array([lm.id for lm in lms], np.uint64), h, w)
+    for j, k in enumerate(first.tolist()):
+        lms[k].ranges = lms[k].ranges + sums[j]
 
 
 def note_views(m: Matching, obs: Any, lms: list[Landmark]) -> None:

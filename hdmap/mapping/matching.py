@@ -234,6 +234,27 @@ class MatchingConfig:
     """Fewer rays do not tell: two signs detected together in 16 % of the images (the
     fewest of any pair within 8 m) show 5 or fewer shared images in 100 rays with
     binomial probability 0.0007."""
+    merge_ghost_max_m: float = 25.0
+    """Second-street copies (0: off): bearings from one street fix a sign's range poorly,
+    so a second street whose rays the facing gate keeps off the sign's landmark makes a
+    copy 5-13 m along its line of sight. A same-class landmark at most this far away,
+    facing at least ``merge_ghost_min_deg`` away, that lies on a landmark's line of sight
+    (within ``merge_ghost_across_m``) is the same sign when the first one's rays' box
+    ranges put their panel there: their mean relative range at it equals its own rays'
+    there (within ``merge_ghost_tol`` in log; one panel, one size) and differs at their
+    own position (:func:`hdmap.mapping.merge.ghost_partner`). Both need
+    ``merge_ghost_min_passes`` passes and may share images in at most
+    ``merge_apart_max_covis`` of the smaller one's rays. Over the four seeds at 1,200
+    passes on both noises, copies agree within 0.027 (29 of 32) and two signs differ by
+    0.10 or more (docs/experiments/2026-12-two-street-ghosts-ranges.md)."""
+    merge_ghost_across_m: float = 1.5
+    merge_ghost_min_deg: float = 45.0
+    """Not along one street: copies there (phone errors' shared heading, 11-22 m along
+    the line of sight) have the same panel too, but merged their bearings still fix the
+    range poorly, and a young copy near the sign folded into an old one 15-25 m off ended
+    off (docs/experiments/2026-12-two-street-ghosts-ranges.md)."""
+    merge_ghost_tol: float = 0.05
+    merge_ghost_min_passes: int = 20
     merge_min_passes: int = 2
     """Both landmarks need this many passes (a one-pass estimate carries its pass's whole
     bias). With onboard tracks, co-visibility tells two signs apart reliably, so two passes

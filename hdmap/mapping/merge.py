@@ -8,6 +8,13 @@ seldom detected in one image together
 its sums into the other's (:meth:`LandmarkSums.merge_rows`) and is retired with
 ``merged_into`` in the assoc output, so the solver does the same and the publisher
 removes it.
+
+Where the estimates do not agree, three rules find copies of one sign by other
+evidence: co-passes (:func:`_copy_of`), never being in one image while facing one way
+(:func:`_copy_apart`), and a second street's copy whose rays' box ranges put their panel
+at the sign's landmark (:func:`ghost_partner`). Pitfall: the last one is the only merge
+across facings farther apart than the panel's cone; it rests on the box ranges, so
+vehicles that send none (``range_m = 0``) leave second-street copies as they are.
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from hdmap.geo.tiles import frame_map
+from hdmap.mapping import box_ranges
 from hdmap.mapping.facing import angle_between, facings_compatible
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
@@ -82,7 +90,11 @@ def merge_partner(m: Matching, lm: Landmark) -> Landmark | None:
             continue
         return o
     dist = np.hypot(d[:, 0], d[:, 1])
-    return _copy_of(m, lm, cands, dist) or _copy_apart(m, lm, cands, dist)
+    return (
+        _copy_of(m, lm, cands, dist)
+        or _copy_apart(m, lm, cands, dist)
+        or ghost_partner(m, lm, cands, dist)
+    )
 
 
 def _copy_of(m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray) -> Landmark | None:
@@ -131,6 +143,66 @@ def _copy_apart(
     return others[int(np.argmin(np.where(ok, dist[near], np.inf)))]
 
 
+def ghost_partner(
+    m: Matching, lm: Landmark, cands: list[Landmark], dist: np.ndarray
+) -> Landmark | None:
+    """The candidate that ``lm`` is a second-street copy of, or that is one of ``lm``
+    (``MatchingConfig.merge_ghost_max_m``): the one whose box ranges agree best."""
+    cfg = m.config
+    if cfg.merge_ghost_max_m <= 0:
+        return None
+    near = np.flatnonzero(dist <= cfg.merge_ghost_max_m)
+    if not near.size:
+        return None
+    others = [cands[k] for k in near.tolist()]
+    lms = [lm, *others]
+    rows = np.array([o.row for o in lms], np.int64)
+    passes, rays = m.sums.n_passes(rows), m.sums.n_obs(rows)
+    if passes[0] < cfg.merge_ghost_min_passes:
+        return None
+    f = facings_of(m, lms)
+    apart = angle_between(f.azimuth[0], f.azimuth[1:]) >= np.radians(cfg.merge_ghost_min_deg)
+    best, best_q = None, np.inf
+    for j, o in enumerate(others, start=1):
+        if passes[j] < cfg.merge_ghost_min_passes or not (f.known[0] and f.known[j]):
+            continue
+        if not apart[j - 1]:
+            continue
+        if m.state.covis_count(lm.id, o.id) > cfg.merge_apart_max_covis * max(
+            min(rays[0], rays[j]), 1
+        ):
+            continue
+        for g, s, gk in ((lm, o, 0), (o, lm, j)):
+            q = _ghost_mismatch(m, g, s, float(f.azimuth[gk]))
+            if q is not None and q < best_q:
+                best, best_q = o, q
+    if best is not None:
+        m.tally("merged_ghosts", 1)
+    return best
+
+
+def _ghost_mismatch(m: Matching, g: Landmark, s: Landmark, azimuth: float) -> float | None:
+    """``|log q|``, ``q`` the mean relative range of ``g``'s rays at ``s`` over that of
+    ``s``'s own rays there, when ``s`` is on ``g``'s line of sight (``azimuth``: from ``g``
+    toward its cameras), the ranges tell the two places apart and ``q`` is within
+    ``merge_ghost_tol``; else None."""
+    cfg = m.config
+    frame = m.frames(g.home)
+    xs, xg = frame.from_ecef(np.stack([s.x, g.x])).reshape(2, 3)
+    d = xs - xg
+    if abs(d[0] * np.cos(azimuth) - d[1] * np.sin(azimuth)) > cfg.merge_ghost_across_m:
+        return None
+    at = box_ranges.mean_relative_range(np.stack([g.ranges, g.ranges]), np.stack([xs, xg]))
+    own = box_ranges.mean_relative_range(s.ranges, m.frames(s.home).from_ecef(s.x[None]))[0]
+    if not (np.all(at > 0) and own > 0):  # NaN (no ranged rays) fails too
+        return None
+    q = abs(float(np.log(at[0] / own)))
+    apart = abs(float(np.log(at[0] / at[1])))
+    if q > cfg.merge_ghost_tol or apart < 2 * cfg.merge_ghost_tol:
+        return None
+    return q
+
+
 def _one_way_never_together(
     m: Matching, lm: Landmark, others: list[Landmark], rays: np.ndarray, max_covis: float
 ) -> np.ndarray:
@@ -174,6 +246,7 @@ def merge(m: Matching, keep: Landmark, drop: Landmark) -> None:
     tile's output retires it into ``keep``, and ``keep``'s estimate is re-solved."""
     rot, t = frame_map(m.frames(drop.home), m.frames(keep.home))
     merge_rows(m.quiet, m.sums, keep, drop, rot, t)
+    drop.ranges = box_ranges.in_frame(drop.ranges, rot, t)[0]
     m.state.merge(keep, drop)
     m.out[drop.home].retired.append((drop.id, keep.id))
     m.tally("merged", 1)

@@ -1,22 +1,21 @@
 """The matcher's tables cut by region or joined (:mod:`hdmap.runtime.partition`).
 
 Landmarks belong to the region of their home tile (the tile their id was counted in);
-their views, facings, tick marks, sightings, existence, counted misses and pair counts
-follow them. Pending rays
-belong to their tile's region, the untried marks to their pending rays. A vehicle's trust,
-pass budgets and probation status are copied to every part (each part goes on counting
-what it sees of the vehicle), except the home tiles it has held passes in (each part
-settles those of its own region); joined, the first part's record is kept, with the
-held passes' home tiles of both. A vehicle's held "not seen" reports go with the landmarks
-they name; joined, both parts' are kept. Held links must be
-in the sums (``MatcherService.before_handover``).
+their views, box-range sums, facings, tick marks, sightings, existence, counted misses
+and pair counts follow them. Pending rays belong to their tile's region, the untried
+marks to their pending rays. A vehicle's trust, pass budgets and probation status are
+copied to every part (each part goes on counting what it sees of the vehicle), except
+the home tiles it has held passes in (each part settles those of its own region);
+joined, the first part's record is kept, with the held passes' home tiles of both. A
+vehicle's held "not seen" reports go with the landmarks they name; joined, both parts'
+are kept. Held links must be in the sums (``MatcherService.before_handover``).
 """
 
 from __future__ import annotations
 
 from hdmap.runtime.partition import Rules
 
-_BY_LANDMARK = ("views", "facings", "tick", "sightings", "existence", "misses")
+_BY_LANDMARK = ("views", "box_ranges", "facings", "tick", "sightings", "existence", "misses")
 
 RULES = Rules(
     service="matcher",

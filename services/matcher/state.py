@@ -51,6 +51,7 @@ CREATE TABLE IF NOT EXISTS trust_status (
     vehicle TEXT PRIMARY KEY, status INTEGER NOT NULL, held_homes TEXT NOT NULL,
     last_seen REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS box_ranges (id INTEGER PRIMARY KEY, sums BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS facings (
     id INTEGER PRIMARY KEY, az REAL NOT NULL, sigma REAL NOT NULL, spread REAL NOT NULL,
     known INTEGER NOT NULL);
@@ -135,6 +136,14 @@ class MatcherState(LandmarkTable):
             ],
         )
         c.executemany(
+            "INSERT OR REPLACE INTO box_ranges(id, sums) VALUES (?,?)",
+            [
+                (r[0], np.asarray(lm.ranges, "<f8").tobytes())
+                for r, lm in zip(rows, dirty, strict=True)
+                if lm.ranges.any()
+            ],
+        )
+        c.executemany(
             "INSERT OR REPLACE INTO facings(id, az, sigma, spread, known) VALUES (?,?,?,?,?)",
             [
                 (
@@ -155,6 +164,7 @@ class MatcherState(LandmarkTable):
         gone = [(id_to_sql(i),) for i in sorted(self._deleted)]
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
+        c.executemany("DELETE FROM box_ranges WHERE id=?", gone)
         c.executemany("DELETE FROM facings WHERE id=?", gone)
         self._save_tick()
         c.executemany("DELETE FROM sightings WHERE id=?", gone)
@@ -403,6 +413,10 @@ class MatcherState(LandmarkTable):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.view = np.array([e, n], float)
+        for i, blob in c.execute("SELECT id, sums FROM box_ranges"):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.ranges = np.frombuffer(blob, "<f8").copy()
         self.unfaced = set(self.landmarks)
         for i, az, sigma, spread, known in c.execute(
             "SELECT id, az, sigma, spread, known FROM facings"

@@ -1,0 +1,114 @@
+"""Box ranges as evidence of which panel a landmark's rays saw: O(1) sums per landmark
+that give its rays' mean relative range at any trial point.
+
+A ray with a box range ``r`` (from the box's height and the class's nominal panel height)
+from origin ``a`` along unit direction ``d`` says the panel is about ``r`` away. At a
+trial point ``x`` its **relative range** is ``u(x) = d . (x - a) / r``: the distance
+along the ray to ``x`` over the measured range. At the panel's real position every ray of
+the panel has ``u = s`` up to its box's pixel noise and its origin's error, ``s`` the
+panel's real size over its class's nominal size: one unknown for all the panel's rays
+(10 % spread by default), so two landmarks made of one panel's rays have the same mean
+``u`` at that panel, and two panels' landmarks each their own.
+
+State: ``h = (d / r, -(d . a) / r, 1)`` per ray, so that ``u(x) = h[:4] . (x, 1)``; a
+landmark keeps ``sum_j w_j h_j`` (5 numbers) in its home tile's frame, and its mean
+relative range at ``x`` is ``sum w u / sum w``. Sums add when landmarks merge; a rigid
+change of frame ``x' = R x + t`` maps ``h`` linearly (:func:`in_frame`), since ``u`` does
+not depend on the frame.
+
+Weights: ``w = 1 / (rel_w^2 + (sigma_h / r)^2)``, ``rel_w^2`` the box's own relative
+range variance (what the vehicle reports, ``(sigma_r / r)^2``, less the catalogue's panel
+spread every ray of the panel shares; at least ``REL_FLOOR^2``) and ``sigma_h`` the
+origin's horizontal GNSS sigma (a metre of origin error moves ``u`` of a ray at ``r`` by
+``1 / r``). Rays without a range (``r <= 0``, NaN) add nothing.
+
+Used by the merge test of a sign's second landmark made of its rays from another street
+(:func:`hdmap.mapping.merge.ghost_partner`; docs/experiments/2026-12-two-street-ghosts-
+ranges.md): those rays' mean relative range at the sign's landmark equals the sign's own
+rays' there (one panel), and differs at their own landmark several metres along their
+line of sight. Pitfall: the sums keep the rays of a vehicle on probation whose links
+are later dropped (as the view sums do); the mean moves by their share.
+
+>>> import numpy as np
+>>> a = np.array([[0.0, -30.0, 0.0], [0.0, -20.0, 0.0], [0.0, -10.0, 0.0]])
+>>> d = np.tile([0.0, 1.0, 0.0], (3, 1))  # looking North at a panel at the origin
+>>> r = np.array([30.0, 20.0, 10.0]) / 0.9  # a panel 0.9 of the nominal size
+>>> h, w = ray_terms(a, d, r, r * 0.1, 0.5, 0.1)
+>>> s = summed(np.zeros(3, np.int64), h, w)[1]
+>>> round(float(mean_relative_range(s, np.zeros((1, 3)))[0]), 4)  # at the panel
+0.9
+>>> round(float(mean_relative_range(s, np.array([[0.0, 5.0, 0.0]]))[0]), 4)  # 5 m beyond
+1.1163
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+
+N_SUMS = 5
+"""Numbers a landmark keeps: ``sum w h``."""
+
+REL_FLOOR = 0.02
+"""Smallest relative white range sigma a ray's weight assumes (a box a pixel or two off
+at 60-100 px)."""
+
+
+def ray_terms(
+    origin: ArrayLike,
+    direction: ArrayLike,
+    range_m: ArrayLike,
+    sigma_range_m: ArrayLike,
+    sigma_pos_h: ArrayLike,
+    panel_rel_sigma: float,
+) -> tuple[Array, Array]:
+    """Per ray ``h`` (n, 5) and weight ``w`` (n,) (0 where the ray has no range)."""
+    a = np.asarray(origin, float).reshape(-1, 3)
+    d = np.asarray(direction, float).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    r = np.asarray(range_m, float).reshape(-1)
+    sr = np.asarray(sigma_range_m, float).reshape(-1)
+    use = np.isfinite(r) & np.isfinite(sr) & (r > 0) & (sr > 0)
+    rs = np.where(use, r, 1.0)
+    rel_w2 = np.maximum((np.where(use, sr, 0.0) / rs) ** 2 - panel_rel_sigma**2, REL_FLOOR**2)
+    s_h = np.asarray(sigma_pos_h, float) * np.ones(r.size)
+    w = np.where(use, 1.0 / (rel_w2 + (s_h / rs) ** 2), 0.0)
+    h = np.empty((r.size, 5))
+    h[:, :3] = d / rs[:, None]
+    h[:, 3] = -np.einsum("ij,ij->i", d, a) / rs
+    h[:, 4] = 1.0
+    return h, w
+
+
+def summed(ids: ArrayLike, h: Array, w: Array) -> tuple[NDArray[np.int64], Array]:
+    """Rays grouped by the landmark each went to (``ids``): per distinct id (ascending),
+    the index of its first ray and its rays' sums (k, ``N_SUMS``)."""
+    _u, first, inv = np.unique(np.asarray(ids), return_index=True, return_inverse=True)
+    out = np.zeros((first.size, N_SUMS))
+    np.add.at(out, inv.reshape(-1), w[:, None] * h)
+    return first, out
+
+
+def in_frame(sums: ArrayLike, rot: Array | None, t: Array | None) -> Array:
+    """Sums kept in frame F as they are in frame G, ``x_G = rot x_F + t``
+    (:func:`hdmap.geo.tiles.frame_map`; None, None: the same frame)."""
+    s = np.asarray(sums, float).reshape(-1, N_SUMS)
+    if rot is None or t is None:
+        return s.copy()
+    lin = np.eye(5)
+    lin[:3, :3] = rot
+    lin[3, :3] = -(np.asarray(t, float) @ rot)
+    return s @ lin.T
+
+
+def mean_relative_range(sums: ArrayLike, x: ArrayLike) -> Array:
+    """At trial points ``x`` (k, 3; point ``i`` for landmark ``i``, in the sums' frame) the
+    weighted mean relative range of each landmark's rays (k,); NaN where it has no ranged
+    ray."""
+    s = np.asarray(sums, float).reshape(-1, N_SUMS)
+    x = np.asarray(x, float).reshape(-1, 3)
+    w = s[:, 4]
+    su = np.einsum("ki,ki->k", s[:, :3], x) + s[:, 3]
+    return np.divide(su, w, out=np.full(w.size, np.nan), where=w > 0)
