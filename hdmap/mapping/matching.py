@@ -245,8 +245,10 @@ class MatchingConfig:
     own position (:func:`hdmap.mapping.merge.ghost_partner`). Both need
     ``merge_ghost_min_passes`` passes and may share images in at most
     ``merge_apart_max_covis`` of the smaller one's rays. Over the four seeds at 1,200
-    passes on both noises, copies agree within 0.027 (29 of 32) and two signs differ by
-    0.10 or more (docs/experiments/2026-12-two-street-ghosts-ranges.md)."""
+    passes on both noises, second-street copies agree within 0.02 and two signs differ by
+    0.10 or more (docs/experiments/2026-12-two-street-ghosts-ranges.md). Pitfall: the
+    merged landmark's facing stays its main street's, so the second street's rays start
+    the next copy, merged in its turn."""
     merge_ghost_across_m: float = 1.5
     merge_ghost_min_deg: float = 45.0
     """Not along one street: copies there (phone errors' shared heading, 11-22 m along
