@@ -54,9 +54,10 @@ facing up to their sigmas and to which parts of the cone their rays came from, s
 known facings more than ``max_deg + k sqrt(sigma_a^2 + sigma_b^2)`` apart are two signs,
 unless they stand at one place (``same_place_m``): a sign seen from two streets (a
 junction's) gets a second landmark from the second street's rays, which the ray gate
-keeps off the first, at the same place; merged, its facing is between the two streets and
-both streams pass the gate. At one place the limit is ``2 V``: one panel is never seen
-from directions farther apart, two panels back to back (180 degrees) are two signs.
+keeps off the first, at the same place; merged, the kept landmark takes the other's
+facing as a second one (:attr:`Facing.second`; its mean alone stays the busier street's)
+and both streams pass the gate. At one place the limit is ``2 V``: one panel is never
+seen from directions farther apart, two panels back to back (180 degrees) are two signs.
 
 A landmark with fewer than ``min_rays`` rays has no facing (``known`` False) and imposes no
 constraint.
@@ -110,13 +111,17 @@ class Facing:
     """Circular standard deviation of the rays' viewing azimuths."""
     known: NDArray[np.bool_]
     """Enough rays for a facing; where False the other fields are 0 and mean nothing."""
+    second: Array | None = None
+    """A second street's viewing azimuth (NaN: none; None: none for any), from a copy of
+    the sign merged in from that street: the ray gate lets its rays pass too."""
 
     def __len__(self) -> int:
         return int(self.azimuth.size)
 
     def take(self, idx: ArrayLike) -> Facing:
         i = np.asarray(idx)
-        return Facing(self.azimuth[i], self.sigma[i], self.spread[i], self.known[i])
+        second = None if self.second is None else self.second[i]
+        return Facing(self.azimuth[i], self.sigma[i], self.spread[i], self.known[i], second)
 
     @staticmethod
     def unknown(k: int) -> Facing:
@@ -127,12 +132,18 @@ class Facing:
     @staticmethod
     def concat(parts: list[Facing]) -> Facing:
         """The parts' landmarks in order."""
+        second = None
+        if any(p.second is not None for p in parts):
+            second = np.concatenate(
+                [np.full(len(p), np.nan) if p.second is None else p.second for p in parts]
+            )
         return Facing(
             *(
                 np.concatenate([getattr(p, f) for p in parts])
                 for f in ("azimuth", "sigma", "spread")
             ),
             np.concatenate([p.known for p in parts]).astype(bool),
+            second,
         )
 
     def rows(self) -> Array:
@@ -207,7 +218,11 @@ def ray_compatible(theta: ArrayLike, facing: Facing, cfg: FacingConfig) -> NDArr
     """Per pair, whether a ray of viewing azimuth ``theta`` may be of a landmark of facing
     ``facing`` (same length): an unknown facing accepts every ray."""
     gate = np.radians(cfg.max_view_deg) + cfg.k_sigma * facing.sigma
-    return ~facing.known | (angle_between(theta, facing.azimuth) <= gate)
+    ok = ~facing.known | (angle_between(theta, facing.azimuth) <= gate)
+    if facing.second is not None:
+        with np.errstate(invalid="ignore"):
+            ok |= angle_between(theta, facing.second) <= np.radians(cfg.max_view_deg)
+    return ok
 
 
 def facings_compatible(a: Facing, b: Facing, max_deg: float, k_sigma: float) -> NDArray[np.bool_]:

@@ -73,6 +73,9 @@ class Landmark:
     """Gating facing as of the last re-solve of its gating estimate: azimuth, its standard
     error, the rays' spread (radians) and 1.0 where known (:class:`~hdmap.mapping.facing.
     Facing`); with ``x`` and ``cov`` what association sees of it (:mod:`hdmap.mapping.tick`)."""
+    second_facing: float = float("nan")
+    """The viewing azimuth of a second street's copy merged into it (radians; NaN: none):
+    that street's rays pass its facing gate (:mod:`hdmap.mapping.merge`)."""
     exist: float = float("nan")
     """Existence log-odds (:mod:`hdmap.mapping.presence`); NaN: no evidence since it was
     made (it stands at the config's start value)."""
@@ -234,6 +237,8 @@ class LandmarkTable:
         """``drop`` becomes part of ``keep``: its view, co-visibility and co-pass counts move
         over, its record is deleted (the caller merges the sums rows)."""
         keep.view = keep.view + drop.view
+        if np.isnan(keep.second_facing):
+            keep.second_facing = drop.second_facing
         keep.ranges = keep.ranges + drop.ranges  # the caller put drop's in keep's frame
         keep.in_view, keep.seen = keep.in_view + drop.in_view, keep.seen + drop.seen
         for counts in (self.covis_pairs, self.copass):

@@ -246,15 +246,18 @@ class MatchingConfig:
     ``merge_ghost_min_passes`` passes and may share images in at most
     ``merge_apart_max_covis`` of the smaller one's rays. Over the four seeds at 1,200
     passes on both noises, second-street copies agree within 0.02 and two signs differ by
-    0.10 or more (docs/experiments/2026-12-two-street-ghosts-ranges.md). Pitfall: the
-    merged landmark's facing stays its main street's, so the second street's rays start
-    the next copy, merged in its turn."""
+    0.10 or more (docs/experiments/2026-12-two-street-ghosts-ranges.md)."""
     merge_ghost_across_m: float = 1.5
     merge_ghost_min_deg: float = 45.0
     """Not along one street: copies there (phone errors' shared heading, 11-22 m along
     the line of sight) have the same panel too, but merged their bearings still fix the
     range poorly, and a young copy near the sign folded into an old one 15-25 m off ended
     off (docs/experiments/2026-12-two-street-ghosts-ranges.md)."""
+    merge_second_facing: bool = True
+    """A merge of two landmarks facing ``merge_ghost_min_deg`` or more apart (one sign
+    seen from two streets) gives the kept one the other's facing as a second one
+    (``Landmark.second_facing``): the second street's rays pass its facing gate from then
+    on instead of starting the next copy."""
     merge_ghost_tol: float = 0.05
     merge_ghost_min_passes: int = 20
     merge_min_passes: int = 2

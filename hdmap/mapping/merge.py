@@ -244,6 +244,10 @@ def _same_side(m: Matching, a: Landmark, b: Landmark) -> bool:
 def merge(m: Matching, keep: Landmark, drop: Landmark) -> None:
     """``drop`` is ``keep``: its sums fold into ``keep``'s, its record goes, the home
     tile's output retires it into ``keep``, and ``keep``'s estimate is re-solved."""
+    f = facings_of(m, [keep, drop])
+    far = angle_between(f.azimuth[0], f.azimuth[1]) >= np.radians(m.config.merge_ghost_min_deg)
+    if m.config.merge_second_facing and bool(f.known.all() and far):  # a second street
+        keep.second_facing = float(f.azimuth[1])
     rot, t = frame_map(m.frames(drop.home), m.frames(keep.home))
     merge_rows(m.quiet, m.sums, keep, drop, rot, t)
     drop.ranges = box_ranges.in_frame(drop.ranges, rot, t)[0]

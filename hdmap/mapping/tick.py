@@ -56,7 +56,7 @@ on when entries arrived).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -138,8 +138,11 @@ def candidates(m: Matching, tile: str) -> Candidates:
 
 
 def gating_facings(lms: list[Landmark]) -> Facing:
-    """The landmarks' facings as association sees them (as of their last re-solve)."""
-    return Facing.from_rows([lm.facing for lm in lms])
+    """The landmarks' facings as association sees them (as of their last re-solve), with
+    the second streets merged in."""
+    f = Facing.from_rows([lm.facing for lm in lms])
+    second = np.array([lm.second_facing for lm in lms], float)
+    return replace(f, second=second) if np.isfinite(second).any() else f
 
 
 def end_tick(m: Matching) -> None:

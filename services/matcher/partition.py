@@ -15,7 +15,16 @@ from __future__ import annotations
 
 from hdmap.runtime.partition import Rules
 
-_BY_LANDMARK = ("views", "box_ranges", "facings", "tick", "sightings", "existence", "misses")
+_BY_LANDMARK = (
+    "views",
+    "box_ranges",
+    "second_facings",
+    "facings",
+    "tick",
+    "sightings",
+    "existence",
+    "misses",
+)
 
 RULES = Rules(
     service="matcher",

@@ -52,6 +52,7 @@ CREATE TABLE IF NOT EXISTS trust_status (
     last_seen REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS box_ranges (id INTEGER PRIMARY KEY, sums BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS second_facings (id INTEGER PRIMARY KEY, az REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS facings (
     id INTEGER PRIMARY KEY, az REAL NOT NULL, sigma REAL NOT NULL, spread REAL NOT NULL,
     known INTEGER NOT NULL);
@@ -144,6 +145,14 @@ class MatcherState(LandmarkTable):
             ],
         )
         c.executemany(
+            "INSERT OR REPLACE INTO second_facings(id, az) VALUES (?,?)",
+            [
+                (r[0], lm.second_facing)
+                for r, lm in zip(rows, dirty, strict=True)
+                if not np.isnan(lm.second_facing)
+            ],
+        )
+        c.executemany(
             "INSERT OR REPLACE INTO facings(id, az, sigma, spread, known) VALUES (?,?,?,?,?)",
             [
                 (
@@ -165,6 +174,7 @@ class MatcherState(LandmarkTable):
         c.executemany("DELETE FROM landmarks WHERE id=?", gone)
         c.executemany("DELETE FROM views WHERE id=?", gone)
         c.executemany("DELETE FROM box_ranges WHERE id=?", gone)
+        c.executemany("DELETE FROM second_facings WHERE id=?", gone)
         c.executemany("DELETE FROM facings WHERE id=?", gone)
         self._save_tick()
         c.executemany("DELETE FROM sightings WHERE id=?", gone)
@@ -413,6 +423,10 @@ class MatcherState(LandmarkTable):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.view = np.array([e, n], float)
+        for i, az in c.execute("SELECT id, az FROM second_facings"):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.second_facing = float(az)
         for i, blob in c.execute("SELECT id, sums FROM box_ranges"):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:

@@ -22,6 +22,7 @@ import pytest
 
 from fleetsim.synthetic import ray_observations
 from hdmap.mapping import box_ranges
+from hdmap.mapping.facing import Facing, FacingConfig, ray_compatible
 from hdmap.runtime.service import ServiceOptions
 from schemas import LogEntry, ObsGroup
 from services.matcher.service import MatcherConfig, MatcherService
@@ -79,22 +80,26 @@ def positions(m: MatcherService) -> np.ndarray:
 def test_a_second_street_copy_merges_and_two_signs_on_its_line_do_not(
     tmp_path: Path, ghost: bool
 ) -> None:
-    """Without the rule both cases end as two landmarks, near A and near B (the facing
-    gate keeps the northbound rays off A's landmark and no other merge joins them); with
-    it the ghost folds into A's landmark (counted ``merged_ghosts``) and the two signs stay
-    two."""
-    off = run(tmp_path / "off", ghost, MatcherConfig(merge_ghost_max_m=0.0))
-    x = positions(off)
+    """Without the rule and the second facing both cases end as two landmarks, near A and
+    near B (the facing gate keeps the northbound rays off A's landmark and no other merge
+    joins them); with the rule alone the ghost folds into A's landmark (counted
+    ``merged_ghosts``), with both (the default) the northbound rays join A's landmark once
+    an early merge gave it their street's facing; the two signs stay two every way."""
+    off = MatcherConfig(merge_ghost_max_m=0.0, merge_second_facing=False)
+    x = positions(run(tmp_path / "off", ghost, off))
     assert len(x) == 2
     apart = np.linalg.norm(x[:, None, :2] - np.stack([A, B])[None, :, :2], axis=2)
     assert apart.min(0).max() < 3.0  # one near A, one near B
-    on = run(tmp_path / "on", ghost, MatcherConfig())
-    x = positions(on)
+    rule = run(tmp_path / "rule", ghost, MatcherConfig(merge_second_facing=False))
+    both = run(tmp_path / "both", ghost, MatcherConfig())
+    for m in (rule, both):
+        x = positions(m)
+        if ghost:
+            assert len(x) == 1 and np.hypot(*(x[0] - A)[:2]) < 3.0
+        else:
+            assert len(x) == 2 and m.counters.get("merged_ghosts", 0) == 0
     if ghost:
-        assert len(x) == 1 and on.counters.get("merged_ghosts", 0) >= 1
-        assert np.hypot(*(x[0] - A)[:2]) < 3.0
-    else:
-        assert len(x) == 2 and on.counters.get("merged_ghosts", 0) == 0
+        assert rule.counters.get("merged_ghosts", 0) >= 1
 
 
 def test_range_sums_move_between_frames_and_add() -> None:
@@ -155,3 +160,18 @@ def test_range_sums_survive_a_restart(tmp_path: Path) -> None:
     for lid, r in before.items():
         np.testing.assert_array_equal(after[lid], r)
     again.db.close()
+
+
+def test_a_second_facing_lets_its_street_through_the_gate_and_no_other() -> None:
+    """A landmark seen from the West (285 deg) with a second street to its South (180 deg):
+    rays seen from the South pass its gate, rays from the East (90 deg) do not; without
+    the second facing the southern rays are refused too."""
+    cfg = FacingConfig()
+    f = Facing(np.radians([285.0]), np.radians([2.0]), np.radians([12.0]), np.array([True]))
+    theta = np.radians([280.0, 185.0, 90.0])
+    idx = np.zeros(3, np.int64)
+    assert ray_compatible(theta, f.take(idx), cfg).tolist() == [True, False, False]
+    two = replace(f, second=np.radians([180.0]))
+    assert ray_compatible(theta, two.take(idx), cfg).tolist() == [True, True, False]
+    both = Facing.concat([two, f])  # one with a second facing, one without
+    assert np.isnan(both.second[1]) and both.second[0] == pytest.approx(np.pi)
