@@ -34,7 +34,7 @@ are later dropped (as the view sums do); the mean moves by their share.
 >>> d = np.tile([0.0, 1.0, 0.0], (3, 1))  # looking North at a panel at the origin
 >>> r = np.array([30.0, 20.0, 10.0]) / 0.9  # a panel 0.9 of the nominal size
 >>> h, w = ray_terms(a, d, r, r * 0.1, 0.5, 0.1)
->>> s = summed(np.zeros(3, np.int64), h, w)[1]
+>>> s = summed(np.zeros(3, np.int64), h, w)
 >>> round(float(mean_relative_range(s, np.zeros((1, 3)))[0]), 4)  # at the panel
 0.9
 >>> round(float(mean_relative_range(s, np.array([[0.0, 5.0, 0.0]]))[0]), 4)  # 5 m beyond
@@ -45,6 +45,8 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from hdmap.mapping.estimator.terms import white_rel_var
 
 Array = NDArray[np.float64]
 
@@ -68,27 +70,23 @@ def ray_terms(
     a = np.asarray(origin, float).reshape(-1, 3)
     d = np.asarray(direction, float).reshape(-1, 3)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    r = np.asarray(range_m, float).reshape(-1)
-    sr = np.asarray(sigma_range_m, float).reshape(-1)
-    use = np.isfinite(r) & np.isfinite(sr) & (r > 0) & (sr > 0)
-    rs = np.where(use, r, 1.0)
-    rel_w2 = np.maximum((np.where(use, sr, 0.0) / rs) ** 2 - panel_rel_sigma**2, REL_FLOOR**2)
-    s_h = np.asarray(sigma_pos_h, float) * np.ones(r.size)
+    use, rs, rel_w2 = white_rel_var(range_m, sigma_range_m, panel_rel_sigma, REL_FLOOR)
+    s_h = np.asarray(sigma_pos_h, float) * np.ones(rs.size)
     w = np.where(use, 1.0 / (rel_w2 + (s_h / rs) ** 2), 0.0)
-    h = np.empty((r.size, 5))
+    h = np.empty((rs.size, 5))
     h[:, :3] = d / rs[:, None]
     h[:, 3] = -np.einsum("ij,ij->i", d, a) / rs
     h[:, 4] = 1.0
     return h, w
 
 
-def summed(ids: ArrayLike, h: Array, w: Array) -> tuple[NDArray[np.int64], Array]:
-    """Rays grouped by the landmark each went to (``ids``): per distinct id (ascending),
-    the index of its first ray and its rays' sums (k, ``N_SUMS``)."""
-    _u, first, inv = np.unique(np.asarray(ids), return_index=True, return_inverse=True)
-    out = np.zeros((first.size, N_SUMS))
-    np.add.at(out, inv.reshape(-1), w[:, None] * h)
-    return first, out
+def summed(group: ArrayLike, h: Array, w: Array) -> Array:
+    """Rays summed by the landmark each went to (``group``: 0, 1, ... per ray): (k,
+    ``N_SUMS``), ``k`` the number of groups."""
+    g = np.asarray(group, np.int64).reshape(-1)
+    out = np.zeros((int(g.max(initial=-1)) + 1, N_SUMS))
+    np.add.at(out, g, w[:, None] * h)
+    return out
 
 
 def in_frame(sums: ArrayLike, rot: Array | None, t: Array | None) -> Array:

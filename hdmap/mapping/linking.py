@@ -111,8 +111,8 @@ def link(
             here = to_local(m.frames(home), sub)
         rows = np.array([lms[k].row for k in idx], np.int64)
         rays = to_rays(here, np.full(len(idx), gating) if gating < 1.0 else None)
-        note_ranges(m, here, [lms[k] for k in idx])
         _, first, inv = np.unique(rows, return_index=True, return_inverse=True)
+        note_ranges(m, here, inv.reshape(-1), [lms[idx[f]] for f in first.tolist()])
         first_ids = [lms[idx[f]].id for f in first.tolist()]
         ids = np.array(first_ids, np.uint64)[inv.reshape(-1)]
         m.hold_link((rows, np.full(len(idx), key, np.int64), rays, hold[sel]), ids)
@@ -134,9 +134,9 @@ def link(
         out.obs.append(sub)
 
 
-def note_ranges(m: Matching, here: LocalRays, lms: list[Landmark]) -> None:
+def note_ranges(m: Matching, here: LocalRays, inv: np.ndarray, lms: list[Landmark]) -> None:
     """The rays' box ranges into their landmarks' range sums (``here``: the rays in the
-    landmarks' home frame, row ``k`` linked to ``lms[k]``)."""
+    landmarks' home frame, ray ``k`` linked to ``lms[inv[k]]``)."""
     h, w = box_ranges.ray_terms(
         here.origin,
         here.direction,
@@ -147,9 +147,9 @@ def note_ranges(m: Matching, here: LocalRays, lms: list[Landmark]) -> None:
     )
     if not w.any():
         return
-    first, sums = box_ranges.summed(np.array([lm.id for lm in lms], np.uint64), h, w)
-    for j, k in enumerate(first.tolist()):
-        lms[k].ranges = lms[k].ranges + sums[j]
+    sums = box_ranges.summed(inv, h, w)
+    for lm, add in zip(lms, sums, strict=True):
+        lm.ranges = lm.ranges + add
 
 
 def note_views(m: Matching, obs: Any, lms: list[Landmark]) -> None:

@@ -23,7 +23,7 @@ import numpy as np
 
 from hdmap.geo.tiles import frame_map
 from hdmap.mapping import box_ranges
-from hdmap.mapping.facing import angle_between, facings_compatible
+from hdmap.mapping.facing import Facing, angle_between, facings_compatible
 from hdmap.mapping.landmarks import Landmark
 from hdmap.mapping.linking import refresh
 from hdmap.mapping.matching import Matching, facings_of
@@ -161,19 +161,13 @@ def ghost_partner(
     if passes[0] < cfg.merge_ghost_min_passes:
         return None
     f = facings_of(m, lms)
-    apart = angle_between(f.azimuth[0], f.azimuth[1:]) >= np.radians(cfg.merge_ghost_min_deg)
+    ok = (passes[1:] >= cfg.merge_ghost_min_passes) & _streets_apart(m, f)
+    ok &= _rarely_together(m, lm, others, rays, cfg.merge_apart_max_covis)
     best, best_q = None, np.inf
-    for j, o in enumerate(others, start=1):
-        if passes[j] < cfg.merge_ghost_min_passes or not (f.known[0] and f.known[j]):
-            continue
-        if not apart[j - 1]:
-            continue
-        if m.state.covis_count(lm.id, o.id) > cfg.merge_apart_max_covis * max(
-            min(rays[0], rays[j]), 1
-        ):
-            continue
-        for g, s, gk in ((lm, o, 0), (o, lm, j)):
-            q = _ghost_mismatch(m, g, s, float(f.azimuth[gk]))
+    for j in np.flatnonzero(ok).tolist():
+        o = others[j]
+        for g, s, az in ((lm, o, f.azimuth[0]), (o, lm, f.azimuth[j + 1])):
+            q = _ghost_mismatch(m, g, s, float(az))
             if q is not None and q < best_q:
                 best, best_q = o, q
     if best is not None:
@@ -210,10 +204,25 @@ def _one_way_never_together(
     ``merge_copy_max_deg``) and were detected in one image with it in at most
     ``max_covis`` of the smaller one's rays (``rays``: ``lm``'s, then the others')."""
     f = facings_of(m, [lm, *others])
-    covis = np.array([m.state.covis_count(lm.id, o.id) for o in others])
     ok = f.known[0] & f.known[1:]
     ok &= angle_between(f.azimuth[0], f.azimuth[1:]) <= np.radians(m.config.merge_copy_max_deg)
-    return ok & (covis <= max_covis * np.maximum(np.minimum(rays[0], rays[1:]), 1))
+    return ok & _rarely_together(m, lm, others, rays, max_covis)
+
+
+def _rarely_together(
+    m: Matching, lm: Landmark, others: list[Landmark], rays: np.ndarray, max_covis: float
+) -> np.ndarray:
+    """Which of ``others`` were detected in one image with ``lm`` in at most ``max_covis``
+    of the smaller one's rays (``rays``: ``lm``'s, then the others')."""
+    covis = np.array([m.state.covis_count(lm.id, o.id) for o in others])
+    return covis <= max_covis * np.maximum(np.minimum(rays[0], rays[1:]), 1)
+
+
+def _streets_apart(m: Matching, f: Facing) -> np.ndarray:
+    """Whether the first landmark of facings ``f`` and each other one are seen from two
+    streets: both facings known, ``merge_ghost_min_deg`` or more apart."""
+    far = angle_between(f.azimuth[0], f.azimuth[1:]) >= np.radians(m.config.merge_ghost_min_deg)
+    return f.known[0] & f.known[1:] & far
 
 
 def _seen_together(m: Matching, a: Landmark, b: Landmark) -> bool:
@@ -244,10 +253,10 @@ def _same_side(m: Matching, a: Landmark, b: Landmark) -> bool:
 def merge(m: Matching, keep: Landmark, drop: Landmark) -> None:
     """``drop`` is ``keep``: its sums fold into ``keep``'s, its record goes, the home
     tile's output retires it into ``keep``, and ``keep``'s estimate is re-solved."""
-    f = facings_of(m, [keep, drop])
-    far = angle_between(f.azimuth[0], f.azimuth[1]) >= np.radians(m.config.merge_ghost_min_deg)
-    if m.config.merge_second_facing and bool(f.known.all() and far):  # a second street
-        keep.second_facing = float(f.azimuth[1])
+    if m.config.merge_second_facing:
+        f = facings_of(m, [keep, drop])
+        if _streets_apart(m, f)[0]:  # its street's rays pass keep's gate from now on
+            keep.second_facing = float(f.azimuth[1])
     rot, t = frame_map(m.frames(drop.home), m.frames(keep.home))
     merge_rows(m.quiet, m.sums, keep, drop, rot, t)
     drop.ranges = box_ranges.in_frame(drop.ranges, rot, t)[0]

@@ -113,16 +113,16 @@ def test_range_sums_move_between_frames_and_add() -> None:
     r, sr, sh = rng.uniform(5, 60, n), rng.uniform(0.5, 5, n), rng.uniform(0.5, 2, n)
     ids = rng.integers(0, 3, n)
     h, w = box_ranges.ray_terms(o, d, r, sr, sh, 0.1)
-    _first, sums = box_ranges.summed(ids, h, w)
+    sums = box_ranges.summed(ids, h, w)
     c, s = np.cos(0.7), np.sin(0.7)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array(
         [[1.0, 0.0, 0.0], [0.0, np.cos(0.01), -np.sin(0.01)], [0.0, np.sin(0.01), np.cos(0.01)]]
     )
     t = np.array([812.0, -455.0, 3.0])
     h2, w2 = box_ranges.ray_terms(o @ rot.T + t, d @ rot.T, r, sr, sh, 0.1)
-    _f2, direct = box_ranges.summed(ids, h2, w2)
+    direct = box_ranges.summed(ids, h2, w2)
     np.testing.assert_allclose(box_ranges.in_frame(sums, rot, t), direct, rtol=1e-9, atol=1e-9)
-    _f3, one = box_ranges.summed(np.zeros(n, np.int64), h, w)
+    one = box_ranges.summed(np.zeros(n, np.int64), h, w)
     np.testing.assert_allclose(sums.sum(0), one[0], rtol=1e-12)
     x = rng.normal(0, 5, (1, 3))
     np.testing.assert_allclose(
@@ -140,7 +140,7 @@ def test_mean_relative_range_is_the_panel_scale_and_ignores_rays_without_range()
     r = np.linalg.norm(o, axis=1)
     for scale in (0.8, 1.0, 1.2):
         h, w = box_ranges.ray_terms(o, d, r / scale, r * 0.1, np.ones(6), 0.1)
-        _f, s = box_ranges.summed(np.zeros(6, np.int64), h, w)
+        s = box_ranges.summed(np.zeros(6, np.int64), h, w)
         assert box_ranges.mean_relative_range(s, np.zeros((1, 3)))[0] == pytest.approx(scale)
     h, w = box_ranges.ray_terms(o, d, np.zeros(6), np.zeros(6), np.ones(6), 0.1)
     assert not w.any()

@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from hdmap.mapping.estimator.box_noise import COMP, FIT, WIDTH, fit_sums
 from hdmap.mapping.estimator.model import (
@@ -75,6 +75,19 @@ class InverseTerms(NamedTuple):
     s_rho2: Array
 
 
+def white_rel_var(
+    range_m: ArrayLike, sigma_range_m: ArrayLike, panel_rel_sigma: float, floor: float
+) -> tuple[NDArray[np.bool_], Array, Array]:
+    """Per ray: whether it has a range, its range (1 where none) and the white part of its
+    relative range variance, ``(sigma_r / r)^2 - panel_rel_sigma^2`` (the vehicle sends
+    the box's white part and the catalogue's panel spread summed), at least ``floor^2``."""
+    r = np.asarray(range_m, float).reshape(-1)
+    sr = np.asarray(sigma_range_m, float).reshape(-1)
+    use = (r > 0) & (sr > 0) & np.isfinite(r) & np.isfinite(sr)
+    rs = np.where(use, r, 1.0)
+    return use, rs, np.maximum((np.where(use, sr, 0.0) / rs) ** 2 - panel_rel_sigma**2, floor**2)
+
+
 def inverse_range_terms(
     rays: Rays, origin_rel: Array, x_ref_rel: Array, cfg: EstimatorConfig
 ) -> InverseTerms:
@@ -90,11 +103,7 @@ def inverse_range_terms(
     compensation needs. ``w = 1 / (sigma_rho^2 r_ref^2 + sigma_h^2 / r_ref^2)`` with the
     range ``r_ref`` to the reference position (never the ray's own), times the ray weight.
     """
-    r = np.asarray(rays.range_m, float).reshape(-1)
-    sr = np.asarray(rays.sigma_range_m, float).reshape(-1)
-    use = (r > 0) & (sr > 0) & np.isfinite(r) & np.isfinite(sr)
-    rs = np.where(use, r, 1.0)
-    rel_w2 = np.maximum((sr / rs) ** 2 - cfg.panel_rel_sigma**2, 1e-4)
+    use, rs, rel_w2 = white_rel_var(rays.range_m, rays.sigma_range_m, cfg.panel_rel_sigma, 0.01)
     s_rho2 = np.where(use, rel_w2 / rs**2, 0.0)
     v = x_ref_rel - origin_rel
     r_ref2 = np.maximum(row_dot(v, v), cfg.min_range_m**2)
