@@ -49,9 +49,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from hdmap.geo.signs import DEFAULT_SIZE_REL_SIGMA
 from hdmap.mapping.assignment import min_cost_assignment
+from hdmap.mapping.box_ranges import REL_FLOOR
 from hdmap.mapping.estimator.gating import wrap
 from hdmap.mapping.estimator.model import ray_angles as angles
+from hdmap.mapping.estimator.terms import white_rel_var
 from hdmap.mapping.facing import FacingConfig
 
 Array = NDArray[np.float64]
@@ -77,6 +80,17 @@ class GateConfig:
     """Add the range residual (from the box size) to the statistic of ranged rays: same-class
     signs a few metres apart along a road are seen along nearly the same bearing, their
     ranges differ."""
+    landmark_scale: str = "both"
+    """How a candidate's own panel scale (``Landmark.scale``) enters the range test: its
+    box ranges then predict the distance with only the box's white noise, not the
+    catalogue's panel spread every ray of one panel shares. "off": not used; "cost": in
+    the statistic only (the range gate keeps the catalogue's spread); "both": in the
+    gate too."""
+    scale_min_passes: int = 5
+    """Passes a landmark needs before its panel scale is used."""
+    scale_rel_sigma: float = 0.03
+    """Relative sigma added to a scaled range prediction (the scale's own error and
+    vehicles' camera calibrations)."""
     offset_iterations: int = 2
     min_offset_rays: int = 3
     """Rays needed before a unit's offset is estimated (fewer: the wide gate stays)."""
@@ -189,6 +203,8 @@ class Pairs:
     cov: Array
     measured: Array
     """(k, 2) the rays' measured azimuth and elevation."""
+    scale: Array | None = None
+    """(k,) the landmark's panel scale per pair (NaN: unknown), or None."""
 
     @staticmethod
     def of(rays: LocalRays, ri: IntArray, x: Array, cov: Array) -> Pairs:
@@ -238,11 +254,24 @@ def pair_stat(
             + 2.0 * (d0 * d1 * c01 + d0 * d2 * c02 + d1 * d2 * c12)
         )
         s_r = np.hypot(rays.sigma_range_m[rk], along)
+        r_cost, s_cost = r_est, s_r
+        if p.scale is not None and cfg.landmark_scale != "off":
+            sc = p.scale[kp]
+            known = has_r & np.isfinite(sc) & (sc > 0)
+            _, _, rel_w2 = white_rel_var(
+                r_est, rays.sigma_range_m[rk], DEFAULT_SIZE_REL_SIGMA, REL_FLOOR
+            )
+            r_cost = np.where(known, r_est * np.where(known, sc, 1.0), r_est)
+            s_sharp = np.sqrt(r_cost**2 * (rel_w2 + cfg.scale_rel_sigma**2) + along**2)
+            s_cost = np.where(known, s_sharp, s_r)
+            if cfg.landmark_scale == "both":
+                r_est, s_r = r_cost, s_cost
         good = ~has_r | (np.abs(rng_k - r_est) <= cfg.range_k * s_r)
         ok[k[~good]] = False
         k, kp, rk, vk = k[good], kp[good], rk[good], vk[good]
         c00, c01, c02, c11, c12, c22 = (t[good] for t in (c00, c01, c02, c11, c12, c22))
         rng_k, r_est, has_r, s_r = rng_k[good], r_est[good], has_r[good], s_r[good]
+        r_cost, s_cost = r_cost[good], s_cost[good]
         az, el = angles(vk)
         az_m, el_m = p.measured[kp, 0], p.measured[kp, 1]
         r0, r1 = wrap(az - az_m), el - el_m
@@ -270,7 +299,9 @@ def pair_stat(
         stat = (r0 * r0 * s11 - 2 * r0 * r1 * s01 + r1 * r1 * s00) / det
         if cfg.range_in_cost:
             # the range residual joins the statistic: it separates signs along one ray
-            stat = stat + np.where(has_r, ((rng_k - r_est) / np.where(has_r, s_r, 1.0)) ** 2, 0.0)
+            stat = stat + np.where(
+                has_r, ((rng_k - r_cost) / np.where(has_r, s_cost, 1.0)) ** 2, 0.0
+            )
         chi2[k] = stat
     if rows is None:
         return chi2, ok

@@ -58,6 +58,8 @@ class UnitInput:
     cov: Array
     cls: IntArray
     facing: Facing | None = None
+    scale: Array | None = None
+    """Per candidate its panel scale (NaN: unknown; ``Landmark.scale``), or None."""
 
 
 @dataclass(frozen=True)
@@ -135,9 +137,16 @@ def _gather(units: list[UnitInput], cfg: GateConfig) -> _Batch:
         )
         seen = ray_compatible(viewing_azimuth(rays.direction[ri]), facing.take(li), cfg.facing)
         ri, li = ri[seen], li[seen]
-    return _Batch(
-        rays, unit, ray0, lm0, x, Pairs.of(rays, ri, x[li], cov[li]), li, unit[ri], track_unit, n
-    )
+    pairs = Pairs.of(rays, ri, x[li], cov[li])
+    if any(u.scale is not None for u in units):
+        scale = np.concatenate(
+            [
+                np.full(k, np.nan) if u.scale is None else np.asarray(u.scale, float)
+                for u, k in zip(units, nl.tolist(), strict=True)
+            ]
+        )
+        pairs = replace(pairs, scale=scale[li])
+    return _Batch(rays, unit, ray0, lm0, x, pairs, li, unit[ri], track_unit, n)
 
 
 def _ranges(starts: IntArray, ends: IntArray) -> IntArray:
@@ -168,6 +177,7 @@ def _with_copies(b: _Batch, base: IntArray) -> _Batch:
         np.r_[src.ri, ri],
         *(np.concatenate([f, f[pr]]) for f in (src.origin, src.direction, src.x, src.cov)),
         np.concatenate([src.measured, src.measured[pr]]),
+        None if src.scale is None else np.concatenate([src.scale, src.scale[pr]]),
     )
     return _Batch(
         LocalRays.concat([b.rays, c]),

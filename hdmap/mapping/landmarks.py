@@ -73,6 +73,11 @@ class Landmark:
     """Gating facing as of the last re-solve of its gating estimate: azimuth, its standard
     error, the rays' spread (radians) and 1.0 where known (:class:`~hdmap.mapping.facing.
     Facing`); with ``x`` and ``cov`` what association sees of it (:mod:`hdmap.mapping.tick`)."""
+    scale: float = float("nan")
+    """Its panel's scale as association sees it: the mean relative range of its rays at
+    ``x`` as of the last re-solve (:func:`hdmap.mapping.box_ranges.mean_relative_range`;
+    NaN: unknown), with which a ray's box range predicts its distance
+    (``GateConfig.landmark_scale``)."""
     second_facing: float = float("nan")
     """The viewing azimuth of a second street's copy merged into it (radians; NaN: none):
     that street's rays pass its facing gate (:mod:`hdmap.mapping.merge`)."""

@@ -214,9 +214,29 @@ def refresh(m: Matching, ids: list[int]) -> None:
         lat, lon, _ = GEODESY.to_geodetic(np.array([lms[k].x for k in moved]))
         for k, t in zip(moved, quadkeys_of(lat, lon, m.zoom).tolist(), strict=True):
             lms[k].tile = str(t)
-    for lm, fk in zip(lms, facings_of(m, lms).rows(), strict=True):
+    scales = panel_scales(m, lms)
+    for lm, fk, sk in zip(lms, facings_of(m, lms).rows(), scales.tolist(), strict=True):
         lm.facing = fk
+        lm.scale = sk
         m.state.put(lm)
+
+
+def panel_scales(m: Matching, lms: list[Landmark]) -> np.ndarray:
+    """Each landmark's panel scale at its gating position (``Landmark.scale``): its rays'
+    mean relative range there, NaN with fewer than ``gate.scale_min_passes`` passes."""
+    out = np.full(len(lms), np.nan)
+    if m.config.gate.landmark_scale == "off" or not lms:
+        return out
+    passes = m.sums.n_passes(np.array([lm.row for lm in lms], np.int64))
+    by_home: dict[str, list[int]] = defaultdict(list)
+    for k, lm in enumerate(lms):
+        if passes[k] >= m.config.gate.scale_min_passes:
+            by_home[lm.home].append(k)
+    for home, ks in by_home.items():
+        x = m.frames(home).from_ecef(np.array([lms[k].x for k in ks])).reshape(-1, 3)
+        sums = np.array([lms[k].ranges for k in ks])
+        out[ks] = box_ranges.mean_relative_range(sums, x)
+    return out
 
 
 def refresh_due(m: Matching, ids: list[int]) -> None:

@@ -113,6 +113,7 @@ class Candidates:
     cov: Array
     cls: NDArray[np.int64]
     facing: Facing
+    scale: Array
 
 
 def candidates(m: Matching, tile: str) -> Candidates:
@@ -131,6 +132,7 @@ def candidates(m: Matching, tile: str) -> Candidates:
             np.array([lm.cov for lm in lms]).reshape(-1, 3, 3),
             np.array([lm.cls for lm in lms], np.int64),
             gating_facings(lms),
+            np.array([lm.scale for lm in lms], float),
         )
         hit = m.candidate_arrays[tile] = (m.state.gating_version, built)
     c: Candidates = hit[1]

@@ -149,7 +149,7 @@ def prepare_units(m: Matching, units: list[tuple[str, str, int, Any]]) -> list[P
     for k, (t, v, pid, _obs) in enumerate(units):
         obs, applied, invalid = fixed[k]
         c = candidates(m, t)
-        unit_input = UnitInput(rays[k], c.x, c.cov, c.cls, c.facing) if c.lms else None
+        unit_input = UnitInput(rays[k], c.x, c.cov, c.cls, c.facing, c.scale) if c.lms else None
         area = m.area(t)
         out.append(Prepared(t, v, pid, obs, applied, invalid, rays[k], area, c.lms, unit_input))
     return out

@@ -53,6 +53,7 @@ CREATE TABLE IF NOT EXISTS trust_status (
 CREATE TABLE IF NOT EXISTS views (id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS box_ranges (id INTEGER PRIMARY KEY, sums BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS second_facings (id INTEGER PRIMARY KEY, az REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS panel_scales (id INTEGER PRIMARY KEY, scale REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS facings (
     id INTEGER PRIMARY KEY, az REAL NOT NULL, sigma REAL NOT NULL, spread REAL NOT NULL,
     known INTEGER NOT NULL);
@@ -153,6 +154,18 @@ class MatcherState(LandmarkTable):
             ],
         )
         c.executemany(
+            "INSERT OR REPLACE INTO panel_scales(id, scale) VALUES (?,?)",
+            [
+                (r[0], lm.scale)
+                for r, lm in zip(rows, dirty, strict=True)
+                if not np.isnan(lm.scale)
+            ],
+        )
+        c.executemany(
+            "DELETE FROM panel_scales WHERE id=?",
+            [(r[0],) for r, lm in zip(rows, dirty, strict=True) if np.isnan(lm.scale)],
+        )
+        c.executemany(
             "INSERT OR REPLACE INTO facings(id, az, sigma, spread, known) VALUES (?,?,?,?,?)",
             [
                 (
@@ -175,6 +188,7 @@ class MatcherState(LandmarkTable):
         c.executemany("DELETE FROM views WHERE id=?", gone)
         c.executemany("DELETE FROM box_ranges WHERE id=?", gone)
         c.executemany("DELETE FROM second_facings WHERE id=?", gone)
+        c.executemany("DELETE FROM panel_scales WHERE id=?", gone)
         c.executemany("DELETE FROM facings WHERE id=?", gone)
         self._save_tick()
         c.executemany("DELETE FROM sightings WHERE id=?", gone)
@@ -427,6 +441,10 @@ class MatcherState(LandmarkTable):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.second_facing = float(az)
+        for i, scale in c.execute("SELECT id, scale FROM panel_scales"):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.scale = float(scale)
         for i, blob in c.execute("SELECT id, sums FROM box_ranges"):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
