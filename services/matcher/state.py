@@ -155,11 +155,7 @@ class MatcherState(LandmarkTable):
         )
         c.executemany(
             "INSERT OR REPLACE INTO panel_scales(id, scale) VALUES (?,?)",
-            [
-                (r[0], lm.scale)
-                for r, lm in zip(rows, dirty, strict=True)
-                if not np.isnan(lm.scale)
-            ],
+            [(r[0], lm.scale) for r, lm in zip(rows, dirty, strict=True) if not np.isnan(lm.scale)],
         )
         c.executemany(
             "DELETE FROM panel_scales WHERE id=?",
