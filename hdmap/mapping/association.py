@@ -45,6 +45,7 @@ wrong ones.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -80,7 +81,7 @@ class GateConfig:
     """Add the range residual (from the box size) to the statistic of ranged rays: same-class
     signs a few metres apart along a road are seen along nearly the same bearing, their
     ranges differ."""
-    landmark_scale: str = "both"
+    landmark_scale: Literal["off", "cost", "both"] = "both"
     """How a candidate's own panel scale (``Landmark.scale``) enters the range test: its
     box ranges then predict the distance with only the box's white noise, not the
     catalogue's panel spread every ray of one panel shares. "off": not used; "cost": in

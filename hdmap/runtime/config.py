@@ -82,6 +82,11 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
         if value is None:
             return None
         return _coerce(args[0], value, key)
+    if origin is typing.Literal:
+        allowed = typing.get_args(tp)
+        if value not in allowed or isinstance(value, bool) != isinstance(allowed[0], bool):
+            raise ConfigError(f"{key}: expected one of {', '.join(map(repr, allowed))}")
+        return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{key}: expected a number, got {type(value).__name__}")

@@ -1,8 +1,8 @@
 """The matcher's tables cut by region or joined (:mod:`hdmap.runtime.partition`).
 
 Landmarks belong to the region of their home tile (the tile their id was counted in);
-their views, box-range sums, panel scales, facings, tick marks, sightings, existence, counted misses
-and pair counts follow them. Pending rays belong to their tile's region, the untried
+their views, box-range sums, panel scales, facings, tick marks, sightings, existence,
+counted misses and pair counts follow them. Pending rays belong to their tile's region, the untried
 marks to their pending rays. A vehicle's trust, pass budgets and probation status are
 copied to every part (each part goes on counting what it sees of the vehicle), except
 the home tiles it has held passes in (each part settles those of its own region);

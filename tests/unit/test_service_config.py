@@ -64,3 +64,12 @@ def test_deploy_file_gaps_are_the_defaults_and_a_bad_one_names_its_key() -> None
         gap_policy("matcher", {"gaps": {"timeout_s": "soon"}})
     with pytest.raises(ConfigError, match=r"gaps\.timeout_s: seconds"):
         gap_policy("matcher", {"gaps": {"timeout_s": -1.0}})
+
+
+def test_a_choice_outside_its_literal_names_the_key_and_the_choices() -> None:
+    cfg = from_mapping(MatcherConfig, {"gate": {"landmark_scale": "cost"}})
+    assert cfg.gate.landmark_scale == "cost"
+    with pytest.raises(ConfigError, match=r"gate\.landmark_scale: expected one of 'off'"):
+        from_mapping(MatcherConfig, {"gate": {"landmark_scale": "on"}})
+    with pytest.raises(ConfigError, match="range_scale: expected one of"):
+        from_mapping(EstimatorConfig, {"range_scale": 1})
