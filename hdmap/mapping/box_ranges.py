@@ -110,3 +110,69 @@ def mean_relative_range(sums: ArrayLike, x: ArrayLike) -> Array:
     w = s[:, 4]
     su = np.einsum("ki,ki->k", s[:, :3], x) + s[:, 3]
     return np.divide(su, w, out=np.full(w.size, np.nan), where=w > 0)
+
+
+Z_CAP = 1e3
+"""``|z|`` of a landmark whose rays' mean relative range is not positive (the estimate
+behind its cameras as the ranges see it)."""
+
+
+def panel_discrepancy(
+    sums: ArrayLike, x: ArrayLike, cov: ArrayLike, panel_rel_sigma: float
+) -> tuple[Array, Array, Array]:
+    """(z, g, s): how far the landmarks' panels are, by their rays' box ranges, from where
+    their estimates ``x`` (k, 3) are. ``s`` is the rays' mean relative range at ``x``
+    (:func:`mean_relative_range`; the panel's size over its class's nominal size if
+    ``x`` is right), ``g = ds/dx`` (k, 3) the weighted mean of the rays' ``d / r`` (along
+    the mean line of sight, ``1 / r`` long at a typical range ``r``), and ``z = ln s /
+    sqrt(panel_rel_sigma^2 + g^T C g / s^2)``: the catalogue's log-normal size spread and
+    what the position's covariance ``C`` (``cov``, k x 3 x 3, the sums' frame) lets ``ln
+    s`` move. With one panel whose size is log-normal with ``panel_rel_sigma`` and ``x``
+    where ``C`` says, ``z`` is standard normal up to the rays' white noise; NaN where no
+    ray has a range, ``-Z_CAP`` where ``s <= 0``.
+
+    >>> a = np.array([[0.0, -40.0, 0.0], [0.0, -30.0, 0.0], [0.0, -20.0, 0.0]])
+    >>> d = np.tile([0.0, 1.0, 0.0], (3, 1))  # looking North at a nominal panel at 0
+    >>> r = np.array([40.0, 30.0, 20.0])
+    >>> sums = summed(np.zeros(3, np.int64), *ray_terms(a, d, r, r * 0.1, 0.5, 0.1))
+    >>> z, g, s = panel_discrepancy(sums, np.array([[0.0, 12.0, 0.0]]), np.eye(3)[None], 0.1)
+    >>> round(float(z[0]), 2), g.round(3).tolist(), s.round(3).tolist()  # 12 m beyond
+    (3.3, [[0.0, 0.034, 0.0]], [1.404])
+    """
+    sm = np.asarray(sums, float).reshape(-1, N_SUMS)
+    c = np.asarray(cov, float).reshape(-1, 3, 3)
+    w = sm[:, 4]
+    s = mean_relative_range(sm, x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = np.where(w[:, None] > 0, sm[:, :3] / w[:, None], np.nan)
+        spread = panel_rel_sigma**2 + np.einsum("ki,kij,kj->k", g, c, g) / s**2
+        z = np.where(s > 0, np.log(s) / np.sqrt(spread), -Z_CAP)
+    return np.where(np.isnan(s), np.nan, z), g, s
+
+
+def widened_along_sight(
+    cov: ArrayLike, z: ArrayLike, g: ArrayLike, s: ArrayLike, k: float, panel_rel_sigma: float
+) -> Array:
+    """``cov`` (k x 3 x 3) where ``|z| > k`` (:func:`panel_discrepancy`'s ``z, g, s``)
+    widened along ``g`` until the discrepancy is one standard deviation: what the box
+    ranges leave of the estimate's distance along the line of sight. Elsewhere (and NaN
+    ``z``) unchanged.
+
+    >>> c = widened_along_sight(np.eye(3)[None], np.array([4.0]), np.array([[0.0, 0.1, 0.0]]),
+    ...                         np.array([1.0]), 3.0, 0.1)
+    >>> c.round(3).tolist()  # ln-s spread 0.02 -> 16 * 0.02: 0.3 more, 30 m^2 along North
+    [[[1.0, 0.0, 0.0], [0.0, 31.0, 0.0], [0.0, 0.0, 1.0]]]
+    """
+    c = np.array(cov, float).reshape(-1, 3, 3)
+    z = np.asarray(z, float).reshape(-1)
+    bad = np.flatnonzero(np.abs(np.nan_to_num(z)) > k)
+    if bad.size:
+        gb = np.asarray(g, float).reshape(-1, 3)[bad]
+        sb = np.maximum(np.asarray(s, float).reshape(-1)[bad], 1.0 / Z_CAP)
+        zb = np.clip(z[bad], -Z_CAP, Z_CAP)
+        g2 = np.einsum("ki,ki->k", gb, gb)
+        spread = panel_rel_sigma**2 + np.einsum("ki,kij,kj->k", gb, c[bad], gb) / sb**2
+        # ln(s)^2 = z^2 spread: the position's share of it grows by (z^2 - 1) spread
+        add = (zb**2 - 1.0) * spread * sb**2 / g2**2
+        c[bad] += add[:, None, None] * gb[:, :, None] * gb[:, None, :]
+    return c

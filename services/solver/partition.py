@@ -1,5 +1,5 @@
 """The solver's tables cut by region or joined (:mod:`hdmap.runtime.partition`):
-landmarks by the region of their home tile, their views and existence with them; the
+landmarks by the region of their home tile, their views, box-range sums and existence with them; the
 event-time clock copied (joined: the latest)."""
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ RULES = Rules(
         "DELETE FROM landmarks WHERE NOT in_region(home)",
         "DELETE FROM views WHERE id NOT IN (SELECT id FROM landmarks)",
         "DELETE FROM existence WHERE id NOT IN (SELECT id FROM landmarks)",
+        "DELETE FROM ranges WHERE id NOT IN (SELECT id FROM landmarks)",
     ),
     merge={
         "clock": "INSERT INTO clock SELECT * FROM b.clock WHERE true "

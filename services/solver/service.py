@@ -17,18 +17,18 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from hdmap.geo.geodesy import enu_rotation
 from hdmap.geo.tiles import TileFrames, frame_map, quadkeys_of
-from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
+from hdmap.mapping import box_ranges
+from hdmap.mapping.estimator import LandmarkSums, Rays
 from hdmap.mapping.estimator.provisional import usable
 from hdmap.mapping.estimator.solve import preload
-from hdmap.mapping.facing import FacingConfig, to_wire
+from hdmap.mapping.facing import to_wire
 from hdmap.mapping.quiet import (
-    COMPACT_MIN_ROWS,
     QuietPasses,
     SweepPeriods,
     close_quiet,
@@ -36,7 +36,6 @@ from hdmap.mapping.quiet import (
     merge_rows,
     note_open,
 )
-from hdmap.runtime.config import ConfigError
 from hdmap.runtime.stage import StageService
 from schemas import (
     DROP,
@@ -53,6 +52,7 @@ from schemas import (
 from schemas.ids import hold_key, home_tile, pass_key
 from schemas.map import MapLandmarks
 from services.solver.checkpoint import fold_updates
+from services.solver.config import SolverConfig
 from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
@@ -70,92 +70,7 @@ class _Links:
     home: str
     obs: Observations
     weight: np.ndarray
-
-
-@dataclass(frozen=True)
-class SolverConfig:
-    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
-    provisional_passes: int = 2
-    """Below the estimator's ``min_clusters`` a landmark is still published, as a
-    'candidate', from this many passes on, if its information matrix is well-conditioned
-    (its covariance then carries the pass-bias prior below; 0 disables)."""
-    pass_bias_sigma_m: tuple[float, float, float] = (2.5, 2.5, 1.0)
-    """Prior standard deviation (E, N, U) of the position error one pass shares by all its
-    rays (GNSS bias): a candidate's covariance is at least this squared over its passes,
-    since the between-pass spread of so few passes cannot measure it."""
-    systematic_sigma_m: tuple[float, float, float] = (0.1, 0.1, 0.1)
-    """Standard deviation (E, N, U) of the error more passes do not average away, added to
-    the published covariance: the map floor (association mistakes, the pass weights' bias,
-    geometry every car repeats). Measure it for a deployment against surveyed signs with
-    ``hdmap calibrate-map`` (:mod:`hdmap.mapping.map_floor`); the fleet evaluation
-    measures its own on held-out seeds (``fleetsim/data/map_floor.json``). The default,
-    0.1 m, is what the fleet evaluation needed at 160 passes; at a few hundred passes a
-    landmark needs more (docs/estimator.md section 12)."""
-    pass_correlation: float = 0.0
-    """``kappa``: the share of a pass's error that every pass of a landmark has in common
-    (Kish's design effect, :func:`hdmap.mapping.map_floor.pass_correlation`); the
-    published covariance is the between-pass covariance times ``1 + kappa G`` (``G`` its
-    passes), before ``systematic_sigma_m`` and the shared floor are added. Measured
-    against surveyed signs by ``hdmap calibrate-map``; 0: none. ConfigError naming the
-    field if negative or not finite."""
-    shared_floor_m2: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    """ENU covariance (ee, en, eu, nn, nu, uu; m^2) of the GNSS error a landmark's passes
-    share, added to the published covariance in the landmark's local ENU: what more passes
-    do not average away. Measured from a truth-referenced error log of the fleet's
-    receivers by ``hdmap calibrate-gnss`` (:mod:`hdmap.mapping.gnss_floor`); 0 without
-    one. Must be positive semi-definite (ConfigError naming the field)."""
-    compact_min_rows: int = COMPACT_MIN_ROWS
-    """The sums drop the rows of retired and merged landmarks once this many (and
-    as many as live landmarks) have piled up, after a transaction's save
-    (:func:`hdmap.mapping.quiet.compact_rows`, counted ``sums_rows_dropped``): memory
-    follows the live map, not every landmark ever made. The map is the same to the bit
-    whatever the value."""
-    close_passes_after_s: float = 7200.0
-    """Close a pass (``LandmarkSums.close_passes``) once no ray of it has come for this long
-    (event time: the solver's clock, :meth:`SolverService.group_time`;
-    :mod:`hdmap.mapping.quiet`); 0 keeps passes open until evicted
-    (``max_open_passes`` per landmark). The estimate and covariance do not change (an open
-    pass enters the solve exactly as a closed one); the stored state shrinks about
-    threefold (BENCHMARKS.md "Scale"). Twice the matcher's ``pending_ttl_s``: a ray can be
-    linked long after its upload (it waits in the matcher's pending pool until a landmark is
-    initiated), and a ray of a pass already closed would start a new cluster, which changes
-    the estimate (closing a vehicle's passes as soon as it uploads another costs seed 3 of
-    the fleet evaluation precision, 1.000 -> 0.982). Passes close when the clock enters a
-    new ``sweep_every_s`` period, so at the same entries live and on a replay. The
-    bookkeeping is in memory: passes open at a restart count as quiet from the restored
-    clock on (:func:`hdmap.mapping.quiet.note_open`)."""
-    sweep_every_s: float = 60.0
-    """Quiet passes are closed when the solver's clock enters a new period of this length
-    (event time)."""
-    confirm_max_sigma_m: float = 2.0
-    """A landmark is published ``confirmed`` only while the larger horizontal standard
-    deviation of its published covariance is at most this (m; ``inf``: no limit); past it,
-    a ``candidate`` (published with its covariance all the same). A sign seen head-on down
-    a street, or from a second street, can pass the conditioning test with its distance
-    along the line of sight known to 5-30 m: four seeds of the fleet evaluation at 160
-    passes, 25 of the 30 confirmed landmarks paired with no sign had a larger sigma above
-    2 m, against 9 of the 584 paired ones with 50+ passes (with the real phone errors 56 of
-    65, and 11 of 576). docs/estimator.md section 7."""
-    facing_min_rays: int = FacingConfig.min_rays
-    """Rays a landmark needs before its facing is published (:mod:`hdmap.mapping.facing`)."""
-
-    def __post_init__(self) -> None:
-        if not self.confirm_max_sigma_m > 0:
-            raise ConfigError("solver.confirm_max_sigma_m: a positive number of metres")
-        if not (np.isfinite(self.pass_correlation) and self.pass_correlation >= 0):
-            raise ConfigError("solver.pass_correlation: a finite number >= 0")
-        if not all(np.isfinite(v) and v >= 0 for v in self.systematic_sigma_m):
-            raise ConfigError("solver.systematic_sigma_m: three finite numbers >= 0 (E, N, U)")
-        f = self.shared_floor_m2
-        if len(f) != 6 or not np.isfinite(f).all():
-            raise ConfigError("solver.shared_floor_m2: six finite numbers (ee en eu nn nu uu)")
-        if np.linalg.eigvalsh(self.shared_floor())[0] < -1e-12:
-            raise ConfigError("solver.shared_floor_m2: not positive semi-definite")
-
-    def shared_floor(self) -> np.ndarray:
-        """:attr:`shared_floor_m2` as a (3, 3) ENU matrix."""
-        ee, en, eu, nn, nu, uu = (float(v) for v in self.shared_floor_m2)
-        return np.array([[ee, en, eu], [en, nn, nu], [eu, nu, uu]])
+    lms: list[SolverLandmark]
 
 
 @dataclass(frozen=True)
@@ -270,9 +185,16 @@ class SolverService(StageService):
         parts, self._unsummed = self._unsummed, []
         if not parts:
             return
+        rays = self._rays(parts)
         self.sums.accumulate_parts(
-            [(p.rows, p.keys, r, p.holds) for p, r in zip(parts, self._rays(parts), strict=True)]
+            [(p.rows, p.keys, r, p.holds) for p, r in zip(parts, rays, strict=True)]
         )
+        panel = self.config.estimator.panel_rel_sigma
+        for p, r in zip(parts, rays, strict=True):
+            h, w = box_ranges.ray_terms(
+                r.origin, r.direction, r.range_m, r.sigma_range_m, r.sigma_pos_h, panel
+            )
+            self.state.note_ranges(p.lms, h, np.where(p.holds == 0, w, 0.0))
 
     def _rays(self, parts: list[_Links]) -> list[Rays]:
         """The parts' observations as rays in their home frames, converted once per home
@@ -386,7 +308,7 @@ class SolverService(StageService):
             obs = g.obs.take(sel)
             rows = np.array([lm.row for lm in mine], np.int64)
             weight = g.links.weight[sel].astype(float)
-            self._unsummed.append(_Links(rows, keys_[sel], holds[sel], home, obs, weight))
+            self._unsummed.append(_Links(rows, keys_[sel], holds[sel], home, obs, weight, mine))
             self.state.note_views(mine, obs.direction)
             lid, at = _latest(ids[sel], g.links.received_at[sel])
             for i, t in zip(lid.tolist(), at.tolist(), strict=True):
@@ -461,6 +383,7 @@ class SolverService(StageService):
                 rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
                 merge_rows(self._quiet, self.sums, keep, drop, rot, t)
                 keep.view, keep.view_n = keep.view + drop.view, keep.view_n + drop.view_n
+                keep.ranges = keep.ranges + box_ranges.in_frame(drop.ranges, rot, t)[0]
                 touched.add(keep.id)
                 src = self._source.pop(drop.id, None)
                 if src is not None:  # a merge in a later group than the links: none
@@ -493,6 +416,7 @@ class SolverService(StageService):
         sol_cov = sol_cov * design[:, None, None] + np.diag(
             np.square(self.config.systematic_sigma_m)
         )
+        sol_cov = self._panel_checked(lms, sol.x, sol_cov)
         for k in np.flatnonzero(~good & (n_obs == 0)):
             lm = lms[k]  # every ray taken out (a caught vehicle's): off the map until seen again
             if lm.tile:
@@ -537,6 +461,20 @@ class SolverService(StageService):
             upserts, removals, _Solved(lms, ok, lat, lon, h, cov, status, n_obs, n_clusters, now)
         )
         self.count("updates", int(ok.size))
+
+    def _panel_checked(self, lms: list[SolverLandmark], x: np.ndarray, cov: np.ndarray):
+        """``cov`` widened along the line of sight of the landmarks whose box ranges put
+        their panel elsewhere (``SolverConfig.range_check_k``; counted
+        ``range_discrepant``)."""
+        k = self.config.range_check_k
+        if k <= 0:
+            return cov
+        panel = self.config.estimator.panel_rel_sigma
+        sums = np.array([lm.ranges for lm in lms], float).reshape(-1, box_ranges.N_SUMS)
+        with np.errstate(invalid="ignore"):
+            z, g, s = box_ranges.panel_discrepancy(sums, np.nan_to_num(x), cov, panel)
+        self.count("range_discrepant", int((np.abs(np.nan_to_num(z)) > k).sum()))
+        return box_ranges.widened_along_sight(cov, z, g, s, k, panel)
 
     def _emit_updates(self, upserts: dict, removals: dict, sol: _Solved | None) -> None:
         """One update entry per tile with upserts (rows ``upserts[tile]`` of ``sol``'s

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hdmap.mapping import box_ranges
 from hdmap.mapping.facing import Facing, facing_from_sums, summed_views
 from hdmap.runtime.store import id_from_sql, id_to_sql
 
@@ -17,6 +18,7 @@ CREATE TABLE IF NOT EXISTS landmarks (
 CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS views (
     id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL, count INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS ranges (id INTEGER PRIMARY KEY, sums BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS existence (
     id INTEGER PRIMARY KEY, p REAL NOT NULL, state INTEGER NOT NULL, first_seen REAL NOT NULL,
     last_seen REAL NOT NULL);
@@ -37,6 +39,10 @@ class SolverLandmark:
     (:mod:`hdmap.mapping.facing`); ``views`` table (absent in an older database: zero)."""
     view_n: int = 0
     """Rays in ``view`` (a caught vehicle's rays taken out of the sums stay in it)."""
+    ranges: np.ndarray = field(default_factory=lambda: np.zeros(box_ranges.N_SUMS))
+    """Its rays' box-range sums in its home frame (:mod:`hdmap.mapping.box_ranges`), for
+    the check of its position against its panel (``SolverConfig.range_check_k``); rays of
+    a vehicle on probation are left out. ``ranges`` table (absent: zero, no check)."""
     existence: tuple[float, int, float, float] = (0.0, 0, 0.0, 0.0)
     """(probability, state, first seen, last seen) as the matcher last sent them
     (``AssocGroup.existence``); state 0: none sent yet (published as unknown)."""
@@ -64,6 +70,19 @@ class SolverState:
         for j, k in enumerate(first.tolist()):
             lm = lms[k]
             lm.view, lm.view_n = lm.view + view[j], lm.view_n + int(n[j])
+
+    def note_ranges(self, lms: list[SolverLandmark], h: np.ndarray, w: np.ndarray) -> None:
+        """Ray ``k``'s box-range terms (``h[k]``, weight ``w[k]``; 0: no range) onto
+        ``lms[k]``, summed per landmark first."""
+        ranged = np.flatnonzero(w > 0)
+        if not ranged.size:
+            return
+        ids = np.array([lms[k].id for k in ranged.tolist()], np.uint64)
+        _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+        sums = box_ranges.summed(inv, h[ranged], w[ranged])
+        for j, k in enumerate(first.tolist()):
+            lm = lms[int(ranged[k])]
+            lm.ranges = lm.ranges + sums[j]
 
     def facings(self, lms: list[SolverLandmark], n_passes: np.ndarray, min_rays: int) -> Facing:
         """The landmarks' facings, over their passes as independent looks."""
@@ -98,6 +117,7 @@ class SolverState:
         self._conn.executemany("DELETE FROM landmarks WHERE id=?", gone)
         self._conn.executemany("DELETE FROM views WHERE id=?", gone)
         self._conn.executemany("DELETE FROM existence WHERE id=?", gone)
+        self._conn.executemany("DELETE FROM ranges WHERE id=?", gone)
         self._deleted.clear()
         dirty = [self.landmarks[i] for i in sorted(self._dirty)]
         blobs = pack_rows(np.array([lm.row for lm in dirty], np.int64)) if dirty else []
@@ -112,6 +132,10 @@ class SolverState:
         self._conn.executemany(
             "INSERT OR REPLACE INTO views(id, e, n, count) VALUES (?,?,?,?)",
             [(id_to_sql(lm.id), *map(float, lm.view), lm.view_n) for lm in dirty if lm.view_n],
+        )
+        self._conn.executemany(
+            "INSERT OR REPLACE INTO ranges(id, sums) VALUES (?,?)",
+            [(id_to_sql(lm.id), lm.ranges.tobytes()) for lm in dirty if lm.ranges[4] > 0],
         )
         self._conn.executemany(
             "INSERT OR REPLACE INTO existence(id, p, state, first_seen, last_seen) "
@@ -138,6 +162,10 @@ class SolverState:
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
                 lm.view, lm.view_n = np.array([e, n], float), int(count)
+        for i, blob in self._conn.execute("SELECT id, sums FROM ranges"):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.ranges = np.frombuffer(blob, float).copy()
         for i, p, state, first, last in self._conn.execute(
             "SELECT id, p, state, first_seen, last_seen FROM existence"
         ):

@@ -1,0 +1,149 @@
+"""The solver's check of a landmark's position against its panel (``SolverConfig.
+range_check_k``, :func:`hdmap.mapping.box_ranges.panel_discrepancy`): the rays' box
+ranges at the estimate against the catalogue's nominal panel size.
+
+Under the catalogue's model (one panel, its size log-normal with 10 %, the estimate where
+its covariance says) ``z`` is standard normal: 400 simulated head-on approaches, seed 3,
+its variance inside the chi-square 99.9 % interval. A landmark whose ranges put its panel
+elsewhere is published with its covariance widened along the line of sight (a
+candidate), its estimate unchanged; the sums survive a restart and follow a merge."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from hdmap.mapping import box_ranges
+from hdmap.runtime.service import ServiceOptions
+from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks
+from services.solver.service import SolverConfig, SolverService
+from tests.support.services import (
+    CLS,
+    SIGN,
+    Sink,
+    assoc_entry,
+    matcher,
+    sign_rays,
+    tile_of,
+    updates,
+)
+
+PANEL = 0.10
+
+
+def approach(rng, eps: float, n: int = 12):
+    """One head-on pass at a panel at the origin (4 m off the lane), 60 -> 10 m, its size
+    ``exp(eps)`` times nominal: origins with 0.5 m white noise, boxes with 3 % noise."""
+    y = np.linspace(-60.0, -10.0, n)
+    a = np.stack([np.full(n, 4.0), y, np.zeros(n)], axis=1)
+    dist = np.linalg.norm(a, axis=1)
+    d = -a / dist[:, None]
+    r = dist * np.exp(-eps) * (1.0 + rng.normal(0.0, 0.03, n))
+    a_meas = a + np.c_[rng.normal(0.0, 0.5, (n, 2)), np.zeros(n)]
+    return a_meas, d, r, r * np.hypot(PANEL, 0.03)
+
+
+def test_z_is_standard_normal_for_panels_of_the_catalogues_spread():
+    rng = np.random.default_rng(3)
+    n = 400
+    sums = np.zeros((n, box_ranges.N_SUMS))
+    for k in range(n):
+        eps = rng.normal(0.0, PANEL)
+        for _ in range(5):  # passes
+            a, d, r, sr = approach(rng, eps)
+            h, w = box_ranges.ray_terms(a, d, r, sr, 0.5, PANEL)
+            sums[k] += box_ranges.summed(np.zeros(len(r), np.int64), h, w)[0]
+    cov = np.tile(np.eye(3) * 0.3**2, (n, 1, 1))
+    z, g, s = box_ranges.panel_discrepancy(sums, np.zeros((n, 3)), cov, PANEL)
+    lo, hi = stats.chi2.ppf([0.0005, 0.9995], n) / n
+    assert lo <= float(np.mean(z**2)) <= hi
+    assert abs(float(np.mean(z))) <= stats.norm.ppf(0.9995) / np.sqrt(n)
+    # g runs along the line of sight, about 1 / (typical range) long
+    assert np.all(g[:, 1] > 0) and np.all((1 / 60 < g[:, 1]) & (g[:, 1] < 1 / 10))
+    # the check changes none of them beyond k = 3 in more than the binomial share
+    flagged = int((np.abs(z) > 3).sum())
+    assert flagged <= stats.binom.ppf(0.999, n, 2 * stats.norm.sf(3.0))
+    widened = box_ranges.widened_along_sight(cov, z, g, s, 3.0, PANEL)
+    assert int((np.abs(widened - cov) > 0).any(axis=(1, 2)).sum()) == flagged
+
+
+def test_a_landmark_off_its_panel_along_the_line_of_sight_is_widened_there_only():
+    rng = np.random.default_rng(4)
+    a, d, r, sr = approach(rng, 0.0)
+    s = box_ranges.summed(
+        np.zeros(len(r), np.int64), *box_ranges.ray_terms(a, d, r, sr, 0.5, PANEL)
+    )
+    x = np.array([[0.0, 15.0, 0.0]])  # 15 m beyond the panel, along the road
+    cov = np.eye(3)[None] * 0.5**2
+    z, g, sc = box_ranges.panel_discrepancy(s, x, cov, PANEL)
+    assert z[0] > 3
+    c = box_ranges.widened_along_sight(cov, z, g, sc, 3.0, PANEL)[0]
+    lam, vec = np.linalg.eigh(c)
+    assert np.sqrt(lam[-1]) > 5.0  # metres: the panel's place is within reach now
+    u = g[0] / np.linalg.norm(g[0])  # the mean line of sight, about North
+    assert abs(u[1]) > 0.98 and abs(float(vec[:, -1] @ u)) > 1 - 1e-9
+    np.testing.assert_allclose(lam[:2], 0.25, rtol=1e-9)  # across it unchanged
+    # the widened covariance puts the discrepancy at one standard deviation
+    z1, _, _ = box_ranges.panel_discrepancy(s, x, c[None], PANEL)
+    np.testing.assert_allclose(z1, 1.0, rtol=1e-9)
+
+
+def _run(tmp: Path, cfg: SolverConfig, range_factor: float, passes: int = 10) -> SolverService:
+    """The sign of tests/support/services.py seen over ``passes`` passes whose box ranges
+    are ``range_factor`` times the cameras' distance to it."""
+    tile = tile_of(ServiceOptions().zoom)
+    m = matcher(tmp / "m")
+    frame = m.frames(tile)
+    lid = m.state.next_id(tile)
+    lat, lon, h = frame.to_geodetic(SIGN[None])
+    created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
+    svc = SolverService(ServiceOptions(data_dir=tmp / "s"), cfg)
+    svc.pubs = Sink()  # type: ignore[assignment]
+    rng = np.random.default_rng(5)
+    for p in range(passes):
+        obs = sign_rays(frame, p, rng)
+        dist = np.linalg.norm(SIGN - frame.from_geodetic(obs.lat, obs.lon, obs.h), axis=1)
+        obs = replace(
+            obs,
+            t=np.full(len(obs), 1.7e9 + 60.0 * p),
+            range_m=range_factor * dist,
+            sigma_range_m=range_factor * dist * np.hypot(PANEL, 0.03),
+        )
+        n = len(obs)
+        links = Links(
+            np.full(n, lid, np.uint64),
+            np.zeros(n, np.uint32),
+            np.full(n, p, np.uint64),
+            obs.t + 5.0,
+            np.ones(n, np.float32),
+        )
+        kw = {"created": created} if p == 0 else {}
+        svc._apply_in_transaction(
+            [assoc_entry(p + 1, tile, vehicles=["veh-a"], obs=obs, links=links, **kw)]
+        )
+    return svc
+
+
+def test_the_solver_widens_only_what_its_panel_rules_out(tmp_path: Path):
+    off = _run(tmp_path / "off", SolverConfig(range_check_k=0.0), 1.6)
+    on = _run(tmp_path / "on", SolverConfig(), 1.6)
+    right = _run(tmp_path / "right", SolverConfig(), 1.0)
+    a, b, c = (updates(s)[-1].landmarks for s in (off, on, right))
+    assert a.status[0] == STATUS_CONFIRMED and c.status[0] == STATUS_CONFIRMED
+    assert b.status[0] == STATUS_CANDIDATE  # its ranges put the panel 60 % farther
+    assert (b.lat[0], b.lon[0], b.h[0]) == (a.lat[0], a.lon[0], a.h[0])  # estimate unchanged
+    assert on.counters.get("range_discrepant", 0) >= 1
+    assert right.counters.get("range_discrepant", 0) == 0
+    # the sums are kept with the landmark and come back after a restart
+    before = {i: lm.ranges.copy() for i, lm in on.state.landmarks.items()}
+    assert all(r[4] > 0 for r in before.values())
+    for s in (off, on, right):
+        s.db.close()
+    again = SolverService(ServiceOptions(data_dir=tmp_path / "on" / "s"), SolverConfig())
+    assert {i: lm.ranges.tolist() for i, lm in again.state.landmarks.items()} == {
+        i: r.tolist() for i, r in before.items()
+    }
+    again.db.close()
