@@ -18,7 +18,7 @@ from scipy import stats
 
 from hdmap.mapping import box_ranges
 from hdmap.runtime.service import ServiceOptions
-from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks
+from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks, Observations
 from services.solver.service import SolverConfig, SolverService
 from tests.support.services import (
     CLS,
@@ -147,3 +147,48 @@ def test_the_solver_widens_only_what_its_panel_rules_out(tmp_path: Path):
         i: r.tolist() for i, r in before.items()
     }
     again.db.close()
+
+
+def test_the_box_range_sums_follow_a_merge(tmp_path: Path):
+    """Two landmarks of one sign, each with half the passes, merged: the kept one's sums
+    are those of one landmark given every ray from the start."""
+    tile = tile_of(ServiceOptions().zoom)
+    m = matcher(tmp_path / "m")
+    frame = m.frames(tile)
+    rng = np.random.default_rng(6)
+    obs = []
+    for p in range(8):
+        o = sign_rays(frame, p, rng)
+        dist = np.linalg.norm(SIGN - frame.from_geodetic(o.lat, o.lon, o.h), axis=1)
+        obs.append(replace(o, range_m=dist, sigma_range_m=dist * np.hypot(PANEL, 0.03)))
+    ida, idb = m.state.next_id(tile), m.state.next_id(tile)
+    lat, lon, h = frame.to_geodetic(SIGN[None])
+    two = NewLandmarks(
+        np.array([ida, idb], np.uint64), np.full(2, CLS, np.uint16), np.r_[lat, lat],
+        np.r_[lon, lon], np.r_[h, h],
+    )  # fmt: skip
+
+    def entry(seq: int, ids: list[int], created: NewLandmarks):
+        o = Observations.concat(obs)
+        n = len(o)
+        links = Links(
+            np.repeat(np.array(ids, np.uint64), n // len(ids)),
+            np.zeros(n, np.uint32),
+            np.repeat(np.arange(8, dtype=np.uint64), n // 8),
+            np.full(n, 1.7e9),
+            np.ones(n, np.float32),
+        )
+        return assoc_entry(seq, tile, vehicles=["veh-1"], obs=o, links=links, created=created)
+
+    merged = SolverService(ServiceOptions(data_dir=tmp_path / "a"), SolverConfig())
+    merged.pubs = Sink()  # type: ignore[assignment]
+    merged._apply_in_transaction([entry(1, [ida, idb], two)])
+    merged._apply_in_transaction([assoc_entry(2, tile, retired=[idb], merged_into=[ida])])
+    one = SolverService(ServiceOptions(data_dir=tmp_path / "b"), SolverConfig())
+    one.pubs = Sink()  # type: ignore[assignment]
+    one._apply_in_transaction([entry(1, [ida], two.take(np.array([0])))])
+    got, want = merged.state.landmarks[ida].ranges, one.state.landmarks[ida].ranges
+    assert want[4] > 0
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    merged.db.close()
+    one.db.close()
