@@ -22,6 +22,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from landmark_pairs import successors  # a sibling module: scripts run from their directory
 
 from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
 from fleetsim.truth import match_landmarks
@@ -31,20 +32,6 @@ from schemas import STATUS_CONFIRMED
 from schemas.logs import AssocGroup
 
 PANEL_REL_SIGMA = 0.10
-
-
-def successors(groups: list[AssocGroup]) -> dict[int, int]:
-    succ: dict[int, int] = {}
-    for g in groups:
-        n = g.merged_into.size
-        succ.update(zip(g.retired[:n].tolist(), g.merged_into.tolist(), strict=True))
-    final = {}
-    for lid in succ:
-        j, hops = lid, 0
-        while j in succ and hops < 10_000:
-            j, hops = succ[j], hops + 1
-        final[lid] = j
-    return final
 
 
 def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:

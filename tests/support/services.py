@@ -6,7 +6,10 @@ per-pass GNSS bias (1 m per axis) and 0.01 rad angular noise, 10 rays each.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -83,3 +86,42 @@ def updates(svc: SolverService) -> list[LandmarkUpdates]:
     out = [LandmarkUpdates.from_bytes(LogEntry.from_bytes(p).body) for _k, p in svc.pubs.sent]
     svc.pubs.sent.clear()
     return out
+
+
+def one_sign_solver(
+    tmp: Path,
+    config: SolverConfig,
+    passes: int,
+    start: np.ndarray = SIGN,
+    edit: Callable[[Observations, Any], Observations] | None = None,
+) -> SolverService:
+    """A solver on ``tmp / "s"`` given ``passes`` passes of :func:`sign_rays` (one entry
+    each, a minute apart, all linked to one landmark created at ``start``; ``edit(obs,
+    frame)`` changes a pass's observations first)."""
+    tile = tile_of(ServiceOptions().zoom)
+    m = matcher(tmp / "m")  # for ids and frames only
+    frame = m.frames(tile)
+    lid = m.state.next_id(tile)
+    lat, lon, h = frame.to_geodetic(np.asarray(start, float)[None])
+    created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
+    svc = solver(tmp / "s", config)
+    rng = np.random.default_rng(5)
+    for p in range(passes):
+        obs = sign_rays(frame, p, rng)
+        obs = replace(obs, t=np.full(len(obs), 1.7e9 + 60.0 * p))
+        if edit is not None:
+            obs = edit(obs, frame)
+        n = len(obs)
+        links = Links(
+            np.full(n, lid, np.uint64),
+            np.zeros(n, np.uint32),
+            np.full(n, p, np.uint64),
+            obs.t + 5.0,
+            np.ones(n, np.float32),
+        )
+        kw = {"created": created} if p == 0 else {}
+        svc._apply_in_transaction(
+            [assoc_entry(p + 1, tile, vehicles=["veh-a"], obs=obs, links=links, **kw)]
+        )
+    m.db.close()
+    return svc

@@ -26,6 +26,7 @@ from tests.support.services import (
     Sink,
     assoc_entry,
     matcher,
+    one_sign_solver,
     sign_rays,
     tile_of,
     updates,
@@ -94,37 +95,13 @@ def test_a_landmark_off_its_panel_along_the_line_of_sight_is_widened_there_only(
 def _run(tmp: Path, cfg: SolverConfig, range_factor: float, passes: int = 10) -> SolverService:
     """The sign of tests/support/services.py seen over ``passes`` passes whose box ranges
     are ``range_factor`` times the cameras' distance to it."""
-    tile = tile_of(ServiceOptions().zoom)
-    m = matcher(tmp / "m")
-    frame = m.frames(tile)
-    lid = m.state.next_id(tile)
-    lat, lon, h = frame.to_geodetic(SIGN[None])
-    created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
-    svc = SolverService(ServiceOptions(data_dir=tmp / "s"), cfg)
-    svc.pubs = Sink()  # type: ignore[assignment]
-    rng = np.random.default_rng(5)
-    for p in range(passes):
-        obs = sign_rays(frame, p, rng)
+
+    def ranged(obs, frame):
         dist = np.linalg.norm(SIGN - frame.from_geodetic(obs.lat, obs.lon, obs.h), axis=1)
-        obs = replace(
-            obs,
-            t=np.full(len(obs), 1.7e9 + 60.0 * p),
-            range_m=range_factor * dist,
-            sigma_range_m=range_factor * dist * np.hypot(PANEL, 0.03),
-        )
-        n = len(obs)
-        links = Links(
-            np.full(n, lid, np.uint64),
-            np.zeros(n, np.uint32),
-            np.full(n, p, np.uint64),
-            obs.t + 5.0,
-            np.ones(n, np.float32),
-        )
-        kw = {"created": created} if p == 0 else {}
-        svc._apply_in_transaction(
-            [assoc_entry(p + 1, tile, vehicles=["veh-a"], obs=obs, links=links, **kw)]
-        )
-    return svc
+        rel = np.hypot(PANEL, 0.03)
+        return replace(obs, range_m=range_factor * dist, sigma_range_m=range_factor * dist * rel)
+
+    return one_sign_solver(tmp, cfg, passes, edit=ranged)
 
 
 def test_the_solver_widens_only_what_its_panel_rules_out(tmp_path: Path):

@@ -13,17 +13,11 @@ import numpy as np
 import pytest
 
 from hdmap.runtime.config import ConfigError, from_mapping
-from hdmap.runtime.service import ServiceOptions
-from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks
-from services.solver.service import SolverConfig, SolverService
+from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED
+from services.solver.service import SolverConfig
 from tests.support.services import (
-    CLS,
     SIGN,
-    Sink,
-    assoc_entry,
-    matcher,
-    sign_rays,
-    tile_of,
+    one_sign_solver,
     updates,
 )
 
@@ -32,31 +26,8 @@ FLOOR = (0.09, -0.25, 0.0, 0.70, 0.0, 0.0)
 
 
 def published(tmp: Path, cfg: SolverConfig, passes: int = 8):
-    tile = tile_of(ServiceOptions().zoom)
-    m = matcher(tmp / "m")
-    frame = m.frames(tile)
-    lid = m.state.next_id(tile)
-    lat, lon, h = frame.to_geodetic((SIGN + np.array([0.4, -0.3, 0.0]))[None])
-    created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
-    svc = SolverService(ServiceOptions(data_dir=tmp / "s"), cfg)
-    svc.pubs = Sink()  # type: ignore[assignment]
-    rng = np.random.default_rng(5)
-    for p in range(passes):
-        obs = sign_rays(frame, p, rng)
-        obs = replace(obs, t=np.full(len(obs), 1.7e9 + 60.0 * p))
-        n = len(obs)
-        links = Links(
-            np.full(n, lid, np.uint64),
-            np.zeros(n, np.uint32),
-            np.full(n, p, np.uint64),
-            obs.t + 5.0,
-            np.ones(n, np.float32),
-        )
-        kw = {"created": created} if p == 0 else {}
-        svc._apply_in_transaction(
-            [assoc_entry(p + 1, tile, vehicles=["veh-a"], obs=obs, links=links, **kw)]
-        )
-    return updates(svc)[-1].landmarks
+    start = SIGN + np.array([0.4, -0.3, 0.0])
+    return updates(one_sign_solver(tmp, cfg, passes, start))[-1].landmarks
 
 
 def test_the_floor_is_added_to_the_published_covariance_and_nothing_else(tmp_path: Path):
