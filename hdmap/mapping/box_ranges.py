@@ -176,3 +176,47 @@ def widened_along_sight(
         add = (zb**2 - 1.0) * spread * sb**2 / g2**2
         c[bad] += add[:, None, None] * gb[:, :, None] * gb[:, None, :]
     return c
+
+
+def panel_update(
+    sums: ArrayLike, x: ArrayLike, cov: ArrayLike, panel_rel_sigma: float, iterations: int = 3
+) -> tuple[Array, Array, Array]:
+    """(x', cov', z): the estimates ``x`` (k, 3) and covariances ``cov`` (k, 3, 3) updated
+    with the catalogue's panel size as one measurement per landmark, ``ln s(x) = 0 +-
+    panel_rel_sigma`` (its rays' mean relative range at the panel is its size over the
+    nominal one): an iterated Kalman update along ``g`` (:func:`panel_discrepancy`), so
+    the panel's size error counts once for all of a landmark's rays, not once per ray. A
+    landmark located well by its bearings hardly moves (gain ``g^T C g / s^2`` over that
+    plus ``panel_rel_sigma^2``); one whose distance along the line of sight they fix
+    poorly takes it from the ranges. ``z`` is :func:`panel_discrepancy`'s at ``x``.
+    Unchanged where no ray has a range or ``s(x) <= 0``.
+
+    >>> a = np.array([[0.0, -40.0, 0.0], [0.0, -30.0, 0.0], [0.0, -20.0, 0.0]])
+    >>> d = np.tile([0.0, 1.0, 0.0], (3, 1))  # looking North at a nominal panel at 0
+    >>> r = np.array([40.0, 30.0, 20.0])
+    >>> sums = summed(np.zeros(3, np.int64), *ray_terms(a, d, r, r * 0.1, 0.5, 0.1))
+    >>> c = np.diag([0.1, 25.0, 0.1])[None]  # 5 m along the line of sight
+    >>> x, c2, z = panel_update(sums, np.array([[0.0, 12.0, 0.0]]), c, 0.1)
+    >>> x.round(2).tolist(), round(float(np.sqrt(c2[0, 1, 1])), 2), z.round(2).tolist()
+    ([[0.0, 3.54, 0.0]], 2.77, [2.17])
+    """
+    x0 = np.asarray(x, float).reshape(-1, 3)
+    c0 = np.asarray(cov, float).reshape(-1, 3, 3)
+    z, g, s = panel_discrepancy(sums, x0, c0, panel_rel_sigma)
+    ok = np.flatnonzero(np.isfinite(s) & (s > 0) & np.isfinite(x0).all(axis=1))
+    xo, co = x0.copy(), c0.copy()
+    if not ok.size:
+        return xo, co, z
+    sm = np.asarray(sums, float).reshape(-1, N_SUMS)[ok]
+    gk, xb, cb = g[ok], x0[ok], c0[ok]
+    xi = xb.copy()
+    for _ in range(max(1, iterations)):
+        si = np.maximum(mean_relative_range(sm, xi), 1e-6)
+        hk = gk / si[:, None]  # d ln s / dx at xi
+        ch = np.einsum("kij,kj->ki", cb, hk)
+        gain = ch / (np.einsum("ki,ki->k", hk, ch) + panel_rel_sigma**2)[:, None]
+        innov = -np.log(si) - np.einsum("ki,ki->k", hk, xb - xi)
+        xi = xb + gain * innov[:, None]
+    co[ok] = cb - gain[:, :, None] * ch[:, None, :]
+    xo[ok] = xi
+    return xo, co, z

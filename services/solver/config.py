@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -76,18 +77,25 @@ class SolverConfig:
     passes, 25 of the 30 confirmed landmarks paired with no sign had a larger sigma above
     2 m, against 9 of the 584 paired ones with 50+ passes (with the real phone errors 56 of
     65, and 11 of 576). docs/estimator.md section 7."""
+    panel_prior: Literal["off", "widen", "fuse"] = "widen"
+    """What the catalogue's panel sizes do to a published landmark
+    (:mod:`hdmap.mapping.box_ranges`; its rays' box ranges at its estimate say how large
+    its panel is, and the catalogue says within ``estimator.panel_rel_sigma``): ``widen``
+    (below); ``fuse``: the size is one measurement per landmark, an iterated Kalman
+    update of the estimate and covariance along the line of sight
+    (:func:`~hdmap.mapping.box_ranges.panel_update`); ``off``: neither."""
     range_check_k: float = 3.0
-    """A landmark whose rays' box ranges put their panel more than this many standard
-    deviations from where its estimate is (:func:`hdmap.mapping.box_ranges.
-    panel_discrepancy`: the rays' mean relative range at the estimate against the
-    catalogue's nominal panel, with its size spread ``estimator.panel_rel_sigma`` and the
-    estimate's own covariance along the line of sight) gets its covariance widened along
-    the line of sight until the two agree within one (so it stays a candidate past
-    ``confirm_max_sigma_m``); 0: no check. Bearings from one street fix a sign's distance
-    poorly and the errors a street's passes share do not average out, so such a landmark
-    can sit 6-19 m along its line of sight with a sigma under 2 m; a panel 3 standard
-    deviations off its class's size is one in 370. Rays without a box range do not take
-    part (docs/estimator.md section 7)."""
+    """With ``panel_prior = "widen"``: a landmark whose rays' box ranges put their panel more than
+    this many standard deviations from where its estimate is
+    (:func:`hdmap.mapping.box_ranges.panel_discrepancy`: the rays' mean relative range at the
+    estimate against the catalogue's nominal panel, with its size spread
+    ``estimator.panel_rel_sigma`` and the estimate's own covariance along the line of sight)
+    gets its covariance widened along the line of sight until the two agree within one (so it
+    stays a candidate past ``confirm_max_sigma_m``); 0: no check. Bearings from one street fix a
+    sign's distance poorly and the errors a street's passes share do not average out, so such a
+    landmark can sit 6-19 m along its line of sight with a sigma under 2 m; a panel 3 standard
+    deviations off its class's size is one in 370. Rays without a box range do not take part
+    (docs/estimator.md section 7)."""
     facing_min_rays: int = FacingConfig.min_rays
     """Rays a landmark needs before its facing is published (:mod:`hdmap.mapping.facing`)."""
 

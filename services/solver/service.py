@@ -416,7 +416,7 @@ class SolverService(StageService):
         sol_cov = sol_cov * design[:, None, None] + np.diag(
             np.square(self.config.systematic_sigma_m)
         )
-        sol_cov = self._panel_checked(lms, sol.x, sol_cov)
+        sol_x, sol_cov = self._panel_checked(lms, sol.x, sol_cov)
         for k in np.flatnonzero(~good & (n_obs == 0)):
             lm = lms[k]  # every ray taken out (a caught vehicle's): off the map until seen again
             if lm.tile:
@@ -440,7 +440,7 @@ class SolverService(StageService):
         for home in np.unique(homes).tolist():  # one geodetic conversion per home frame
             sel = np.flatnonzero(homes == home)
             frame = self.frames(home)
-            lat[sel], lon[sel], h[sel] = frame.to_geodetic(sol.x[ok[sel]])
+            lat[sel], lon[sel], h[sel] = frame.to_geodetic(sol_x[ok[sel]])
             r = enu_rotation(lat[sel], lon[sel]) @ frame.rotation.T
             cov[sel] = r @ sol_cov[ok[sel]] @ np.swapaxes(r, -1, -2) + floor
         tiles = quadkeys_of(lat, lon, self.opts.zoom)
@@ -462,19 +462,25 @@ class SolverService(StageService):
         )
         self.count("updates", int(ok.size))
 
-    def _panel_checked(self, lms: list[SolverLandmark], x: np.ndarray, cov: np.ndarray):
-        """``cov`` widened along the line of sight of the landmarks whose box ranges put
-        their panel elsewhere (``SolverConfig.range_check_k``; counted
-        ``range_discrepant``)."""
-        k = self.config.range_check_k
-        if k <= 0:
-            return cov
+    def _panel_checked(
+        self, lms: list[SolverLandmark], x: np.ndarray, cov: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The estimates and covariances with the panel prior
+        (``SolverConfig.panel_prior``; landmarks whose box ranges put their panel more
+        than ``range_check_k`` sigmas off counted ``range_discrepant``)."""
+        mode, k = self.config.panel_prior, self.config.range_check_k
+        if mode == "off" or (mode == "widen" and k <= 0):
+            return x, cov
         panel = self.config.estimator.panel_rel_sigma
         sums = np.array([lm.ranges for lm in lms], float).reshape(-1, box_ranges.N_SUMS)
         with np.errstate(invalid="ignore"):
-            z, g, s = box_ranges.panel_discrepancy(sums, np.nan_to_num(x), cov, panel)
+            if mode == "fuse":
+                x, cov, z = box_ranges.panel_update(sums, x, cov, panel)
+            else:
+                z, g, s = box_ranges.panel_discrepancy(sums, np.nan_to_num(x), cov, panel)
+                cov = box_ranges.widened_along_sight(cov, z, g, s, k, panel)
         self.count("range_discrepant", int((np.abs(np.nan_to_num(z)) > k).sum()))
-        return box_ranges.widened_along_sight(cov, z, g, s, k, panel)
+        return x, cov
 
     def _emit_updates(self, upserts: dict, removals: dict, sol: _Solved | None) -> None:
         """One update entry per tile with upserts (rows ``upserts[tile]`` of ``sol``'s

@@ -105,7 +105,7 @@ def _run(tmp: Path, cfg: SolverConfig, range_factor: float, passes: int = 10) ->
 
 
 def test_the_solver_widens_only_what_its_panel_rules_out(tmp_path: Path):
-    off = _run(tmp_path / "off", SolverConfig(range_check_k=0.0), 1.6)
+    off = _run(tmp_path / "off", SolverConfig(panel_prior="off"), 1.6)
     on = _run(tmp_path / "on", SolverConfig(), 1.6)
     right = _run(tmp_path / "right", SolverConfig(), 1.0)
     a, b, c = (updates(s)[-1].landmarks for s in (off, on, right))
