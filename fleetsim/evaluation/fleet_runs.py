@@ -27,8 +27,12 @@ from fleetsim.evaluation.results import write_json, write_seed_summary
 from hdmap.ops.progress import Progress
 from hdmap.runtime.orphan import PARENT_ENV
 
-SEED_RUN_TIMEOUT_S = 1800.0
-"""A seed's run that has not finished after this is stopped (and the job fails)."""
+SEED_STALL_TIMEOUT_S = 1800.0
+"""A seed's run whose log has not grown for this long is stopped (and the job fails)."""
+SEED_RUN_S_PER_PASS = 10.0
+"""A seed's run that has not finished after this many seconds per pass is stopped: a
+fixed limit (30 minutes) stopped 1,200-pass runs that two jobs on a busy 2-core machine
+made take longer, with nothing wrong (at least ``SEED_STALL_TIMEOUT_S``)."""
 
 
 class SeedRunError(RuntimeError):
@@ -117,6 +121,17 @@ def run_fleet_job(opts: FleetRunOptions) -> dict:
     return summary
 
 
+def _check_alive(seed: int, log: Path, t0: float, limit: float) -> None:
+    """Raise :class:`SeedRunError` if the run started at ``t0`` (monotonic) is past
+    ``limit`` seconds or its ``log`` has not grown for ``SEED_STALL_TIMEOUT_S``."""
+    now = time.monotonic()
+    if now - t0 > limit:
+        raise SeedRunError(f"seed {seed}: no result after {limit:.0f} s")
+    quiet = time.time() - log.stat().st_mtime
+    if quiet > SEED_STALL_TIMEOUT_S and now - t0 > SEED_STALL_TIMEOUT_S:
+        raise SeedRunError(f"seed {seed}: its log {log} has not grown for {quiet:.0f} s")
+
+
 def run_seeds_apart(opts: FleetRunOptions, out: Path) -> dict[int, dict]:
     """Each seed as its own ``hdmap eval fleet`` process, at most ``opts.jobs`` at once,
     its stderr in ``out/seed-<s>.log``; their summary rows. A failed or overdue run stops
@@ -126,6 +141,7 @@ def run_seeds_apart(opts: FleetRunOptions, out: Path) -> dict[int, dict]:
     extra = [word for flag in opts.run_flags() for word in flag.split()]
     extra += [] if opts.progress else ["--no-progress"]
     todo = list(opts.seeds)
+    limit = max(SEED_STALL_TIMEOUT_S, SEED_RUN_S_PER_PASS * (opts.passes or FleetEvalConfig.passes))
     running: dict[int, tuple[subprocess.Popen, IO[bytes], float]] = {}
     rows: dict[int, dict] = {}
     bar = Progress(len(todo), "seeds", enabled=opts.progress)
@@ -142,8 +158,7 @@ def run_seeds_apart(opts: FleetRunOptions, out: Path) -> dict[int, dict]:
             for seed, (proc, log, t0) in list(running.items()):
                 rc = proc.poll()
                 if rc is None:
-                    if time.monotonic() - t0 > SEED_RUN_TIMEOUT_S:
-                        raise SeedRunError(f"seed {seed}: no result after {SEED_RUN_TIMEOUT_S} s")
+                    _check_alive(seed, out / f"seed-{seed}.log", t0, limit)
                     continue
                 del running[seed]
                 log.close()
