@@ -206,6 +206,8 @@ class Pairs:
     """(k, 2) the rays' measured azimuth and elevation."""
     scale: Array | None = None
     """(k,) the landmark's panel scale per pair (NaN: unknown), or None."""
+    panel_rel_sigma: float = DEFAULT_SIZE_REL_SIGMA
+    """The catalogue's panel spread in the rays' range sigmas, taken out with ``scale``."""
 
     @staticmethod
     def of(rays: LocalRays, ri: IntArray, x: Array, cov: Array) -> Pairs:
@@ -260,7 +262,7 @@ def pair_stat(
             sc = p.scale[kp]
             known = has_r & np.isfinite(sc) & (sc > 0)
             _, _, rel_w2 = white_rel_var(
-                r_est, rays.sigma_range_m[rk], DEFAULT_SIZE_REL_SIGMA, REL_FLOOR
+                r_est, rays.sigma_range_m[rk], p.panel_rel_sigma, REL_FLOOR
             )
             r_cost = np.where(known, r_est * np.where(known, sc, 1.0), r_est)
             s_sharp = np.sqrt(r_cost**2 * (rel_w2 + cfg.scale_rel_sigma**2) + along**2)

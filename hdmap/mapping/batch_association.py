@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from hdmap.geo.signs import DEFAULT_SIZE_REL_SIGMA
 from hdmap.mapping.association import (
     Association,
     GateConfig,
@@ -107,7 +108,7 @@ def _class_pairs(kr: IntArray, kl: IntArray) -> tuple[IntArray, IntArray]:
     return ri, order[np.arange(ri.size) + start]
 
 
-def _gather(units: list[UnitInput], cfg: GateConfig) -> _Batch:
+def _gather(units: list[UnitInput], cfg: GateConfig, panel_rel_sigma: float) -> _Batch:
     """The units as one batch (see :class:`_Batch`)."""
     nr = np.array([len(u.rays) for u in units], np.int64)
     nl = np.array([u.x.shape[0] for u in units], np.int64)
@@ -145,7 +146,7 @@ def _gather(units: list[UnitInput], cfg: GateConfig) -> _Batch:
                 for u, k in zip(units, nl.tolist(), strict=True)
             ]
         )
-        pairs = replace(pairs, scale=scale[li])
+        pairs = replace(pairs, scale=scale[li], panel_rel_sigma=panel_rel_sigma)
     return _Batch(rays, unit, ray0, lm0, x, pairs, li, unit[ri], track_unit, n)
 
 
@@ -339,13 +340,17 @@ def _alternative_seeds(
     return su[keep], slots[keep], longest[su[keep]]
 
 
-def associate_units(units: list[UnitInput], cfg: GateConfig) -> list[Association]:
+def associate_units(
+    units: list[UnitInput], cfg: GateConfig, panel_rel_sigma: float = DEFAULT_SIZE_REL_SIGMA
+) -> list[Association]:
     """Associate each unit's rays with its candidate landmarks (see the module); a pair
     whose ray is seen from a direction its landmark's facing does not allow
-    (:func:`hdmap.mapping.facing.ray_compatible`) is no candidate."""
+    (:func:`hdmap.mapping.facing.ray_compatible`) is no candidate. ``panel_rel_sigma``:
+    the catalogue's panel spread the rays' range sigmas include (taken out where a
+    landmark's own panel scale is known: ``EstimatorConfig.panel_rel_sigma``)."""
     if not units:
         return []
-    b = _gather(units, cfg)
+    b = _gather(units, cfg, panel_rel_sigma)
     bias_h, bias_v = cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m
     wide_cost = pair_stat(b.rays, b.pairs, origin_cov(b.rays, bias_h, bias_v), cfg, None)[0]
     link_gate = cfg.chi2_gate * cfg.track_link_factor

@@ -171,7 +171,9 @@ def associate_prepared(m: Matching, units: list[Prepared]) -> list[Checked | Non
     computed together (:func:`hdmap.mapping.batch_association.associate_units`,
     :func:`group_checks`: each as alone)."""
     todo = [(u.rays, u.input) for u in units if u.input is not None]
-    results = associate_units([i for _r, i in todo], m.config.gate)
+    results = associate_units(
+        [i for _r, i in todo], m.config.gate, m.config.estimator.panel_rel_sigma
+    )
     checks = group_checks(
         m, [(rays, r, i.x, i.cov) for (rays, i), r in zip(todo, results, strict=True)]
     )

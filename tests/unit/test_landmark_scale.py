@@ -83,3 +83,16 @@ def test_the_gate_refuses_a_range_its_scale_rules_out() -> None:
         unit = UnitInput(ray, x, cov, cls, None, np.array([1.0]))
         got = associate_units([unit], replace(CFG, landmark_scale=mode, chi2_gate=1e6))
         assert got[0].landmark.tolist() == want, mode
+
+
+def test_the_spread_taken_out_is_the_configured_one() -> None:
+    """The rays' range sigmas hold the catalogue's spread; what is left with the scale
+    known is the box's own noise. Told the spread is 5 % (not the 10 % they hold), the
+    gate leaves the ray sigma^2 - 5^2 % of white noise (8.7 %) and admits the 20 % ray
+    that the default's 3 % refuses."""
+    x, cov, cls = X[1:], COV[1:], CLS[1:]
+    ray = rays_at(np.array([24.0]), 1.2)
+    unit = UnitInput(ray, x, cov, cls, None, np.array([1.0]))
+    gate = replace(CFG, landmark_scale="both", chi2_gate=1e6)
+    assert associate_units([unit], gate)[0].landmark.tolist() == [-1]
+    assert associate_units([unit], gate, 0.05)[0].landmark.tolist() == [0]
