@@ -57,6 +57,9 @@ from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
 
+_RANGE_FIELDS = ("origin", "direction", "range_m", "sigma_range_m", "sigma_pos_h")
+"""The rays' columns :func:`hdmap.mapping.box_ranges.ray_terms` takes."""
+
 
 @dataclass(frozen=True)
 class _Links:
@@ -189,12 +192,11 @@ class SolverService(StageService):
         self.sums.accumulate_parts(
             [(p.rows, p.keys, r, p.holds) for p, r in zip(parts, rays, strict=True)]
         )
-        panel = self.config.estimator.panel_rel_sigma
-        for p, r in zip(parts, rays, strict=True):
-            h, w = box_ranges.ray_terms(
-                r.origin, r.direction, r.range_m, r.sigma_range_m, r.sigma_pos_h, panel
-            )
-            self.state.note_ranges(p.lms, h, np.where(p.holds == 0, w, 0.0))
+        # box-range terms of all the parts' rays in one call (each part's in its home frame)
+        cat = {k: np.concatenate([getattr(r, k) for r in rays]) for k in _RANGE_FIELDS}
+        h, w = box_ranges.ray_terms(**cat, panel_rel_sigma=self.config.estimator.panel_rel_sigma)
+        held = np.concatenate([p.holds for p in parts]) != 0
+        self.state.note_ranges([lm for p in parts for lm in p.lms], h, np.where(held, 0.0, w))
 
     def _rays(self, parts: list[_Links]) -> list[Rays]:
         """The parts' observations as rays in their home frames, converted once per home
