@@ -96,12 +96,30 @@ class SolverConfig:
     landmark can sit 6-19 m along its line of sight with a sigma under 2 m; a panel 3 standard
     deviations off its class's size is one in 370. Rays without a box range do not take part
     (docs/estimator.md section 7)."""
+    loom_check_k: float = 3.0
+    """A landmark whose rays' looming (how their boxes grow as the cars drive up;
+    :func:`hdmap.mapping.looming.discrepancy`, free of the panel's size) puts its panel more
+    than this many standard deviations along the line of sight from its estimate gets its
+    covariance widened along the line of sight until the two agree within one (so it stays
+    a candidate past ``confirm_max_sigma_m``); 0: no check. The standard deviation is the
+    rays' white part, what the passes' shared position errors (``loom_pass_sigma_m``) do to
+    the slope, and the estimate's own. Catches a
+    sign seen from one street whose bearings put it 5-17 m along the street with a sigma
+    under 2 m (the phones' street-level errors), which the panel's size alone cannot rule
+    out (docs/estimator.md section 7)."""
+    loom_pass_sigma_m: float = 2.5
+    """The passes' shared position error along the line of sight the looming check assumes
+    (per pass; the estimator's ``pass_sigma_m``)."""
     facing_min_rays: int = FacingConfig.min_rays
     """Rays a landmark needs before its facing is published (:mod:`hdmap.mapping.facing`)."""
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.range_check_k) and self.range_check_k >= 0):
             raise ConfigError("solver.range_check_k: a finite number >= 0 (0: no check)")
+        if not (np.isfinite(self.loom_check_k) and self.loom_check_k >= 0):
+            raise ConfigError("solver.loom_check_k: a finite number >= 0 (0: no check)")
+        if not (np.isfinite(self.loom_pass_sigma_m) and self.loom_pass_sigma_m >= 0):
+            raise ConfigError("solver.loom_pass_sigma_m: a finite number of metres >= 0")
         if not self.confirm_max_sigma_m > 0:
             raise ConfigError("solver.confirm_max_sigma_m: a positive number of metres")
         if not (np.isfinite(self.pass_correlation) and self.pass_correlation >= 0):

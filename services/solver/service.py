@@ -23,7 +23,7 @@ import numpy as np
 
 from hdmap.geo.geodesy import enu_rotation
 from hdmap.geo.tiles import TileFrames, frame_map, quadkeys_of
-from hdmap.mapping import box_ranges
+from hdmap.mapping import box_ranges, looming
 from hdmap.mapping.estimator import LandmarkSums, Rays
 from hdmap.mapping.estimator.provisional import usable
 from hdmap.mapping.estimator.solve import preload
@@ -53,7 +53,7 @@ from schemas.ids import hold_key, home_tile, pass_key
 from schemas.map import MapLandmarks
 from services.solver.checkpoint import fold_updates
 from services.solver.config import SolverConfig
-from services.solver.state import SolverLandmark, SolverState
+from services.solver.state import RANGE_SUMS, SolverLandmark, SolverState, ranges_in_frame
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +196,20 @@ class SolverService(StageService):
         cat = {k: np.concatenate([getattr(r, k) for r in rays]) for k in _RANGE_FIELDS}
         h, w = box_ranges.ray_terms(**cat, panel_rel_sigma=self.config.estimator.panel_rel_sigma)
         held = np.concatenate([p.holds for p in parts]) != 0
-        self.state.note_ranges([lm for p in parts for lm in p.lms], h, np.where(held, 0.0, w))
+        # a pass's rays in one part (one group's links) are one piece of it for the looming
+        _, piece = np.unique(
+            np.concatenate(
+                [
+                    np.stack([np.full(len(p.keys), k), p.keys.astype(np.int64)], 1)
+                    for k, p in enumerate(parts)
+                ]
+            ),
+            axis=0,
+            return_inverse=True,
+        )
+        self.state.note_ranges(
+            [lm for p in parts for lm in p.lms], h, np.where(held, 0.0, w), piece.reshape(-1)
+        )
 
     def _rays(self, parts: list[_Links]) -> list[Rays]:
         """The parts' observations as rays in their home frames, converted once per home
@@ -385,7 +398,7 @@ class SolverService(StageService):
                 rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
                 merge_rows(self._quiet, self.sums, keep, drop, rot, t)
                 keep.view, keep.view_n = keep.view + drop.view, keep.view_n + drop.view_n
-                keep.ranges = keep.ranges + box_ranges.in_frame(drop.ranges, rot, t)[0]
+                keep.ranges = keep.ranges + ranges_in_frame(drop.ranges, rot, t)
                 touched.add(keep.id)
                 src = self._source.pop(drop.id, None)
                 if src is not None:  # a merge in a later group than the links: none
@@ -469,19 +482,29 @@ class SolverService(StageService):
     ) -> tuple[np.ndarray, np.ndarray]:
         """The estimates and covariances with the panel prior
         (``SolverConfig.panel_prior``; landmarks whose box ranges put their panel more
-        than ``range_check_k`` sigmas off counted ``range_discrepant``)."""
+        than ``range_check_k`` sigmas off counted ``range_discrepant``) and the looming
+        check (``loom_check_k``; counted ``loom_discrepant``)."""
         mode, k = self.config.panel_prior, self.config.range_check_k
-        if mode == "off" or (mode == "widen" and k <= 0):
-            return x, cov
         panel = self.config.estimator.panel_rel_sigma
-        sums = np.array([lm.ranges for lm in lms], float).reshape(-1, box_ranges.N_SUMS)
-        with np.errstate(invalid="ignore"):
-            if mode == "fuse":
-                x, cov, z = box_ranges.panel_update(sums, x, cov, panel)
-            else:
-                z, g, s = box_ranges.panel_discrepancy(sums, np.nan_to_num(x), cov, panel)
-                cov = box_ranges.widened_along_sight(cov, z, g, s, k, panel)
-        self.count("range_discrepant", int((np.abs(np.nan_to_num(z)) > k).sum()))
+        sums = np.array([lm.ranges for lm in lms], float).reshape(-1, RANGE_SUMS)
+        k5 = box_ranges.N_SUMS
+        if mode != "off" and not (mode == "widen" and k <= 0):
+            with np.errstate(invalid="ignore"):
+                if mode == "fuse":
+                    x, cov, z = box_ranges.panel_update(sums[:, :k5], x, cov, panel)
+                else:
+                    z, g, s = box_ranges.panel_discrepancy(
+                        sums[:, :5], np.nan_to_num(x), cov, panel
+                    )
+                    cov = box_ranges.widened_along_sight(cov, z, g, s, k, panel)
+            self.count("range_discrepant", int((np.abs(np.nan_to_num(z)) > k).sum()))
+        kl = self.config.loom_check_k
+        if kl > 0:
+            t, g, spread = looming.discrepancy(
+                sums[:, k5:], np.nan_to_num(x), cov, self.config.loom_pass_sigma_m
+            )
+            cov = looming.widened(cov, t, g, spread, kl)
+            self.count("loom_discrepant", int((np.abs(np.nan_to_num(t)) > kl).sum()))
         return x, cov
 
     def _emit_updates(self, upserts: dict, removals: dict, sol: _Solved | None) -> None:

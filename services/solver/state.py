@@ -7,9 +7,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hdmap.mapping import box_ranges
+from hdmap.mapping import box_ranges, looming
 from hdmap.mapping.facing import Facing, facing_from_sums, summed_views
 from hdmap.runtime.store import id_from_sql, id_to_sql
+
+RANGE_SUMS = box_ranges.N_SUMS + looming.N_SUMS
+"""A landmark's ``ranges``: its box-range sums, then its looming sums."""
+
+
+def ranges_in_frame(ranges: np.ndarray, rot: np.ndarray | None, t: np.ndarray | None) -> np.ndarray:
+    """A landmark's ``ranges`` kept in frame F as they are in frame G (``x_G = rot x_F +
+    t``)."""
+    k = box_ranges.N_SUMS
+    return np.concatenate(
+        [box_ranges.in_frame(ranges[:k], rot, t)[0], looming.in_frame(ranges[k:], rot, t)[0]]
+    )
+
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS landmarks (
@@ -39,10 +52,12 @@ class SolverLandmark:
     (:mod:`hdmap.mapping.facing`); ``views`` table (absent in an older database: zero)."""
     view_n: int = 0
     """Rays in ``view`` (a caught vehicle's rays taken out of the sums stay in it)."""
-    ranges: np.ndarray = field(default_factory=lambda: np.zeros(box_ranges.N_SUMS))
-    """Its rays' box-range sums in its home frame (:mod:`hdmap.mapping.box_ranges`), for
-    the check of its position against its panel (``SolverConfig.range_check_k``); rays of
-    a vehicle on probation are left out. ``ranges`` table (absent: zero, no check)."""
+    ranges: np.ndarray = field(default_factory=lambda: np.zeros(RANGE_SUMS))
+    """Its rays' box-range sums (:mod:`hdmap.mapping.box_ranges`) and looming sums
+    (:mod:`hdmap.mapping.looming`) in its home frame, for the checks of its
+    position against its panel (``SolverConfig.range_check_k``, ``loom_check_k``); rays of
+    a vehicle on probation are left out. ``ranges`` table (absent: zero, no check; a blob
+    of five, written before the looming sums: NaN for the other six, no looming check)."""
     existence: tuple[float, int, float, float] = (0.0, 0, 0.0, 0.0)
     """(probability, state, first seen, last seen) as the matcher last sent them
     (``AssocGroup.existence``); state 0: none sent yet (published as unknown)."""
@@ -71,15 +86,26 @@ class SolverState:
             lm = lms[k]
             lm.view, lm.view_n = lm.view + view[j], lm.view_n + int(n[j])
 
-    def note_ranges(self, lms: list[SolverLandmark], h: np.ndarray, w: np.ndarray) -> None:
+    def note_ranges(
+        self, lms: list[SolverLandmark], h: np.ndarray, w: np.ndarray, piece: np.ndarray
+    ) -> None:
         """Ray ``k``'s box-range terms (``h[k]``, weight ``w[k]``; 0: no range) onto
-        ``lms[k]``, summed per landmark first."""
+        ``lms[k]``, summed per landmark first; rays of one landmark with the same
+        ``piece[k]`` (an integer) are one pass's (:func:`hdmap.mapping.looming.summed`)."""
         ranged = np.flatnonzero(w > 0)
         if not ranged.size:
             return
         ids = np.array([lms[k].id for k in ranged.tolist()], np.uint64)
         _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
-        sums = box_ranges.summed(inv, h[ranged], w[ranged])
+        pairs = np.stack([inv.astype(np.int64), np.asarray(piece, np.int64)[ranged]], axis=1)
+        _, pc = np.unique(pairs, axis=0, return_inverse=True)
+        sums = np.concatenate(
+            [
+                box_ranges.summed(inv, h[ranged], w[ranged]),
+                looming.summed(inv, pc.reshape(-1), h[ranged], w[ranged]),
+            ],
+            axis=1,
+        )
         for j, k in enumerate(first.tolist()):
             lm = lms[int(ranged[k])]
             lm.ranges = lm.ranges + sums[j]
@@ -165,7 +191,8 @@ class SolverState:
         for i, blob in self._conn.execute("SELECT id, sums FROM ranges"):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
-                lm.ranges = np.frombuffer(blob, float).copy()
+                v = np.frombuffer(blob, float)
+                lm.ranges = np.concatenate([v, np.full(RANGE_SUMS - v.size, np.nan)])
         for i, p, state, first, last in self._conn.execute(
             "SELECT id, p, state, first_seen, last_seen FROM existence"
         ):
