@@ -150,32 +150,52 @@ def panel_discrepancy(
     return np.where(np.isnan(s), np.nan, z), g, s
 
 
+def widened_along(
+    cov: ArrayLike, z: ArrayLike, grad: ArrayLike, spread: ArrayLike, k: float
+) -> Array:
+    """``cov`` (k x 3 x 3) where ``|z| > k`` widened along ``grad`` until ``|z| = 1``, for a
+    statistic ``z = q / sqrt(spread)`` whose numerator ``q`` has gradient ``grad`` with
+    respect to the position and ``spread`` includes ``grad^T cov grad``: what the
+    discrepancy leaves of the position along ``grad``. Elsewhere (and NaN ``z``)
+    unchanged.
+
+    >>> c = widened_along(np.eye(3)[None], np.array([5.0]), np.array([[0.0, 1.0, 0.0]]),
+    ...                   np.array([2.0]), 3.0)
+    >>> c.round(3).tolist()  # q^2 = 25 * 2 = 50: the spread grows by 48 along North
+    [[[1.0, 0.0, 0.0], [0.0, 49.0, 0.0], [0.0, 0.0, 1.0]]]
+    """
+    c = np.array(cov, float).reshape(-1, 3, 3)
+    zz = np.clip(np.asarray(z, float).reshape(-1), -Z_CAP, Z_CAP)
+    bad = np.flatnonzero(np.abs(np.nan_to_num(zz)) > k)
+    if bad.size:
+        gb = np.asarray(grad, float).reshape(-1, 3)[bad]
+        g2 = np.einsum("ki,ki->k", gb, gb)
+        add = (zz[bad] ** 2 - 1.0) * np.asarray(spread, float).reshape(-1)[bad] / g2**2
+        c[bad] += add[:, None, None] * gb[:, :, None] * gb[:, None, :]
+    return c
+
+
 def widened_along_sight(
     cov: ArrayLike, z: ArrayLike, g: ArrayLike, s: ArrayLike, k: float, panel_rel_sigma: float
 ) -> Array:
     """``cov`` (k x 3 x 3) where ``|z| > k`` (:func:`panel_discrepancy`'s ``z, g, s``)
-    widened along ``g`` until the discrepancy is one standard deviation: what the box
-    ranges leave of the estimate's distance along the line of sight. Elsewhere (and NaN
-    ``z``) unchanged.
+    widened along ``g`` until the discrepancy is one standard deviation
+    (:func:`widened_along` with ``ln s``'s gradient ``g / s``): what the box ranges leave
+    of the estimate's distance along the line of sight. Elsewhere (and NaN ``z``)
+    unchanged.
 
     >>> c = widened_along_sight(np.eye(3)[None], np.array([4.0]), np.array([[0.0, 0.1, 0.0]]),
     ...                         np.array([1.0]), 3.0, 0.1)
     >>> c.round(3).tolist()  # ln-s spread 0.02 -> 16 * 0.02: 0.3 more, 30 m^2 along North
     [[[1.0, 0.0, 0.0], [0.0, 31.0, 0.0], [0.0, 0.0, 1.0]]]
     """
-    c = np.array(cov, float).reshape(-1, 3, 3)
-    z = np.asarray(z, float).reshape(-1)
-    bad = np.flatnonzero(np.abs(np.nan_to_num(z)) > k)
-    if bad.size:
-        gb = np.asarray(g, float).reshape(-1, 3)[bad]
-        sb = np.maximum(np.asarray(s, float).reshape(-1)[bad], 1.0 / Z_CAP)
-        zb = np.clip(z[bad], -Z_CAP, Z_CAP)
-        g2 = np.einsum("ki,ki->k", gb, gb)
-        spread = panel_rel_sigma**2 + np.einsum("ki,kij,kj->k", gb, c[bad], gb) / sb**2
-        # ln(s)^2 = z^2 spread: the position's share of it grows by (z^2 - 1) spread
-        add = (zb**2 - 1.0) * spread * sb**2 / g2**2
-        c[bad] += add[:, None, None] * gb[:, :, None] * gb[:, None, :]
-    return c
+    c = np.asarray(cov, float).reshape(-1, 3, 3)
+    grad = (
+        np.asarray(g, float).reshape(-1, 3)
+        / np.maximum(np.asarray(s, float).reshape(-1), 1.0 / Z_CAP)[:, None]
+    )
+    spread = panel_rel_sigma**2 + np.einsum("ki,kij,kj->k", grad, c, grad)
+    return widened_along(c, z, grad, spread, k)
 
 
 def panel_update(

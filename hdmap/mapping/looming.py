@@ -126,34 +126,14 @@ def discrepancy(
     sums: ArrayLike, x: ArrayLike, cov: ArrayLike, tau_m: float
 ) -> tuple[Array, Array, Array]:
     """(t, g, spread): ``t = delta / sqrt(spread)``, ``spread = 1 / S + tau_m^2 m2 +
-    g^T C g`` (:func:`offset`: the rays' white part, what the passes' shared position
-    errors, ``tau_m`` per axis, do to the slope, and what the estimate's covariance ``C``
-    (k x 3 x 3) lets ``delta`` move). With one panel at the estimate's place up to ``C``,
-    ``t`` is about standard normal; NaN where no pass's inverse ranges spread."""
+        g^T C g`` (:func:`offset`: the rays' white part, what the passes' shared position
+        errors, ``tau_m`` per axis, do to the slope, and what the estimate's covariance ``C``
+        (k x 3 x 3) lets ``delta`` move). With one panel at the estimate's place up to ``C``,
+        ``t`` is about standard normal; NaN where no pass's inverse ranges spread. Where it is
+    too large, :func:`hdmap.mapping.box_ranges.widened_along` with ``g`` and ``spread``."""
     delta, var, g, m2 = offset(sums, x)
     c = np.asarray(cov, float).reshape(-1, 3, 3)
     spread = var + tau_m**2 * m2 + np.einsum("ki,kij,kj->k", g, c, g)
     with np.errstate(invalid="ignore"):
         t = delta / np.sqrt(spread)
     return t, g, spread
-
-
-def widened(cov: ArrayLike, t: ArrayLike, g: ArrayLike, spread: ArrayLike, k: float) -> Array:
-    """``cov`` where ``|t| > k`` (:func:`discrepancy`) widened along ``g`` until ``|t| =
-    1``: the estimate's distance along the line of sight as uncertain as the looming says.
-    Elsewhere (and NaN ``t``) unchanged.
-
-    >>> c = widened(np.eye(3)[None], np.array([5.0]), np.array([[0.0, 1.0, 0.0]]),
-    ...             np.array([2.0]), 3.0)
-    >>> c.round(3).tolist()  # delta^2 = 25 * 2 = 50: the spread grows by 48 along North
-    [[[1.0, 0.0, 0.0], [0.0, 49.0, 0.0], [0.0, 0.0, 1.0]]]
-    """
-    c = np.array(cov, float).reshape(-1, 3, 3)
-    tt = np.asarray(t, float).reshape(-1)
-    bad = np.flatnonzero(np.abs(np.nan_to_num(tt)) > k)
-    if bad.size:
-        gb = np.asarray(g, float).reshape(-1, 3)[bad]
-        g2 = np.einsum("ki,ki->k", gb, gb)
-        add = (tt[bad] ** 2 - 1.0) * np.asarray(spread, float).reshape(-1)[bad] / g2**2
-        c[bad] += add[:, None, None] * gb[:, :, None] * gb[:, None, :]
-    return c

@@ -11,9 +11,9 @@ published major sigma, the scale at its position (``s``) and at its sign's (``s_
 ``z = ln(s) / 0.10`` (the catalogue's panel spread), the fit of ``u = s (1 + delta / r)``
 over all its rays at once (``delta``, ``se``) and the looming check's ``delta`` with its
 standard deviation (:func:`hdmap.mapping.looming.discrepancy`, passes by their keys, at the
-published covariance: where the run's solver widened it, ``|t|`` is 1). Prints the unpaired confirmed
-landmarks in full and, for the paired ones, the distribution of ``z`` and how it
-relates to the error along the line of sight.
+published covariance: where the run's solver widened it, ``|t|`` is 1). Prints the
+unpaired confirmed landmarks in full and, for the paired ones, the distribution of ``z``
+and ``t`` and how they relate to the error along the line of sight.
 """
 
 from __future__ import annotations

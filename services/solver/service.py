@@ -503,7 +503,7 @@ class SolverService(StageService):
             t, g, spread = looming.discrepancy(
                 sums[:, k5:], np.nan_to_num(x), cov, self.config.loom_pass_sigma_m
             )
-            cov = looming.widened(cov, t, g, spread, kl)
+            cov = box_ranges.widened_along(cov, t, g, spread, kl)
             self.count("loom_discrepant", int((np.abs(np.nan_to_num(t)) > kl).sum()))
         return x, cov
 

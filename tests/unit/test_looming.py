@@ -82,7 +82,7 @@ def test_a_landmark_along_the_road_from_its_panel_is_widened_there_only():
     assert t[0] > 3
     delta, _, _, _ = looming.offset(sums, x)
     assert abs(delta[0] - 12.0) < 3 * np.sqrt(spread[0])
-    c = looming.widened(cov, t, g, spread, 3.0)[0]
+    c = box_ranges.widened_along(cov, t, g, spread, 3.0)[0]
     lam, vec = np.linalg.eigh(c)
     u = g[0] / np.linalg.norm(g[0])
     assert abs(float(vec[:, -1] @ u)) > 1 - 1e-9 and np.sqrt(lam[-1]) > 5.0
