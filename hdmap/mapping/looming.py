@@ -19,9 +19,12 @@ b``, so the slope's variance has ``tau^2 m2`` (:func:`offset`; about ``tau^2 / n
 ``n`` passes alike) on top of the rays' white part ``1 / S``.
 
 Pitfall: a box's relative height error ``e`` is in the regressor too (``v = s (1 + e) /
-t``), which biases the slope by about ``s^2 sigma_e^2 mean(1/t) / var(1/t)``: some 0.1 m
-at 3 % over 10-60 m, 0.5 m at 10 % (small, far boxes). A check at 3 standard deviations
-does not feel it; a fusion would.
+t``), which biases the slope by about ``s^2 sigma_e^2 mean(1/t) / var(1/t)``. Simulated
+(8 head-on passes from 30-80 m to 10 m, boxes of 600 px m / distance): with 2 px of
+noise on the box height the mean slope is 0.27 m off and ``t`` keeps its spread; with
+4.24 px (42 % on a 10 px box at 60 m) 1.2 m off, ``t``'s mean square 2.1 and 1.75 % of
+right landmarks past 3 (0.27 % under the model). A check at 3 sigma turns those into
+candidates; a fusion would move them.
 
 State (:func:`summed`): per pass, with ``h`` and ``w`` from
 :func:`hdmap.mapping.box_ranges.ray_terms`, the slope's numerator about the pass's mean
