@@ -494,7 +494,7 @@ class SolverService(StageService):
                     x, cov, z = box_ranges.panel_update(sums[:, :k5], x, cov, panel)
                 else:
                     z, g, s = box_ranges.panel_discrepancy(
-                        sums[:, :5], np.nan_to_num(x), cov, panel
+                        sums[:, :k5], np.nan_to_num(x), cov, panel
                     )
                     cov = box_ranges.widened_along_sight(cov, z, g, s, k, panel)
             self.count("range_discrepant", int((np.abs(np.nan_to_num(z)) > k).sum()))
