@@ -57,22 +57,19 @@ N_SUMS = 6
 |N_p[:3]|^2`` (:func:`summed`)."""
 
 
-def summed(group: ArrayLike, piece: ArrayLike, h: Array, w: Array) -> Array:
-    """Rays summed by the landmark each went to (``group``: 0, 1, ... per ray), (k,
-    ``N_SUMS``); ``piece`` (0, 1, ... per ray) says which rays are one pass's (each piece
-    within one group). Per pass, about its own weighted mean inverse range ``vbar_p``:
-    ``N_p = sum w (v - vbar_p) h[:4]`` (``N_p . (x, 1)`` is the slope's numerator at
-    ``x``) and ``S_p = sum w (v - vbar_p)^2``. A pass cut into two pieces counts as two:
-    each is centred on its own (unbiased, a little less precise) and the pass's shared
-    error's share is underestimated by the pieces' cross term."""
-    g = np.asarray(group, np.int64).reshape(-1)
-    pc = np.asarray(piece, np.int64).reshape(-1)
+RAW = 11
+"""Numbers an open pass keeps (:func:`raw_terms` summed): ``sum w``, ``sum w v``, ``sum w
+v^2``, ``sum w h[:4]``, ``sum w v h[:4]``; :func:`pass_sums` turns them into the pass's
+share of a landmark's sums once all its rays are in."""
+
+
+def raw_terms(h: Array, w: Array) -> Array:
+    """Per ray its :data:`RAW` terms (n, 11) from its box-range terms ``h`` (n, 5) and
+    weight ``w`` (n,; 0: adds nothing)."""
     hh = np.asarray(h, float).reshape(-1, 5)
     ww = np.asarray(w, float).reshape(-1)
     v = np.linalg.norm(hh[:, :3], axis=1)
-    npc = int(pc.max(initial=-1)) + 1
-    per = np.zeros((npc, 11))  # sum w, w v, w v^2, w h[:4], w v h[:4]
-    terms = np.concatenate(
+    return np.concatenate(
         [
             np.stack([ww, ww * v, ww * v * v], 1),
             ww[:, None] * hh[:, :4],
@@ -80,11 +77,18 @@ def summed(group: ArrayLike, piece: ArrayLike, h: Array, w: Array) -> Array:
         ],
         axis=1,
     )
-    np.add.at(per, pc, terms)
+
+
+def pass_sums(raw: ArrayLike) -> Array:
+    """Each pass's share (k, ``N_SUMS``) of its landmark's sums from its raw sums (k,
+    :data:`RAW`): about the pass's own weighted mean inverse range ``vbar``, ``N = sum w
+    (v - vbar) h[:4]`` (``N . (x, 1)`` is the slope's numerator at ``x``), ``S = sum w (v -
+    vbar)^2`` and ``|N[:3]|^2``."""
+    per = np.asarray(raw, float).reshape(-1, RAW)
     with np.errstate(divide="ignore", invalid="ignore"):
         vbar = np.where(per[:, 0] > 0, per[:, 1] / per[:, 0], 0.0)
     n_p = per[:, 7:11] - vbar[:, None] * per[:, 3:7]
-    piece_sums = np.concatenate(
+    return np.concatenate(
         [
             n_p,
             (per[:, 2] - vbar * per[:, 1])[:, None],
@@ -92,10 +96,35 @@ def summed(group: ArrayLike, piece: ArrayLike, h: Array, w: Array) -> Array:
         ],
         axis=1,
     )
+
+
+def raw_in_frame(raw: ArrayLike, rot: Array | None, t: Array | None) -> Array:
+    """Open passes' raw sums kept in frame F as they are in frame G (``x_G = rot x_F +
+    t``)."""
+    r = np.asarray(raw, float).reshape(-1, RAW)
+    out = r.copy()
+    zero = np.zeros((len(r), 1))
+    for lo in (3, 7):
+        padded = np.concatenate([r[:, lo : lo + 4], zero], axis=1)
+        out[:, lo : lo + 4] = box_ranges.in_frame(padded, rot, t)[:, :4]
+    return out
+
+
+def summed(group: ArrayLike, piece: ArrayLike, h: Array, w: Array) -> Array:
+    """Rays summed by the landmark each went to (``group``: 0, 1, ... per ray), (k,
+    ``N_SUMS``); ``piece`` (0, 1, ... per ray) says which rays are one pass's (each piece
+    within one group; :func:`pass_sums`). A pass cut into two pieces counts as two: each
+    is centred on its own (unbiased, less precise: the slope within each piece only) and
+    the pass's shared error's share is underestimated by the pieces' cross term."""
+    g = np.asarray(group, np.int64).reshape(-1)
+    pc = np.asarray(piece, np.int64).reshape(-1)
+    npc = int(pc.max(initial=-1)) + 1
+    per = np.zeros((npc, RAW))
+    np.add.at(per, pc, raw_terms(h, w))
     owner = np.zeros(npc, np.int64)
     owner[pc] = g
     out = np.zeros((int(g.max(initial=-1)) + 1, N_SUMS))
-    np.add.at(out, owner, piece_sums)
+    np.add.at(out, owner, pass_sums(per))
     return out
 
 

@@ -51,7 +51,7 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
     ]
     final = successors(groups)
     rays: dict[int, list] = defaultdict(list)
-    for g in groups:
+    for gi, g in enumerate(groups):
         ob = g.obs
         origin = world.frame.from_geodetic(ob.lat, ob.lon, ob.h).reshape(-1, 3)
         rot = enu_rotation(ob.lat, ob.lon)  # ENU at A -> ECEF is rot^T
@@ -66,7 +66,7 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
                     float(ob.range_m[k]),
                     float(ob.sigma_range_m[k]),
                     float(ob.sigma_pos_h[k]),
-                    int(g.links.pass_id[k]) ^ hash(v),
+                    (int(g.links.pass_id[k]) ^ hash(v)) + (gi * 7919 if BY_GROUP else 0),
                     true_sign.get((v, int(ob.obs_id[k])), -2),
                 )
             )
@@ -214,6 +214,9 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
 
 
 SHOW: set[int] = set()
+BY_GROUP = False
+"""With ``pieces=group``: a pass's rays in one assoc group are one piece (as the solver sums
+them), not the whole pass."""
 
 
 def _show(lid, x, a, d, rng, h, w, tsid, signs, sign_row) -> None:
@@ -286,7 +289,8 @@ def _cov(blob: bytes) -> np.ndarray:
 
 
 if __name__ == "__main__":
-    args = [a for a in sys.argv[3:] if not a.startswith("gnss=")]
+    args = [a for a in sys.argv[3:] if not a.startswith(("gnss=", "pieces="))]
+    BY_GROUP = "pieces=group" in sys.argv[3:]
     gnss = next((a.split("=", 1)[1] for a in sys.argv[3:] if a.startswith("gnss=")), "fleet")
     SHOW.update(int(a) for a in args[1:])
     main(Path(sys.argv[1]), int(sys.argv[2]), gnss, int(args[0]) if args else 50)

@@ -1,6 +1,6 @@
 """The solver's tables cut by region or joined (:mod:`hdmap.runtime.partition`):
-landmarks by the region of their home tile, their views, box-range sums and existence with them; the
-event-time clock copied (joined: the latest)."""
+landmarks by the region of their home tile, their views, box-range and looming sums (open
+passes too) and existence with them; the event-time clock copied (joined: the latest)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ RULES = Rules(
         "DELETE FROM views WHERE id NOT IN (SELECT id FROM landmarks)",
         "DELETE FROM existence WHERE id NOT IN (SELECT id FROM landmarks)",
         "DELETE FROM ranges WHERE id NOT IN (SELECT id FROM landmarks)",
+        "DELETE FROM loom_open WHERE id NOT IN (SELECT id FROM landmarks)",
     ),
     merge={
         "clock": "INSERT INTO clock SELECT * FROM b.clock WHERE true "

@@ -53,7 +53,7 @@ from schemas.ids import hold_key, home_tile, pass_key
 from schemas.map import MapLandmarks
 from services.solver.checkpoint import fold_updates
 from services.solver.config import SolverConfig
-from services.solver.state import RANGE_SUMS, SolverLandmark, SolverState, ranges_in_frame
+from services.solver.state import SolverLandmark, SolverState
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +74,8 @@ class _Links:
     obs: Observations
     weight: np.ndarray
     lms: list[SolverLandmark]
+    t: float
+    """The solver's clock after the group (the rays' open looming passes' last time)."""
 
 
 @dataclass(frozen=True)
@@ -178,6 +180,8 @@ class SolverService(StageService):
         if self._sweeps.due(self.state.event_time):
             self._flush()
             self.count("passes_closed", close_quiet(self._quiet, self.sums, self.state))
+            after = max(self.config.close_passes_after_s, 0.0)
+            self.state.close_loom(self.state.event_time - after)
 
     def _flush(self) -> None:
         """Add the links held since the last flush to the sums, in one call: the sums
@@ -196,19 +200,12 @@ class SolverService(StageService):
         cat = {k: np.concatenate([getattr(r, k) for r in rays]) for k in _RANGE_FIELDS}
         h, w = box_ranges.ray_terms(**cat, panel_rel_sigma=self.config.estimator.panel_rel_sigma)
         held = np.concatenate([p.holds for p in parts]) != 0
-        # a pass's rays in one part (one group's links) are one piece of it for the looming
-        _, piece = np.unique(
-            np.concatenate(
-                [
-                    np.stack([np.full(len(p.keys), k), p.keys.astype(np.int64)], 1)
-                    for k, p in enumerate(parts)
-                ]
-            ),
-            axis=0,
-            return_inverse=True,
-        )
         self.state.note_ranges(
-            [lm for p in parts for lm in p.lms], h, np.where(held, 0.0, w), piece.reshape(-1)
+            [lm for p in parts for lm in p.lms],
+            h,
+            np.where(held, 0.0, w),
+            np.concatenate([p.keys for p in parts]),
+            np.concatenate([np.full(len(p.keys), p.t) for p in parts]),
         )
 
     def _rays(self, parts: list[_Links]) -> list[Rays]:
@@ -323,7 +320,9 @@ class SolverService(StageService):
             obs = g.obs.take(sel)
             rows = np.array([lm.row for lm in mine], np.int64)
             weight = g.links.weight[sel].astype(float)
-            self._unsummed.append(_Links(rows, keys_[sel], holds[sel], home, obs, weight, mine))
+            self._unsummed.append(
+                _Links(rows, keys_[sel], holds[sel], home, obs, weight, mine, self.state.event_time)
+            )
             self.state.note_views(mine, obs.direction)
             lid, at = _latest(ids[sel], g.links.received_at[sel])
             for i, t in zip(lid.tolist(), at.tolist(), strict=True):
@@ -398,7 +397,7 @@ class SolverService(StageService):
                 rot, t = frame_map(self.frames(drop.home), self.frames(keep.home))
                 merge_rows(self._quiet, self.sums, keep, drop, rot, t)
                 keep.view, keep.view_n = keep.view + drop.view, keep.view_n + drop.view_n
-                keep.ranges = keep.ranges + ranges_in_frame(drop.ranges, rot, t)
+                self.state.merge_looming(keep, drop, rot, t)
                 touched.add(keep.id)
                 src = self._source.pop(drop.id, None)
                 if src is not None:  # a merge in a later group than the links: none
@@ -486,22 +485,20 @@ class SolverService(StageService):
         check (``loom_check_k``; counted ``loom_discrepant``)."""
         mode, k = self.config.panel_prior, self.config.range_check_k
         panel = self.config.estimator.panel_rel_sigma
-        sums = np.array([lm.ranges for lm in lms], float).reshape(-1, RANGE_SUMS)
         k5 = box_ranges.N_SUMS
+        sums = np.array([lm.ranges[:k5] for lm in lms], float).reshape(-1, k5)
         if mode != "off" and not (mode == "widen" and k <= 0):
             with np.errstate(invalid="ignore"):
                 if mode == "fuse":
-                    x, cov, z = box_ranges.panel_update(sums[:, :k5], x, cov, panel)
+                    x, cov, z = box_ranges.panel_update(sums, x, cov, panel)
                 else:
-                    z, g, s = box_ranges.panel_discrepancy(
-                        sums[:, :k5], np.nan_to_num(x), cov, panel
-                    )
+                    z, g, s = box_ranges.panel_discrepancy(sums, np.nan_to_num(x), cov, panel)
                     cov = box_ranges.widened_along_sight(cov, z, g, s, k, panel)
             self.count("range_discrepant", int((np.abs(np.nan_to_num(z)) > k).sum()))
         kl = self.config.loom_check_k
         if kl > 0:
             t, g, spread = looming.discrepancy(
-                sums[:, k5:], np.nan_to_num(x), cov, self.config.loom_pass_sigma_m
+                self.state.looming_sums(lms), np.nan_to_num(x), cov, self.config.loom_pass_sigma_m
             )
             cov = box_ranges.widened_along(cov, t, g, spread, kl)
             self.count("loom_discrepant", int((np.abs(np.nan_to_num(t)) > kl).sum()))

@@ -32,6 +32,8 @@ CREATE TABLE IF NOT EXISTS clock (name TEXT PRIMARY KEY, t REAL NOT NULL) WITHOU
 CREATE TABLE IF NOT EXISTS views (
     id INTEGER PRIMARY KEY, e REAL NOT NULL, n REAL NOT NULL, count INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS ranges (id INTEGER PRIMARY KEY, sums BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS loom_open (
+    id INTEGER NOT NULL, pass INTEGER NOT NULL, sums BLOB NOT NULL, PRIMARY KEY (id, pass));
 CREATE TABLE IF NOT EXISTS existence (
     id INTEGER PRIMARY KEY, p REAL NOT NULL, state INTEGER NOT NULL, first_seen REAL NOT NULL,
     last_seen REAL NOT NULL);
@@ -56,8 +58,15 @@ class SolverLandmark:
     """Its rays' box-range sums (:mod:`hdmap.mapping.box_ranges`) and looming sums
     (:mod:`hdmap.mapping.looming`) in its home frame, for the checks of its
     position against its panel (``SolverConfig.range_check_k``, ``loom_check_k``); rays of
-    a vehicle on probation are left out. ``ranges`` table (absent: zero, no check; a blob
-    of five, written before the looming sums: NaN for the other six, no looming check)."""
+    a vehicle on probation are left out. The looming sums hold its closed passes (those
+    still open are in ``loom_open``). ``ranges`` table (absent: zero, no check; a blob of
+    five, written before the looming sums: NaN for the other six, no looming check)."""
+    loom_open: dict[int, np.ndarray] = field(default_factory=dict)
+    """Its open passes' raw looming sums by pass key (:data:`hdmap.mapping.looming.RAW`
+    numbers, then the solver's clock at the pass's last ray), closed into ``ranges`` once
+    quiet for ``SolverConfig.close_passes_after_s`` (:meth:`SolverState.close_loom`): the
+    slope is fitted within a whole pass however its rays were cut into groups.
+    ``loom_open`` table."""
     existence: tuple[float, int, float, float] = (0.0, 0, 0.0, 0.0)
     """(probability, state, first seen, last seen) as the matcher last sent them
     (``AssocGroup.existence``); state 0: none sent yet (published as unknown)."""
@@ -70,6 +79,8 @@ class SolverState:
         self.landmarks: dict[int, SolverLandmark] = {}
         self._dirty: set[int] = set()
         self._deleted: set[int] = set()
+        self._loom_open: set[int] = set()
+        """Landmarks with open looming passes."""
         self.event_time = 0.0
         """The solver's clock: event time, monotone, saved with the landmarks
         (:meth:`services.solver.service.SolverService.group_time`)."""
@@ -87,28 +98,89 @@ class SolverState:
             lm.view, lm.view_n = lm.view + view[j], lm.view_n + int(n[j])
 
     def note_ranges(
-        self, lms: list[SolverLandmark], h: np.ndarray, w: np.ndarray, piece: np.ndarray
+        self,
+        lms: list[SolverLandmark],
+        h: np.ndarray,
+        w: np.ndarray,
+        key: np.ndarray,
+        t: np.ndarray,
     ) -> None:
         """Ray ``k``'s box-range terms (``h[k]``, weight ``w[k]``; 0: no range) onto
-        ``lms[k]``, summed per landmark first; rays of one landmark with the same
-        ``piece[k]`` (an integer) are one pass's (:func:`hdmap.mapping.looming.summed`)."""
+        ``lms[k]``'s box-range sums and its open pass ``key[k]`` (uint64), which was last
+        added to at the solver's clock ``t[k]``; summed per landmark and pass first."""
         ranged = np.flatnonzero(w > 0)
         if not ranged.size:
             return
         ids = np.array([lms[k].id for k in ranged.tolist()], np.uint64)
         _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
-        pairs = np.stack([inv.astype(np.int64), np.asarray(piece, np.int64)[ranged]], axis=1)
-        _, pc = np.unique(pairs, axis=0, return_inverse=True)
-        sums = np.concatenate(
-            [
-                box_ranges.summed(inv, h[ranged], w[ranged]),
-                looming.summed(inv, pc.reshape(-1), h[ranged], w[ranged]),
-            ],
-            axis=1,
-        )
+        box = box_ranges.summed(inv, h[ranged], w[ranged])
         for j, k in enumerate(first.tolist()):
             lm = lms[int(ranged[k])]
-            lm.ranges = lm.ranges + sums[j]
+            lm.ranges[: box_ranges.N_SUMS] = lm.ranges[: box_ranges.N_SUMS] + box[j]
+        keys = np.asarray(key, np.uint64)[ranged]
+        pairs = np.stack([inv.astype(np.uint64), keys], axis=1)
+        _, pfirst, pc = np.unique(pairs, axis=0, return_index=True, return_inverse=True)
+        pc = pc.reshape(-1)
+        raw = np.zeros((pfirst.size, looming.RAW))
+        np.add.at(raw, pc, looming.raw_terms(h[ranged], w[ranged]))
+        last = np.full(pfirst.size, -np.inf)
+        np.maximum.at(last, pc, np.asarray(t, float)[ranged])
+        for j, k in enumerate(pfirst.tolist()):
+            lm, pk = lms[int(ranged[k])], int(keys[k])
+            acc = lm.loom_open.get(pk)
+            if acc is None:
+                lm.loom_open[pk] = np.append(raw[j], last[j])
+            else:
+                acc[: looming.RAW] += raw[j]
+                acc[looming.RAW] = max(acc[looming.RAW], last[j])
+            self._loom_open.add(lm.id)
+
+    def close_loom(self, before: float) -> int:
+        """Close the open looming passes whose last ray came before clock ``before`` into
+        their landmarks' sums; returns how many."""
+        n = 0
+        for lid in sorted(self._loom_open):
+            lm = self.landmarks.get(lid)
+            if lm is None:
+                self._loom_open.discard(lid)
+                continue
+            due = [k for k, acc in lm.loom_open.items() if acc[looming.RAW] < before]
+            if due:
+                raw = np.array([lm.loom_open.pop(k)[: looming.RAW] for k in due])
+                lm.ranges[box_ranges.N_SUMS :] += looming.pass_sums(raw).sum(axis=0)
+                self.put(lm)
+                n += len(due)
+            if not lm.loom_open:
+                self._loom_open.discard(lid)
+        return n
+
+    @staticmethod
+    def looming_sums(lms: list[SolverLandmark]) -> np.ndarray:
+        """The landmarks' looming sums (k, :data:`hdmap.mapping.looming.N_SUMS`): closed
+        passes and open ones as if closed now (so a result does not depend on when a pass
+        closes)."""
+        out = np.array([lm.ranges[box_ranges.N_SUMS :] for lm in lms], float).reshape(
+            -1, looming.N_SUMS
+        )
+        for j, lm in enumerate(lms):
+            if lm.loom_open:
+                raw = np.array([acc[: looming.RAW] for acc in lm.loom_open.values()])
+                out[j] += looming.pass_sums(raw).sum(axis=0)
+        return out
+
+    @staticmethod
+    def merge_looming(keep: SolverLandmark, drop: SolverLandmark, rot, t) -> None:
+        """``drop``'s box-range and looming sums, open passes too, onto ``keep`` (``x_keep =
+        rot x_drop + t``); a pass open on both continues as one."""
+        keep.ranges = keep.ranges + ranges_in_frame(drop.ranges, rot, t)
+        for pk, acc in drop.loom_open.items():
+            moved = np.append(looming.raw_in_frame(acc[: looming.RAW], rot, t)[0], acc[-1])
+            mine = keep.loom_open.get(pk)
+            if mine is None:
+                keep.loom_open[pk] = moved
+            else:
+                mine[: looming.RAW] += moved[: looming.RAW]
+                mine[looming.RAW] = max(mine[looming.RAW], moved[looming.RAW])
 
     def facings(self, lms: list[SolverLandmark], n_passes: np.ndarray, min_rays: int) -> Facing:
         """The landmarks' facings, over their passes as independent looks."""
@@ -144,6 +216,7 @@ class SolverState:
         self._conn.executemany("DELETE FROM views WHERE id=?", gone)
         self._conn.executemany("DELETE FROM existence WHERE id=?", gone)
         self._conn.executemany("DELETE FROM ranges WHERE id=?", gone)
+        self._conn.executemany("DELETE FROM loom_open WHERE id=?", gone)
         self._deleted.clear()
         dirty = [self.landmarks[i] for i in sorted(self._dirty)]
         blobs = pack_rows(np.array([lm.row for lm in dirty], np.int64)) if dirty else []
@@ -162,6 +235,17 @@ class SolverState:
         self._conn.executemany(
             "INSERT OR REPLACE INTO ranges(id, sums) VALUES (?,?)",
             [(id_to_sql(lm.id), lm.ranges.tobytes()) for lm in dirty if lm.ranges[4] > 0],
+        )
+        self._conn.executemany(
+            "DELETE FROM loom_open WHERE id=?", [(id_to_sql(lm.id),) for lm in dirty]
+        )
+        self._conn.executemany(
+            "INSERT INTO loom_open(id, pass, sums) VALUES (?,?,?)",
+            [
+                (id_to_sql(lm.id), id_to_sql(pk), acc.tobytes())
+                for lm in dirty
+                for pk, acc in sorted(lm.loom_open.items())
+            ],
         )
         self._conn.executemany(
             "INSERT OR REPLACE INTO existence(id, p, state, first_seen, last_seen) "
@@ -193,6 +277,14 @@ class SolverState:
             if lm is not None:
                 v = np.frombuffer(blob, float)
                 lm.ranges = np.concatenate([v, np.full(RANGE_SUMS - v.size, np.nan)])
+        self._loom_open.clear()
+        for i, pk, blob in self._conn.execute(
+            "SELECT id, pass, sums FROM loom_open ORDER BY id, pass"
+        ):
+            lm = self.landmarks.get(id_from_sql(i))
+            if lm is not None:
+                lm.loom_open[id_from_sql(pk)] = np.frombuffer(blob, float).copy()
+                self._loom_open.add(lm.id)
         for i, p, state, first, last in self._conn.execute(
             "SELECT id, p, state, first_seen, last_seen FROM existence"
         ):

@@ -8,7 +8,9 @@ sign is about standard normal: 400 simulated landmarks of 8 head-on passes each 
 its mean square inside the chi-square 99.9 % interval, the share beyond 3 inside the
 binomial bound. A landmark 12 m along the road from its panel is flagged and widened
 along the line of sight only; the sums follow a change of frame; the solver on SQLite
-makes a candidate of a landmark whose rays loom elsewhere and keeps one whose rays agree.
+makes a candidate of a landmark whose rays loom elsewhere and keeps one whose rays agree;
+a pass whose rays come in several assoc entries, and across a restart, gives the sums of
+the whole pass.
 """
 
 from __future__ import annotations
@@ -20,9 +22,21 @@ import numpy as np
 from scipy import stats
 
 from hdmap.mapping import box_ranges, looming
-from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED
+from hdmap.runtime.service import ServiceOptions
+from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks
 from services.solver.service import SolverConfig
-from tests.support.services import SIGN, one_sign_solver, updates
+from services.solver.state import SolverState
+from tests.support.services import (
+    CLS,
+    SIGN,
+    assoc_entry,
+    matcher,
+    one_sign_solver,
+    sign_rays,
+    solver,
+    tile_of,
+    updates,
+)
 
 PANEL = 0.10
 TAU = 2.5
@@ -138,4 +152,68 @@ def test_the_solver_makes_a_candidate_of_a_landmark_its_looming_rules_out(tmp_pa
     assert far.counters.get("loom_discrepant", 0) >= 1
     assert right.counters.get("loom_discrepant", 0) == 0
     for s in (far, right, unchecked):
+        s.db.close()
+
+
+def _split_solver(tmp: Path, cuts: int, restart_after: int | None = None):
+    """The sign of tests/support/services.py over 6 passes with box ranges of a nominal
+    panel, each pass's rays sent in ``cuts`` assoc entries (in order); with
+    ``restart_after``, the solver restarted from its database after that many passes."""
+    tile = tile_of(ServiceOptions().zoom)
+    m = matcher(tmp / "m")
+    frame = m.frames(tile)
+    lid = m.state.next_id(tile)
+    lat, lon, h = frame.to_geodetic(SIGN[None])
+    created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
+    svc = solver(tmp / "s", SolverConfig())
+    rng = np.random.default_rng(7)
+    seq = 0
+    for p in range(6):
+        obs = sign_rays(frame, p, rng)
+        dist = np.linalg.norm(SIGN - frame.from_geodetic(obs.lat, obs.lon, obs.h), axis=1)
+        obs = replace(
+            obs,
+            t=np.full(len(obs), 1.7e9 + 60.0 * p),
+            range_m=dist,
+            sigma_range_m=dist * np.hypot(PANEL, 0.03),
+        )
+        for part in np.array_split(np.arange(len(obs)), cuts):
+            o = obs.take(part)
+            n = len(o)
+            links = Links(
+                np.full(n, lid, np.uint64),
+                np.zeros(n, np.uint32),
+                np.full(n, p, np.uint64),
+                o.t + 5.0,
+                np.ones(n, np.float32),
+            )
+            seq += 1
+            kw = {"created": created} if seq == 1 else {}
+            svc._apply_in_transaction(
+                [assoc_entry(seq, tile, vehicles=["veh-a"], obs=o, links=links, **kw)]
+            )
+        if restart_after is not None and p + 1 == restart_after:
+            svc.db.close()
+            svc = solver(tmp / "s", SolverConfig())
+    m.db.close()
+    return svc
+
+
+def test_a_pass_cut_into_entries_gives_the_looming_of_the_whole_pass(tmp_path: Path):
+    whole = _split_solver(tmp_path / "whole", 1)
+    cut = _split_solver(tmp_path / "cut", 3)
+    restarted = _split_solver(tmp_path / "restarted", 3, restart_after=3)
+    (a,), (b,), (c,) = (list(s.state.landmarks.values()) for s in (whole, cut, restarted))
+    sa, sb, sc = (SolverState.looming_sums([lm]) for lm in (a, b, c))
+    np.testing.assert_allclose(sb, sa, rtol=1e-9)
+    np.testing.assert_allclose(sc, sa, rtol=1e-9)
+    # the passes a minute apart are open (two hours of quiet close them), each one whole
+    assert len(a.loom_open) == 6 and len(c.loom_open) == 6
+    # once quiet they are closed into the sums with nothing changed
+    for s in (whole, cut, restarted):
+        s.state.close_loom(s.state.event_time + 1.0)
+    assert not a.loom_open and not c.loom_open
+    np.testing.assert_allclose(SolverState.looming_sums([a]), sa, rtol=1e-9)
+    np.testing.assert_allclose(SolverState.looming_sums([c]), sa, rtol=1e-9)
+    for s in (whole, cut, restarted):
         s.db.close()
