@@ -16,7 +16,8 @@ counts, not how passes seen from different distances differ, since their shared 
 differ too (with the phones' errors a fit across passes put a landmark 8 m beyond its
 sign 2 m short of it). A pass's shared origin error ``b`` tilts its rays' line by ``-d .
 b``, so the slope's variance has ``tau^2 m2`` (:func:`offset`; about ``tau^2 / n`` for
-``n`` passes alike) on top of the rays' white part ``1 / S``.
+``n`` passes alike) on top of the rays' white part ``c / S`` (``c`` their white noise as
+measured about the passes' lines over the claimed).
 
 Pitfall: a box's relative height error ``e`` is in the regressor too (``v = s (1 + e) /
 t``), which biases the slope by about ``s^2 sigma_e^2 mean(1/t) / var(1/t)``. Simulated
@@ -28,8 +29,10 @@ candidates; a fusion would move them.
 
 State (:func:`summed`): per pass, with ``h`` and ``w`` from
 :func:`hdmap.mapping.box_ranges.ray_terms`, the slope's numerator about the pass's mean
-``v`` (linear in the trial point), its denominator and what the pass's shared error does
-to it; summed over passes, 6 numbers per landmark, kept in its home tile's frame. They add
+``v`` (linear in the trial point), its denominator, what the pass's shared error does to
+it, and the residuals about the pass's line (quadratic in the trial point), which measure
+the rays' white noise against their claim; summed over passes, 17 numbers per landmark,
+kept in its home tile's frame. They add
 when landmarks merge and follow a rigid change of frame (:func:`in_frame`).
 
 >>> from hdmap.mapping import box_ranges
@@ -48,32 +51,48 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from hdmap.mapping import box_ranges
-
 Array = NDArray[np.float64]
 
-N_SUMS = 6
-"""Numbers a landmark keeps: over its passes ``sum_p N_p`` (4), ``sum_p S_p`` and ``sum_p
-|N_p[:3]|^2`` (:func:`summed`)."""
+N_SUMS = 17
+"""Numbers a landmark keeps, summed over its passes: ``N_p`` (4), ``S_p``, ``|N_p[:3]|^2``,
+the residual form ``M_p`` (10: a 4 x 4 symmetric matrix's upper triangle) and its degrees
+of freedom (:func:`pass_sums`)."""
 
-
-RAW = 11
+RAW = 22
 """Numbers an open pass keeps (:func:`raw_terms` summed): ``sum w``, ``sum w v``, ``sum w
-v^2``, ``sum w h[:4]``, ``sum w v h[:4]``; :func:`pass_sums` turns them into the pass's
-share of a landmark's sums once all its rays are in."""
+v^2``, ``sum w h[:4]``, ``sum w v h[:4]``, ``sum w h[:4] h[:4]^T`` (10) and its ranged
+rays; :func:`pass_sums` turns them into the pass's share of a landmark's sums once all its
+rays are in."""
+
+NOISE_PRIOR_DOF = 4.0
+"""Pseudo degrees of freedom at the claimed white noise in :func:`offset`'s measured
+ratio ``c`` (a landmark of few rays keeps about its claim)."""
+
+_IU = np.triu_indices(4)
+
+
+def _sym(upper: Array) -> Array:
+    """(k, 10) upper triangles -> (k, 4, 4) symmetric matrices."""
+    m = np.zeros((len(upper), 4, 4))
+    m[:, _IU[0], _IU[1]] = upper
+    m[:, _IU[1], _IU[0]] = upper
+    return m
 
 
 def raw_terms(h: Array, w: Array) -> Array:
-    """Per ray its :data:`RAW` terms (n, 11) from its box-range terms ``h`` (n, 5) and
+    """Per ray its :data:`RAW` terms (n, 22) from its box-range terms ``h`` (n, 5) and
     weight ``w`` (n,; 0: adds nothing)."""
     hh = np.asarray(h, float).reshape(-1, 5)
     ww = np.asarray(w, float).reshape(-1)
     v = np.linalg.norm(hh[:, :3], axis=1)
+    outer = hh[:, _IU[0]] * hh[:, _IU[1]]
     return np.concatenate(
         [
             np.stack([ww, ww * v, ww * v * v], 1),
             ww[:, None] * hh[:, :4],
             (ww * v)[:, None] * hh[:, :4],
+            ww[:, None] * outer,
+            (ww > 0).astype(float)[:, None],
         ],
         axis=1,
     )
@@ -83,19 +102,43 @@ def pass_sums(raw: ArrayLike) -> Array:
     """Each pass's share (k, ``N_SUMS``) of its landmark's sums from its raw sums (k,
     :data:`RAW`): about the pass's own weighted mean inverse range ``vbar``, ``N = sum w
     (v - vbar) h[:4]`` (``N . (x, 1)`` is the slope's numerator at ``x``), ``S = sum w (v -
-    vbar)^2`` and ``|N[:3]|^2``."""
+    vbar)^2``, ``|N[:3]|^2``, and ``M = sum w h h^T - H H^T / W - N N^T / S`` (``H = sum
+    w h[:4]``, ``W = sum w``): ``(x, 1)^T M (x, 1)`` is the weighted squared residual of
+    the pass's rays about its fitted line at ``x``, with ``n - 2`` degrees of freedom."""
     per = np.asarray(raw, float).reshape(-1, RAW)
+    w, wv = per[:, 0], per[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
-        vbar = np.where(per[:, 0] > 0, per[:, 1] / per[:, 0], 0.0)
+        vbar = np.where(w > 0, wv / w, 0.0)
+        hw = np.where(w[:, None] > 0, per[:, 3:7] / w[:, None], 0.0)
     n_p = per[:, 7:11] - vbar[:, None] * per[:, 3:7]
+    s_p = per[:, 2] - vbar * wv
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n_s = np.where(s_p[:, None] > 0, n_p / s_p[:, None], 0.0)
+    m = _sym(per[:, 11:21])
+    m -= per[:, 3:7, None] * hw[:, None, :]
+    m -= n_p[:, :, None] * n_s[:, None, :]
+    m = 0.5 * (m + np.transpose(m, (0, 2, 1)))
+    dof = np.maximum(per[:, 21] - 2.0, 0.0)
     return np.concatenate(
         [
             n_p,
-            (per[:, 2] - vbar * per[:, 1])[:, None],
+            s_p[:, None],
             np.einsum("ki,ki->k", n_p[:, :3], n_p[:, :3])[:, None],
+            m[:, _IU[0], _IU[1]] * (dof > 0)[:, None],
+            dof[:, None],
         ],
         axis=1,
     )
+
+
+def _lin4(rot: Array | None, t: Array | None) -> Array | None:
+    """How ``h[:4]`` maps from frame F to G (``h_G = L h_F``); None: the same frame."""
+    if rot is None or t is None:
+        return None
+    lin = np.eye(4)
+    lin[:3, :3] = rot
+    lin[3, :3] = -(np.asarray(t, float) @ rot)
+    return lin
 
 
 def raw_in_frame(raw: ArrayLike, rot: Array | None, t: Array | None) -> Array:
@@ -103,10 +146,12 @@ def raw_in_frame(raw: ArrayLike, rot: Array | None, t: Array | None) -> Array:
     t``)."""
     r = np.asarray(raw, float).reshape(-1, RAW)
     out = r.copy()
-    zero = np.zeros((len(r), 1))
-    for lo in (3, 7):
-        padded = np.concatenate([r[:, lo : lo + 4], zero], axis=1)
-        out[:, lo : lo + 4] = box_ranges.in_frame(padded, rot, t)[:, :4]
+    lin = _lin4(rot, t)
+    if lin is None:
+        return out
+    out[:, 3:7] = r[:, 3:7] @ lin.T
+    out[:, 7:11] = r[:, 7:11] @ lin.T
+    out[:, 11:21] = (lin @ _sym(r[:, 11:21]) @ lin.T)[:, _IU[0], _IU[1]]
     return out
 
 
@@ -130,34 +175,44 @@ def summed(group: ArrayLike, piece: ArrayLike, h: Array, w: Array) -> Array:
 
 def in_frame(sums: ArrayLike, rot: Array | None, t: Array | None) -> Array:
     """Sums kept in frame F as they are in frame G, ``x_G = rot x_F + t`` (``N`` maps like
-    a box-range ``h``; ``S`` and ``|N[:3]|^2`` do not change)."""
+    a box-range ``h``, ``M`` on both sides; the rest does not change)."""
     s = np.asarray(sums, float).reshape(-1, N_SUMS)
     out = s.copy()
-    padded = np.concatenate([s[:, :4], np.zeros((len(s), 1))], axis=1)
-    out[:, :4] = box_ranges.in_frame(padded, rot, t)[:, :4]
+    lin = _lin4(rot, t)
+    if lin is None:
+        return out
+    out[:, :4] = s[:, :4] @ lin.T
+    out[:, 6:16] = (lin @ _sym(s[:, 6:16]) @ lin.T)[:, _IU[0], _IU[1]]
     return out
 
 
 def offset(sums: ArrayLike, x: ArrayLike) -> tuple[Array, Array, Array, Array]:
     """(delta, var, g, m2) at trial points ``x`` (k, 3; the sums' frame): the fitted slope
     ``delta = N . (x, 1) / S`` (how far beyond the panel ``x`` lies along the rays,
-    metres; NaN where no pass's inverse ranges spread), its white variance ``1 / S`` (from
-    the rays' claimed weights), its gradient ``g = N[:3] / S`` (k, 3; about the near rays'
-    line of sight, unit length) and ``m2 = sum_p |N_p[:3]|^2 / S^2`` (``-N_p[:3] . b /
-    S`` is what an error ``b`` shared by pass ``p``'s rays does to ``delta``; ``m2 =
-    |g|^2 / n`` for ``n`` passes alike)."""
+    metres; NaN where no pass's inverse ranges spread), its white variance ``c / S``, its
+    gradient ``g = N[:3] / S`` (k, 3; about the near rays' line of sight, unit length) and
+    ``m2 = sum_p |N_p[:3]|^2 / S^2`` (``-N_p[:3] . b / S`` is what an error ``b`` shared by
+    pass ``p``'s rays does to ``delta``; ``m2 = |g|^2 / n`` for ``n`` passes alike).
+    ``c`` is the rays' white noise measured over the claimed: their weighted squared
+    residuals about their passes' lines at ``x`` over the degrees of freedom, with
+    :data:`NOISE_PRIOR_DOF` at 1 (vehicles that claim more box noise than their boxes
+    have would otherwise hide a discrepancy; ones that claim less, flag right
+    landmarks)."""
     s = np.asarray(sums, float).reshape(-1, N_SUMS)
     x = np.asarray(x, float).reshape(-1, 3)
     den = np.where(s[:, 4] > 0, s[:, 4], np.nan)
     g = s[:, :3] / den[:, None]
     delta = np.einsum("ki,ki->k", g, x) + s[:, 3] / den
-    return delta, 1.0 / den, g, s[:, 5] / den**2
+    xx = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+    rss = np.maximum(np.einsum("ki,kij,kj->k", xx, _sym(s[:, 6:16]), xx), 0.0)
+    c = (rss + NOISE_PRIOR_DOF) / (s[:, 16] + NOISE_PRIOR_DOF)
+    return delta, c / den, g, s[:, 5] / den**2
 
 
 def discrepancy(
     sums: ArrayLike, x: ArrayLike, cov: ArrayLike, tau_m: float
 ) -> tuple[Array, Array, Array]:
-    """(t, g, spread): ``t = delta / sqrt(spread)``, ``spread = 1 / S + tau_m^2 m2 +
+    """(t, g, spread): ``t = delta / sqrt(spread)``, ``spread = c / S + tau_m^2 m2 +
         g^T C g`` (:func:`offset`: the rays' white part, what the passes' shared position
         errors, ``tau_m`` per axis, do to the slope, and what the estimate's covariance ``C``
         (k x 3 x 3) lets ``delta`` move). With one panel at the estimate's place up to ``C``,

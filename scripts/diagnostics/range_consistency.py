@@ -150,7 +150,7 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
         )
     hdr = (
         "paired id cls passes rays spread_deg along across mean_range sigma s s_true z top "
-        "true_share top_share disp delta se loom loom_se"
+        "true_share top_share disp delta se loom loom_sd"
     )
     print(hdr)
     for o in out:
@@ -272,7 +272,7 @@ TAU_M = 2.5
 def _looming(
     h: np.ndarray, w: np.ndarray, key: np.ndarray, x: np.ndarray, cov: np.ndarray
 ) -> tuple[float, float]:
-    """(delta, se): :func:`hdmap.mapping.looming.discrepancy` over the landmark's rays,
+    """(delta, sd): :func:`hdmap.mapping.looming.discrepancy` over the landmark's rays,
     passes by their keys (``TAU_M``)."""
     _, piece = np.unique(key, return_inverse=True)
     sums = looming.summed(np.zeros(w.size, np.int64), piece.reshape(-1), h, w)

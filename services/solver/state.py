@@ -60,7 +60,7 @@ class SolverLandmark:
     position against its panel (``SolverConfig.range_check_k``, ``loom_check_k``); rays of
     a vehicle on probation are left out. The looming sums hold its closed passes (those
     still open are in ``loom_open``). ``ranges`` table (absent: zero, no check; a blob of
-    five, written before the looming sums: NaN for the other six, no looming check)."""
+    five, written before the looming sums: NaN for the rest, no looming check)."""
     loom_open: dict[int, np.ndarray] = field(default_factory=dict)
     """Its open passes' raw looming sums by pass key (:data:`hdmap.mapping.looming.RAW`
     numbers, then the solver's clock at the pass's last ray), closed into ``ranges`` once
@@ -275,15 +275,16 @@ class SolverState:
         for i, blob in self._conn.execute("SELECT id, sums FROM ranges"):
             lm = self.landmarks.get(id_from_sql(i))
             if lm is not None:
-                v = np.frombuffer(blob, float)
+                v = np.frombuffer(blob, float)[:RANGE_SUMS]
                 lm.ranges = np.concatenate([v, np.full(RANGE_SUMS - v.size, np.nan)])
         self._loom_open.clear()
         for i, pk, blob in self._conn.execute(
             "SELECT id, pass, sums FROM loom_open ORDER BY id, pass"
         ):
             lm = self.landmarks.get(id_from_sql(i))
-            if lm is not None:
-                lm.loom_open[id_from_sql(pk)] = np.frombuffer(blob, float).copy()
+            acc = np.frombuffer(blob, float)
+            if lm is not None and acc.size == looming.RAW + 1:  # another layout: dropped
+                lm.loom_open[id_from_sql(pk)] = acc.copy()
                 self._loom_open.add(lm.id)
         for i, p, state, first, last in self._conn.execute(
             "SELECT id, p, state, first_seen, last_seen FROM existence"

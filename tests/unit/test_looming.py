@@ -19,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy import stats
 
 from hdmap.mapping import box_ranges, looming
@@ -44,11 +45,12 @@ PASSES = 8
 RAYS = 12
 
 
-def passes(rng, n_passes: int = PASSES, beyond: float = 0.0):
+def passes(rng, n_passes: int = PASSES, beyond: float = 0.0, claim: float = 0.03):
     """``n_passes`` head-on passes at a panel at the origin (4 m off the lane), each from
     30-80 m to 10 m, the panel ``exp(N(0, PANEL))`` of its nominal size; per pass an origin
     error of ``TAU`` m per horizontal axis, per fix 0.5 m white, boxes 3 % white. With
-    ``beyond``, the boxes are those of a panel that much farther along the road. Returns
+    ``beyond``, the boxes are those of a panel that much farther along the road; the
+    vehicle claims ``claim`` of relative box noise. Returns
     (origin, direction, range, sigma_range, pass index) of the rays."""
     eps = rng.normal(0.0, PANEL)
     out = []
@@ -61,7 +63,7 @@ def passes(rng, n_passes: int = PASSES, beyond: float = 0.0):
         r = far * np.exp(-eps) * (1.0 + rng.normal(0.0, 0.03, RAYS))
         bias = np.r_[rng.normal(0.0, TAU, 2), 0.0]
         a_meas = a + bias + np.c_[rng.normal(0.0, 0.5, (RAYS, 2)), np.zeros(RAYS)]
-        out.append((a_meas, d, r, r * np.hypot(PANEL, 0.03), np.full(RAYS, p)))
+        out.append((a_meas, d, r, r * np.hypot(PANEL, claim), np.full(RAYS, p)))
     return tuple(np.concatenate([o[i] for o in out]) for i in range(5))
 
 
@@ -71,13 +73,22 @@ def sums_of(rays) -> np.ndarray:
     return looming.summed(np.zeros(len(r), np.int64), p, h, w)
 
 
-def test_t_is_about_standard_normal_at_the_sign():
+@pytest.mark.parametrize("claim", [0.03, 0.12])
+def test_t_is_about_standard_normal_at_the_sign(claim):
+    """Claims right, and four times the boxes' real noise (measured from the rays'
+    scatter about their passes' lines)."""
     rng = np.random.default_rng(3)
     n = 400
-    sums = np.concatenate([sums_of(passes(rng)) for _ in range(n)])
+    sums = np.concatenate([sums_of(passes(rng, claim=claim)) for _ in range(n)])
     t, g, spread = looming.discrepancy(sums, np.zeros((n, 3)), np.zeros((n, 3, 3)), TAU)
     lo, hi = stats.chi2.ppf([0.0005, 0.9995], n) / n
     assert lo <= float(np.mean(t**2)) <= hi
+    # the measured white noise over the claimed (var = c / S; S from the claimed weights)
+    c = looming.offset(sums, np.zeros((n, 3)))[1] * sums[:, 4]
+    if claim == 0.03:
+        assert 0.8 < float(np.median(c)) < 1.25
+    else:  # the box's 3 % and the origin's 0.5 m over 12 % and 0.5 m: about 0.1
+        assert float(np.median(c)) < 0.2
     flagged = int((np.abs(t) > 3).sum())
     assert flagged <= stats.binom.ppf(0.999, n, 2 * stats.norm.sf(3.0))
     # g runs along the near rays' line of sight (North, toward the panel 4 m East), unit long
