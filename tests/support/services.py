@@ -94,10 +94,14 @@ def one_sign_solver(
     passes: int,
     start: np.ndarray = SIGN,
     edit: Callable[[Observations, Any], Observations] | None = None,
+    cuts: int = 1,
+    restart_after: int | None = None,
 ) -> SolverService:
-    """A solver on ``tmp / "s"`` given ``passes`` passes of :func:`sign_rays` (one entry
-    each, a minute apart, all linked to one landmark created at ``start``; ``edit(obs,
-    frame)`` changes a pass's observations first)."""
+    """A solver on ``tmp / "s"`` given ``passes`` passes of :func:`sign_rays` (a minute
+    apart, all linked to one landmark created at ``start``; ``edit(obs, frame)`` changes a
+    pass's observations first), each pass's rays in ``cuts`` assoc entries (in order);
+    with ``restart_after``, the solver is restarted from its database after that many
+    passes."""
     tile = tile_of(ServiceOptions().zoom)
     m = matcher(tmp / "m")  # for ids and frames only
     frame = m.frames(tile)
@@ -106,22 +110,29 @@ def one_sign_solver(
     created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
     svc = solver(tmp / "s", config)
     rng = np.random.default_rng(5)
+    seq = 0
     for p in range(passes):
         obs = sign_rays(frame, p, rng)
         obs = replace(obs, t=np.full(len(obs), 1.7e9 + 60.0 * p))
         if edit is not None:
             obs = edit(obs, frame)
-        n = len(obs)
-        links = Links(
-            np.full(n, lid, np.uint64),
-            np.zeros(n, np.uint32),
-            np.full(n, p, np.uint64),
-            obs.t + 5.0,
-            np.ones(n, np.float32),
-        )
-        kw = {"created": created} if p == 0 else {}
-        svc._apply_in_transaction(
-            [assoc_entry(p + 1, tile, vehicles=["veh-a"], obs=obs, links=links, **kw)]
-        )
+        for part in np.array_split(np.arange(len(obs)), cuts):
+            o = obs.take(part)
+            n = len(o)
+            links = Links(
+                np.full(n, lid, np.uint64),
+                np.zeros(n, np.uint32),
+                np.full(n, p, np.uint64),
+                o.t + 5.0,
+                np.ones(n, np.float32),
+            )
+            seq += 1
+            kw = {"created": created} if seq == 1 else {}
+            svc._apply_in_transaction(
+                [assoc_entry(seq, tile, vehicles=["veh-a"], obs=o, links=links, **kw)]
+            )
+        if restart_after is not None and p + 1 == restart_after:
+            svc.db.close()
+            svc = solver(tmp / "s", config)
     m.db.close()
     return svc

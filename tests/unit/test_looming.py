@@ -23,19 +23,12 @@ import pytest
 from scipy import stats
 
 from hdmap.mapping import box_ranges, looming
-from hdmap.runtime.service import ServiceOptions
-from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks
+from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED
 from services.solver.service import SolverConfig
 from services.solver.state import SolverState
 from tests.support.services import (
-    CLS,
     SIGN,
-    assoc_entry,
-    matcher,
     one_sign_solver,
-    sign_rays,
-    solver,
-    tile_of,
     updates,
 )
 
@@ -167,47 +160,16 @@ def test_the_solver_makes_a_candidate_of_a_landmark_its_looming_rules_out(tmp_pa
 
 
 def _split_solver(tmp: Path, cuts: int, restart_after: int | None = None):
-    """The sign of tests/support/services.py over 6 passes with box ranges of a nominal
-    panel, each pass's rays sent in ``cuts`` assoc entries (in order); with
-    ``restart_after``, the solver restarted from its database after that many passes."""
-    tile = tile_of(ServiceOptions().zoom)
-    m = matcher(tmp / "m")
-    frame = m.frames(tile)
-    lid = m.state.next_id(tile)
-    lat, lon, h = frame.to_geodetic(SIGN[None])
-    created = NewLandmarks(np.array([lid], np.uint64), np.full(1, CLS, np.uint16), lat, lon, h)
-    svc = solver(tmp / "s", SolverConfig())
-    rng = np.random.default_rng(7)
-    seq = 0
-    for p in range(6):
-        obs = sign_rays(frame, p, rng)
+    """The sign of tests/support/services.py over 6 passes with the box ranges of a
+    nominal panel, each pass's rays in ``cuts`` assoc entries (:func:`one_sign_solver`)."""
+
+    def ranged(obs, frame):
         dist = np.linalg.norm(SIGN - frame.from_geodetic(obs.lat, obs.lon, obs.h), axis=1)
-        obs = replace(
-            obs,
-            t=np.full(len(obs), 1.7e9 + 60.0 * p),
-            range_m=dist,
-            sigma_range_m=dist * np.hypot(PANEL, 0.03),
-        )
-        for part in np.array_split(np.arange(len(obs)), cuts):
-            o = obs.take(part)
-            n = len(o)
-            links = Links(
-                np.full(n, lid, np.uint64),
-                np.zeros(n, np.uint32),
-                np.full(n, p, np.uint64),
-                o.t + 5.0,
-                np.ones(n, np.float32),
-            )
-            seq += 1
-            kw = {"created": created} if seq == 1 else {}
-            svc._apply_in_transaction(
-                [assoc_entry(seq, tile, vehicles=["veh-a"], obs=o, links=links, **kw)]
-            )
-        if restart_after is not None and p + 1 == restart_after:
-            svc.db.close()
-            svc = solver(tmp / "s", SolverConfig())
-    m.db.close()
-    return svc
+        return replace(obs, range_m=dist, sigma_range_m=dist * np.hypot(PANEL, 0.03))
+
+    return one_sign_solver(
+        tmp, SolverConfig(), 6, edit=ranged, cuts=cuts, restart_after=restart_after
+    )
 
 
 def test_a_pass_cut_into_entries_gives_the_looming_of_the_whole_pass(tmp_path: Path):
