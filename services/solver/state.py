@@ -168,8 +168,7 @@ class SolverState:
                 out[j] += looming.pass_sums(raw).sum(axis=0)
         return out
 
-    @staticmethod
-    def merge_looming(keep: SolverLandmark, drop: SolverLandmark, rot, t) -> None:
+    def merge_looming(self, keep: SolverLandmark, drop: SolverLandmark, rot, t) -> None:
         """``drop``'s box-range and looming sums, open passes too, onto ``keep`` (``x_keep =
         rot x_drop + t``); a pass open on both continues as one."""
         keep.ranges = keep.ranges + ranges_in_frame(drop.ranges, rot, t)
@@ -181,6 +180,8 @@ class SolverState:
             else:
                 mine[: looming.RAW] += moved[: looming.RAW]
                 mine[looming.RAW] = max(mine[looming.RAW], moved[looming.RAW])
+        if keep.loom_open:
+            self._loom_open.add(keep.id)
 
     def facings(self, lms: list[SolverLandmark], n_passes: np.ndarray, min_rays: int) -> Facing:
         """The landmarks' facings, over their passes as independent looks."""

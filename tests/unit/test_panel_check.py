@@ -20,6 +20,7 @@ from hdmap.mapping import box_ranges
 from hdmap.runtime.service import ServiceOptions
 from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED, Links, NewLandmarks, Observations
 from services.solver.service import SolverConfig, SolverService
+from services.solver.state import SolverState
 from tests.support.services import (
     CLS,
     SIGN,
@@ -128,7 +129,8 @@ def test_the_solver_widens_only_what_its_panel_rules_out(tmp_path: Path):
 
 def test_the_box_range_sums_follow_a_merge(tmp_path: Path):
     """Two landmarks of one sign, each with half the passes, merged: the kept one's sums
-    are those of one landmark given every ray from the start."""
+    (box ranges and looming, its open passes too) are those of one landmark given every
+    ray from the start."""
     tile = tile_of(ServiceOptions().zoom)
     m = matcher(tmp_path / "m")
     frame = m.frames(tile)
@@ -167,6 +169,23 @@ def test_the_box_range_sums_follow_a_merge(tmp_path: Path):
     got, want = merged.state.landmarks[ida].ranges, one.state.landmarks[ida].ranges
     assert want[4] > 0
     np.testing.assert_allclose(got, want, rtol=1e-12)
+    # the looming passes, open on both, moved with the merge; once quiet, closed the same
+    a, b = merged.state.landmarks[ida], one.state.landmarks[ida]
+    assert len(a.loom_open) == 8
+    np.testing.assert_allclose(
+        SolverState.looming_sums([a]), SolverState.looming_sums([b]), rtol=1e-9
+    )
+    # every ray on the dropped one: its open passes still close on the kept one
+    moved = SolverService(ServiceOptions(data_dir=tmp_path / "c"), SolverConfig())
+    moved.pubs = Sink()  # type: ignore[assignment]
+    moved._apply_in_transaction([entry(1, [idb], two)])
+    moved._apply_in_transaction([assoc_entry(2, tile, retired=[idb], merged_into=[ida])])
+    c = moved.state.landmarks[ida]
+    for s in (merged, one, moved):
+        assert s.state.close_loom(s.state.event_time + 1.0) == 8
+    np.testing.assert_allclose(a.ranges, b.ranges, rtol=1e-9)
+    np.testing.assert_allclose(c.ranges, b.ranges, rtol=1e-9)
+    moved.db.close()
     merged.db.close()
     one.db.close()
 
