@@ -162,10 +162,10 @@ class SolverState:
         out = np.array([lm.ranges[box_ranges.N_SUMS :] for lm in lms], float).reshape(
             -1, looming.N_SUMS
         )
-        for j, lm in enumerate(lms):
-            if lm.loom_open:
-                raw = np.array([acc[: looming.RAW] for acc in lm.loom_open.values()])
-                out[j] += looming.pass_sums(raw).sum(axis=0)
+        owner = [j for j, lm in enumerate(lms) for _ in lm.loom_open]
+        if owner:  # every open pass of every landmark in one call
+            raw = np.array([acc[: looming.RAW] for lm in lms for acc in lm.loom_open.values()])
+            np.add.at(out, np.array(owner, np.int64), looming.pass_sums(raw))
         return out
 
     def merge_looming(self, keep: SolverLandmark, drop: SolverLandmark, rot, t) -> None:
