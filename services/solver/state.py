@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import heapq
 import sqlite3
 from dataclasses import dataclass, field
 
@@ -79,8 +80,14 @@ class SolverState:
         self.landmarks: dict[int, SolverLandmark] = {}
         self._dirty: set[int] = set()
         self._deleted: set[int] = set()
-        self._loom_open: set[int] = set()
-        """Landmarks with open looming passes."""
+        self._loom_due: list[tuple[float, int, int]] = []
+        """A min-heap of (clock at the last ray, landmark, pass) over the open looming
+        passes, one entry per update (an entry whose pass has moved on since, or closed, is
+        skipped when it comes up): :meth:`close_loom` takes the due ones without looking at
+        the others (a landmark keeps some 50-200 passes open for the 2 hours it waits)."""
+        self._loom_touched: set[tuple[int, int]] = set()
+        """(landmark, pass) of the open passes changed, opened or closed since the last
+        :meth:`save` (the only rows of ``loom_open`` it writes)."""
         self.event_time = 0.0
         """The solver's clock: event time, monotone, saved with the landmarks
         (:meth:`services.solver.service.SolverService.group_time`)."""
@@ -129,29 +136,36 @@ class SolverState:
             lm, pk = lms[int(ranged[k])], int(keys[k])
             acc = lm.loom_open.get(pk)
             if acc is None:
-                lm.loom_open[pk] = np.append(raw[j], last[j])
+                acc = lm.loom_open[pk] = np.append(raw[j], last[j])
             else:
                 acc[: looming.RAW] += raw[j]
                 acc[looming.RAW] = max(acc[looming.RAW], last[j])
-            self._loom_open.add(lm.id)
+            self._note_open(lm.id, pk, acc)
+
+    def _note_open(self, lid: int, pk: int, acc: np.ndarray) -> None:
+        heapq.heappush(self._loom_due, (float(acc[looming.RAW]), lid, pk))
+        self._loom_touched.add((lid, pk))
 
     def close_loom(self, before: float) -> int:
         """Close the open looming passes whose last ray came before clock ``before`` into
         their landmarks' sums; returns how many."""
-        n = 0
-        for lid in sorted(self._loom_open):
+        due: dict[int, set[int]] = {}
+        heap = self._loom_due
+        while heap and heap[0][0] < before:
+            last, lid, pk = heapq.heappop(heap)
             lm = self.landmarks.get(lid)
-            if lm is None:
-                self._loom_open.discard(lid)
-                continue
-            due = [k for k, acc in lm.loom_open.items() if acc[looming.RAW] < before]
-            if due:
-                raw = np.array([lm.loom_open.pop(k)[: looming.RAW] for k in due])
-                lm.ranges[box_ranges.N_SUMS :] += looming.pass_sums(raw).sum(axis=0)
-                self.put(lm)
-                n += len(due)
-            if not lm.loom_open:
-                self._loom_open.discard(lid)
+            acc = None if lm is None else lm.loom_open.get(pk)
+            if acc is not None and acc[looming.RAW] == last:  # else moved on or gone
+                due.setdefault(lid, set()).add(pk)
+        n = 0
+        for lid in sorted(due):
+            lm = self.landmarks[lid]
+            keys = [k for k in lm.loom_open if k in due[lid]]  # in the order they opened
+            raw = np.array([lm.loom_open.pop(k)[: looming.RAW] for k in keys])
+            lm.ranges[box_ranges.N_SUMS :] += looming.pass_sums(raw).sum(axis=0)
+            self._loom_touched.update((lid, k) for k in keys)
+            self.put(lm)
+            n += len(keys)
         return n
 
     @staticmethod
@@ -176,12 +190,11 @@ class SolverState:
             moved = np.append(looming.raw_in_frame(acc[: looming.RAW], rot, t)[0], acc[-1])
             mine = keep.loom_open.get(pk)
             if mine is None:
-                keep.loom_open[pk] = moved
+                mine = keep.loom_open[pk] = moved
             else:
                 mine[: looming.RAW] += moved[: looming.RAW]
                 mine[looming.RAW] = max(mine[looming.RAW], moved[looming.RAW])
-        if keep.loom_open:
-            self._loom_open.add(keep.id)
+            self._note_open(keep.id, pk, mine)
 
     def facings(self, lms: list[SolverLandmark], n_passes: np.ndarray, min_rays: int) -> Facing:
         """The landmarks' facings, over their passes as independent looks."""
@@ -237,16 +250,18 @@ class SolverState:
             "INSERT OR REPLACE INTO ranges(id, sums) VALUES (?,?)",
             [(id_to_sql(lm.id), lm.ranges.tobytes()) for lm in dirty if lm.ranges[4] > 0],
         )
+        opened, closed = [], []
+        for lid, pk in sorted(self._loom_touched):
+            lm = self.landmarks.get(lid)
+            acc = None if lm is None else lm.loom_open.get(pk)
+            if acc is None:
+                closed.append((id_to_sql(lid), id_to_sql(pk)))
+            else:
+                opened.append((id_to_sql(lid), id_to_sql(pk), acc.tobytes()))
+        self._loom_touched.clear()
+        self._conn.executemany("DELETE FROM loom_open WHERE id=? AND pass=?", closed)
         self._conn.executemany(
-            "DELETE FROM loom_open WHERE id=?", [(id_to_sql(lm.id),) for lm in dirty]
-        )
-        self._conn.executemany(
-            "INSERT INTO loom_open(id, pass, sums) VALUES (?,?,?)",
-            [
-                (id_to_sql(lm.id), id_to_sql(pk), acc.tobytes())
-                for lm in dirty
-                for pk, acc in sorted(lm.loom_open.items())
-            ],
+            "INSERT OR REPLACE INTO loom_open(id, pass, sums) VALUES (?,?,?)", opened
         )
         self._conn.executemany(
             "INSERT OR REPLACE INTO existence(id, p, state, first_seen, last_seen) "
@@ -278,7 +293,8 @@ class SolverState:
             if lm is not None:
                 v = np.frombuffer(blob, float)[:RANGE_SUMS]
                 lm.ranges = np.concatenate([v, np.full(RANGE_SUMS - v.size, np.nan)])
-        self._loom_open.clear()
+        self._loom_due.clear()
+        self._loom_touched.clear()
         for i, pk, blob in self._conn.execute(
             "SELECT id, pass, sums FROM loom_open ORDER BY id, pass"
         ):
@@ -286,7 +302,8 @@ class SolverState:
             acc = np.frombuffer(blob, float)
             if lm is not None and acc.size == looming.RAW + 1:  # another layout: dropped
                 lm.loom_open[id_from_sql(pk)] = acc.copy()
-                self._loom_open.add(lm.id)
+                self._loom_due.append((float(acc[looming.RAW]), lm.id, id_from_sql(pk)))
+        heapq.heapify(self._loom_due)
         for i, p, state, first, last in self._conn.execute(
             "SELECT id, p, state, first_seen, last_seen FROM existence"
         ):

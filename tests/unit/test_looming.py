@@ -15,6 +15,7 @@ the whole pass.
 
 from __future__ import annotations
 
+import sqlite3
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from scipy import stats
 from hdmap.mapping import box_ranges, looming
 from schemas import STATUS_CANDIDATE, STATUS_CONFIRMED
 from services.solver.service import SolverConfig
-from services.solver.state import SolverState
+from services.solver.state import SolverLandmark, SolverState
 from tests.support.services import (
     SIGN,
     one_sign_solver,
@@ -190,3 +191,32 @@ def test_a_pass_cut_into_entries_gives_the_looming_of_the_whole_pass(tmp_path: P
     np.testing.assert_allclose(SolverState.looming_sums([c]), sa, rtol=1e-9)
     for s in (whole, cut, restarted):
         s.db.close()
+
+
+def test_open_passes_close_by_their_last_ray_and_only_changed_rows_are_written(tmp_path: Path):
+    """``SolverState``'s due heap skips an entry whose pass has moved on since; a save
+    writes the open passes changed since the last one (a restart reads the same)."""
+    conn = sqlite3.connect(tmp_path / "state.sqlite")
+    st = SolverState(conn)
+    lm = SolverLandmark(7, 0, "t", 0)
+    st.put(lm)
+    h = np.array([[0.0, 1 / 40, 0.0, 0.0, 1.0], [0.0, 1 / 20, 0.0, 0.0, 1.0]])
+    w = np.ones(2)
+
+    def rays(pass_key: int, t: float) -> None:
+        st.note_ranges([lm, lm], h, w, np.full(2, pass_key, np.uint64), np.full(2, t))
+
+    rays(1, 10.0)
+    rays(2, 10.0)
+    st.save(lambda rows: [b""] * len(rows))
+    rays(1, 50.0)  # pass 1 goes on: its entry at 10 is stale
+    writes = []
+    conn.set_trace_callback(writes.append)
+    st.save(lambda rows: [b""] * len(rows))
+    conn.set_trace_callback(None)
+    assert sum("INSERT OR REPLACE INTO loom_open" in q for q in writes) == 1  # pass 1 only
+    assert st.close_loom(20.0) == 1 and list(lm.loom_open) == [1]
+    assert st.close_loom(50.0) == 0 and st.close_loom(50.5) == 1 and not lm.loom_open
+    st.save(lambda rows: [b""] * len(rows))
+    assert conn.execute("SELECT count(*) FROM loom_open").fetchone() == (0,)
+    conn.close()
