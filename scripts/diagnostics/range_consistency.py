@@ -120,7 +120,7 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
         sig = float(np.sqrt(np.linalg.eigvalsh(covs[j][:2, :2])[-1]))
         z = np.log(s_hat) / PANEL_REL_SIGMA if s_hat > 0 else np.nan
         disp, delta, se = _fit(h, w, x)
-        lo_d, lo_se = _looming(h, w, np.array([r[5] for r in rs]), x, covs[j])
+        lo_d, lo_se, lo_q, lo_a = _looming(h, w, np.array([r[5] for r in rs]), x, covs[j])
         if lid in SHOW:
             _show(lid, x, a, d, rng, h, w, tsid, signs, sign_row)
         out.append(
@@ -146,6 +146,8 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
                 se,
                 lo_d,
                 lo_se,
+                lo_q,
+                lo_a,
             )
         )
     hdr = (
@@ -200,6 +202,16 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
             int((np.abs(po) > 3).sum()),
             " > 4:",
             int((np.abs(po) > 4).sum()),
+        )
+        q, a_ = p[:, 21].astype(float), p[:, 22].astype(float)
+        ok = a_ > 0
+        print(
+            "  passes' shared error along the slope (tau, m): pooled",
+            round(float(np.sqrt(max(q[ok].sum() / a_[ok].sum(), 0.0))), 2),
+            "per landmark 10/50/90 %:",
+            np.round(
+                np.sqrt(np.maximum(np.percentile(q[ok] / a_[ok], [10, 50, 90]), 0)), 2
+            ).tolist(),
         )
         print("  corr(delta, along):", round(float(np.corrcoef(delta, along)[0, 1]), 3))
         big = np.abs(along) > 3
@@ -271,13 +283,29 @@ TAU_M = 2.5
 
 def _looming(
     h: np.ndarray, w: np.ndarray, key: np.ndarray, x: np.ndarray, cov: np.ndarray
-) -> tuple[float, float]:
-    """(delta, sd): :func:`hdmap.mapping.looming.discrepancy` over the landmark's rays,
-    passes by their keys (``TAU_M``)."""
+) -> tuple[float, float, float, float]:
+    """(delta, sd, q, a): :func:`hdmap.mapping.looming.discrepancy` over the landmark's
+    rays, passes by their keys (``TAU_M``); and what the passes' own slopes say of their
+    shared error: ``q = sum_p S_p (delta_p - delta)^2 - c (P - 1)`` (their scatter beyond
+    the white part) and ``a = sum_p |N_p|^2 / S_p - sum_p |N_p|^2 / S``, whose ratio
+    estimates ``tau^2`` (``E q = tau^2 a``)."""
     _, piece = np.unique(key, return_inverse=True)
-    sums = looming.summed(np.zeros(w.size, np.int64), piece.reshape(-1), h, w)
+    piece = piece.reshape(-1)
+    sums = looming.summed(np.zeros(w.size, np.int64), piece, h, w)
     t, _, spread = looming.discrepancy(sums, x[None], cov[None], TAU_M)
-    return float(t[0] * np.sqrt(spread[0])), float(np.sqrt(spread[0]))
+    raw = np.zeros((int(piece.max()) + 1, looming.RAW))
+    np.add.at(raw, piece, looming.raw_terms(h, w))
+    per = looming.pass_sums(raw)
+    per = per[per[:, 4] > 0]
+    xx = np.append(x, 1.0)
+    d_p = per[:, :4] @ xx / per[:, 4]
+    big_s = per[:, 4].sum()
+    delta = float(per[:, :4].sum(0) @ xx / big_s)
+    _, var, _, _ = looming.offset(sums, x[None])
+    c = float(var[0] * big_s)
+    q = float((per[:, 4] * (d_p - delta) ** 2).sum() - c * (len(per) - 1))
+    a = float((per[:, 5] / per[:, 4]).sum() - per[:, 5].sum() / big_s)
+    return float(t[0] * np.sqrt(spread[0])), float(np.sqrt(spread[0])), q, a
 
 
 def _cov(blob: bytes) -> np.ndarray:

@@ -102,14 +102,17 @@ class SolverConfig:
     than this many standard deviations along the line of sight from its estimate gets its
     covariance widened along the line of sight until the two agree within one (so it stays
     a candidate past ``confirm_max_sigma_m``); 0: no check. The standard deviation is the
-    rays' white part, what the passes' shared position errors (``loom_pass_sigma_m``) do to
-    the slope, and the estimate's own. Catches a sign seen from one street whose bearings
-    put it 6-10 m along the street with a sigma under 2 m (the phones' street-level
-    errors), which the panel's size alone cannot rule out (docs/estimator.md section 7).
-    Pitfall: noise on the boxes' heights biases the slope (estimator section 7)."""
+    rays' white part, what the passes' shared position errors (measured;
+    ``loom_pass_sigma_m``) do to the slope, and the estimate's own. Catches a sign seen
+    from one street whose bearings put it 6-10 m along the street with a sigma under 2 m
+    (the phones' street-level errors), which the panel's size alone cannot rule out
+    (docs/estimator.md section 7). Pitfall: noise on the boxes' heights biases the slope
+    (estimator section 7)."""
     loom_pass_sigma_m: float = 2.5
-    """The passes' shared position error along the line of sight the looming check assumes
-    (per pass; the estimator's ``pass_sigma_m``)."""
+    """The prior (4 pseudo passes) of the passes' shared position error per axis the
+    looming check measures per landmark from its passes' own slopes
+    (:func:`hdmap.mapping.looming.shared_error`; 3.0 m measured on the simulated receiver,
+    1.4 m on the phones' errors)."""
     facing_min_rays: int = FacingConfig.min_rays
     """Rays a landmark needs before its facing is published (:mod:`hdmap.mapping.facing`)."""
 
