@@ -83,7 +83,9 @@ def payloads(n_uploads: int) -> tuple[list[tuple[str, bytes, int]], list[str]]:
 
 
 class Uploader(threading.Thread):
-    """Sends the uploads in order, each until acknowledged, ``pace_s`` apart."""
+    """Sends the uploads in order, each until acknowledged, ``pace_s`` apart, and holds
+    once ``limit`` are sent (a rescale keeps some for after its command: on a busy machine
+    the uploads can otherwise all be sent before it)."""
 
     def __init__(self, session, uploads, pace_s: float) -> None:
         super().__init__(daemon=True)
@@ -92,17 +94,23 @@ class Uploader(threading.Thread):
         self.sent = 0
         self.resent = 0
         self.refused = 0  # acknowledged with an error (not a timeout)
+        self.limit = len(uploads)
+        self.last_failure = None  # the last refusal or reply of a failed try (for messages)
         self.stop = threading.Event()
 
     def run(self) -> None:
         for v, body, _n in self.uploads:
+            while self.sent >= self.limit and not self.stop.is_set():
+                time.sleep(0.05)
             while not self.stop.is_set():
-                got = [ok for _k, ok, _e in query(self.s, keys.upload(v), body, 10.0) if ok]
+                replies = query(self.s, keys.upload(v), body, 10.0)
+                got = [ok for _k, ok, _e in replies if ok]
                 if got and UploadAck.from_bytes(got[0]).error is None:
                     ack = UploadAck.from_bytes(got[0])
                     self.acked += len(ack.accepted) + len(ack.duplicates)
                     break
                 self.refused += bool(got)
+                self.last_failure = UploadAck.from_bytes(got[0]).error if got else replies[:1]
                 self.resent += 1
                 time.sleep(0.2)
             self.sent += 1
@@ -159,14 +167,17 @@ def run(stack, uploads, tiles, rescale=None) -> tuple[dict, dict, float]:
             stack.stop_all()
 
 
-def split_midway(stack, up) -> None:
+def split_midway(stack, up, then_hold_at: int | None = None) -> None:
+    """Split at a quarter of the uploads (then let them go on, up to ``then_hold_at``)."""
     assert wait_until(lambda: up.sent >= len(up.uploads) // 4, 120.0)
     at, refused = up.sent, up.refused
+    up.limit = at + 20  # uploads go on during the command, some are left after it
     r = region_cmd(stack, "split", "all", "--into", "1", "--into", "0+2+3")
     assert r.returncode == 0, r.stderr + r.stdout
     assert "paused" in r.stdout and "stopped" in r.stdout
     print(next(line for line in r.stdout.splitlines() if line.startswith("paused for")))
     went_on(up, at, refused)
+    up.limit = len(up.uploads) if then_hold_at is None else then_hold_at
     stack.procs["matcher-all"].popen.wait(30)  # the handover stopped them
     stack.procs["solver-all"].popen.wait(30)
     start_parts(stack, PARTS)
@@ -179,7 +190,10 @@ def went_on(up, at: int, refused: int) -> None:
     """Ingest refused no upload while a region command ran (``refused``: the uploader's
     count before it) and they go on after it (not a race against the command's own speed:
     on a busy machine one upload can outlast it)."""
-    assert wait_until(lambda: up.sent > at, 60.0)
+    assert wait_until(lambda: up.sent > at, 60.0), (
+        f"sent {up.sent} of {len(up.uploads)} (at {at}), refused {up.refused}, "
+        f"retried {up.resent}, last failure {up.last_failure}"
+    )
     assert up.refused == refused, f"{up.refused - refused} uploads refused during the command"
 
 
@@ -198,17 +212,19 @@ def merge_back(stack, up) -> None:
     merge brings both to one position of ingest's log first (``cut``: the paused part
     applies its backlog, then both hold), so the joined matcher goes on from a state the
     unsplit one had (tests/unit/test_partition.py shows what a join apart changes)."""
-    split_midway(stack, up)
+    split_midway(stack, up, then_hold_at=len(up.uploads) // 2)
     with open_session(stack.bus) as s:
         assert ask(s, "matcher", "1", "pause").paused
     assert wait_until(lambda: up.sent >= len(up.uploads) // 2, 120.0)
     at, refused = up.sent, up.refused
+    up.limit = at + 20
     r = region_cmd(stack, "merge", "--from", "1", "--from", "0+2+3", "--into", "all")
     assert r.returncode == 0, r.stderr + r.stdout
     print(r.stdout)
     held = re.findall(r"matcher (\S+): holds at the cut", r.stdout)
     assert sorted(held) == ["0+2+3", "1"]
     went_on(up, at, refused)
+    up.limit = len(up.uploads)
     for part in PARTS:
         for svc in ("matcher", "solver"):
             stack.procs[stack.service_key(svc, part)].popen.wait(30)
