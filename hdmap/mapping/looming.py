@@ -112,7 +112,7 @@ def pass_sums(raw: ArrayLike) -> Array:
     vbar)^2``, ``|N[:3]|^2``, and ``M = sum w h h^T - H H^T / W - N N^T / S`` (``H = sum
     w h[:4]``, ``W = sum w``): ``(x, 1)^T M (x, 1)`` is the weighted squared residual of
     the pass's rays about its fitted line at ``x``, with ``n - 2`` degrees of freedom; then
-    ``N N^T / S`` (``(x, 1)^T`` it ``(x, 1)`` is ``S`` times the pass's own slope squared),
+    ``N N^T / S`` (its form at ``(x, 1)`` is ``S`` times the pass's own slope squared),
     ``|N[:3]|^2 / S`` and 1 (0 where the pass's inverse ranges do not spread)."""
     per = np.asarray(raw, float).reshape(-1, RAW)
     w, wv = per[:, 0], per[:, 1]
@@ -229,7 +229,11 @@ def shared_error(sums: ArrayLike, x: ArrayLike, prior_m: float) -> Array:
     variance ``c / S_p``, shared ``tau^2 |N_p|^2 / S_p^2``), ``q = sum_p S_p (delta_p -
     delta)^2 - c (P - 1)`` has expectation ``tau^2 a``, ``a = sum_p |N_p|^2 / S_p - sum_p
     |N_p|^2 / S``; :data:`SHARED_PRIOR_PASSES` at ``prior_m`` (of the same ``a`` per pass)
-    are added. Sums without these terms (an older layout, NaN) give ``prior_m^2``."""
+    are added. Sums without these terms (an older layout, NaN) give ``prior_m^2``.
+
+    Pitfall: a landmark holding two panels' rays (a mixture) has passes whose slopes
+    disagree; its ``tau`` grows and its check weakens (not measured yet on the
+    evaluation's mixtures)."""
     s = np.asarray(sums, float).reshape(-1, N_SUMS)
     x = np.asarray(x, float).reshape(-1, 3)
     xx = np.concatenate([x, np.ones((len(x), 1))], axis=1)
