@@ -232,8 +232,10 @@ def shared_error(sums: ArrayLike, x: ArrayLike, prior_m: float) -> Array:
     are added. Sums without these terms (an older layout, NaN) give ``prior_m^2``.
 
     Pitfall: a landmark holding two panels' rays (a mixture) has passes whose slopes
-    disagree; its ``tau`` grows and its check weakens (not measured yet on the
-    evaluation's mixtures)."""
+    disagree; its ``tau`` grows and its check weakens. On the evaluation's seed 0 (main
+    of 2299e31) its three mixtures had ``tau`` 2.3, 5.1 (phones) and 3.1 m (simulated
+    receiver) against the paired landmarks' 99th percentile of 4.0 and 5.0 m: ``tau``
+    does not tell a mixture apart either."""
     s = np.asarray(sums, float).reshape(-1, N_SUMS)
     x = np.asarray(x, float).reshape(-1, 3)
     xx = np.concatenate([x, np.ones((len(x), 1))], axis=1)

@@ -208,9 +208,9 @@ def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
         print(
             "  passes' shared error along the slope (tau, m): pooled",
             round(float(np.sqrt(max(q[ok].sum() / a_[ok].sum(), 0.0))), 2),
-            "per landmark 10/50/90 %:",
+            "per landmark 10/50/90/99/100 %:",
             np.round(
-                np.sqrt(np.maximum(np.percentile(q[ok] / a_[ok], [10, 50, 90]), 0)), 2
+                np.sqrt(np.maximum(np.percentile(q[ok] / a_[ok], [10, 50, 90, 99, 100]), 0)), 2
             ).tolist(),
         )
         print("  corr(delta, along):", round(float(np.corrcoef(delta, along)[0, 1]), 3))
