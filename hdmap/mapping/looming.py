@@ -137,7 +137,7 @@ def pass_sums(raw: ArrayLike) -> Array:
             m[:, _IU[0], _IU[1]] * (dof > 0)[:, None],
             dof[:, None],
             n_p[:, _IU[0]] * n_s[:, _IU[1]],
-            (nn * np.where(s_p > 0, 1.0 / np.where(s_p > 0, s_p, 1.0), 0.0))[:, None],
+            np.einsum("ki,ki->k", n_p[:, :3], n_s[:, :3])[:, None],
             (s_p > 0).astype(float)[:, None],
         ],
         axis=1,
@@ -223,13 +223,39 @@ def offset(sums: ArrayLike, x: ArrayLike) -> tuple[Array, Array, Array, Array]:
     return delta, c / den, g, s[:, 5] / den**2
 
 
-def shared_error(sums: ArrayLike, x: ArrayLike, prior_m: float) -> Array:
-    """``tau^2`` (k,): the passes' shared position error per axis, m^2, as their own slopes
-    at ``x`` scatter about the pooled one. With pass ``p``'s slope ``delta_p`` (white
+def shared_scatter(sums: ArrayLike, x: ArrayLike) -> tuple[Array, Array]:
+    """(q, a) (k,) at trial points ``x``: with pass ``p``'s own slope ``delta_p`` (white
     variance ``c / S_p``, shared ``tau^2 |N_p|^2 / S_p^2``), ``q = sum_p S_p (delta_p -
     delta)^2 - c (P - 1)`` has expectation ``tau^2 a``, ``a = sum_p |N_p|^2 / S_p - sum_p
-    |N_p|^2 / S``; :data:`SHARED_PRIOR_PASSES` at ``prior_m`` (of the same ``a`` per pass)
-    are added. Sums without these terms (an older layout, NaN) give ``prior_m^2``.
+    |N_p|^2 / S`` (NaN for sums of an older layout)."""
+    s = np.asarray(sums, float).reshape(-1, N_SUMS)
+    x = np.asarray(x, float).reshape(-1, 3)
+    return _scatter(s, x, *offset(s, x)[:2])
+
+
+def _scatter(s: Array, x: Array, delta: Array, var: Array) -> tuple[Array, Array]:
+    """:func:`shared_scatter` from :func:`offset`'s ``delta`` and ``var`` at ``x``."""
+    xx = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+    den = np.where(s[:, 4] > 0, s[:, 4], np.nan)
+    q = np.einsum("ki,kij,kj->k", xx, _sym(s[:, 17:27]), xx) - den * delta**2
+    q = q - var * den * np.maximum(s[:, 28] - 1.0, 0.0)
+    return q, s[:, 27] - s[:, 5] / den
+
+
+def _tau2(s: Array, q: Array, a: Array, prior_m: float) -> Array:
+    """``q / a`` with :data:`SHARED_PRIOR_PASSES` at ``prior_m`` (of the same ``a`` per
+    pass); ``prior_m^2`` where there is no measure."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w0 = SHARED_PRIOR_PASSES * a / s[:, 28]
+        tau2 = (q + w0 * prior_m**2) / (a + w0)
+    return np.where(np.isfinite(tau2) & (a > 0), np.maximum(tau2, 0.0), prior_m**2)
+
+
+def shared_error(sums: ArrayLike, x: ArrayLike, prior_m: float) -> Array:
+    """``tau^2`` (k,): the passes' shared position error per axis, m^2, as their own slopes
+    at ``x`` scatter about the pooled one (:func:`shared_scatter`'s ``q / a``), with
+    :data:`SHARED_PRIOR_PASSES` at ``prior_m``. Sums without these terms (an older layout,
+    NaN) give ``prior_m^2``.
 
     Pitfall: a landmark holding two panels' rays (a mixture) has passes whose slopes
     disagree; its ``tau`` grows and its check weakens. On the evaluation's seed 0 (main
@@ -237,18 +263,7 @@ def shared_error(sums: ArrayLike, x: ArrayLike, prior_m: float) -> Array:
     receiver) against the paired landmarks' 99th percentile of 4.0 and 5.0 m: ``tau``
     does not tell a mixture apart either."""
     s = np.asarray(sums, float).reshape(-1, N_SUMS)
-    x = np.asarray(x, float).reshape(-1, 3)
-    xx = np.concatenate([x, np.ones((len(x), 1))], axis=1)
-    den = np.where(s[:, 4] > 0, s[:, 4], np.nan)
-    delta, var, _, _ = offset(s, x)
-    n_pass = s[:, 28]
-    q = np.einsum("ki,kij,kj->k", xx, _sym(s[:, 17:27]), xx) - den * delta**2
-    q = q - var * den * np.maximum(n_pass - 1.0, 0.0)
-    a = s[:, 27] - s[:, 5] / den
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w0 = SHARED_PRIOR_PASSES * a / n_pass
-        tau2 = (q + w0 * prior_m**2) / (a + w0)
-    return np.where(np.isfinite(tau2) & (a > 0), np.maximum(tau2, 0.0), prior_m**2)
+    return _tau2(s, *shared_scatter(s, x), prior_m)
 
 
 def discrepancy(
@@ -261,9 +276,11 @@ def discrepancy(
     ``delta`` move). With one panel at the estimate's place up to ``C``, ``t`` is about
     standard normal; NaN where no pass's inverse ranges spread. Where it is too large,
     :func:`hdmap.mapping.box_ranges.widened_along` with ``g`` and ``spread``."""
-    delta, var, g, m2 = offset(sums, x)
+    s = np.asarray(sums, float).reshape(-1, N_SUMS)
+    x = np.asarray(x, float).reshape(-1, 3)
+    delta, var, g, m2 = offset(s, x)
     c = np.asarray(cov, float).reshape(-1, 3, 3)
-    tau2 = shared_error(sums, x, tau_m)
+    tau2 = _tau2(s, *_scatter(s, x, delta, var), tau_m)
     spread = var + tau2 * m2 + np.einsum("ki,kij,kj->k", g, c, g)
     with np.errstate(invalid="ignore"):
         t = delta / np.sqrt(spread)

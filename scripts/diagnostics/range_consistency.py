@@ -285,27 +285,13 @@ def _looming(
     h: np.ndarray, w: np.ndarray, key: np.ndarray, x: np.ndarray, cov: np.ndarray
 ) -> tuple[float, float, float, float]:
     """(delta, sd, q, a): :func:`hdmap.mapping.looming.discrepancy` over the landmark's
-    rays, passes by their keys (``TAU_M``); and what the passes' own slopes say of their
-    shared error: ``q = sum_p S_p (delta_p - delta)^2 - c (P - 1)`` (their scatter beyond
-    the white part) and ``a = sum_p |N_p|^2 / S_p - sum_p |N_p|^2 / S``, whose ratio
-    estimates ``tau^2`` (``E q = tau^2 a``)."""
+    rays, passes by their keys (``TAU_M``); and :func:`hdmap.mapping.looming.shared_scatter`
+    (``E q = tau^2 a``: the passes' own slopes' scatter beyond their white part)."""
     _, piece = np.unique(key, return_inverse=True)
-    piece = piece.reshape(-1)
-    sums = looming.summed(np.zeros(w.size, np.int64), piece, h, w)
+    sums = looming.summed(np.zeros(w.size, np.int64), piece.reshape(-1), h, w)
     t, _, spread = looming.discrepancy(sums, x[None], cov[None], TAU_M)
-    raw = np.zeros((int(piece.max()) + 1, looming.RAW))
-    np.add.at(raw, piece, looming.raw_terms(h, w))
-    per = looming.pass_sums(raw)
-    per = per[per[:, 4] > 0]
-    xx = np.append(x, 1.0)
-    d_p = per[:, :4] @ xx / per[:, 4]
-    big_s = per[:, 4].sum()
-    delta = float(per[:, :4].sum(0) @ xx / big_s)
-    _, var, _, _ = looming.offset(sums, x[None])
-    c = float(var[0] * big_s)
-    q = float((per[:, 4] * (d_p - delta) ** 2).sum() - c * (len(per) - 1))
-    a = float((per[:, 5] / per[:, 4]).sum() - per[:, 5].sum() / big_s)
-    return float(t[0] * np.sqrt(spread[0])), float(np.sqrt(spread[0])), q, a
+    q, a = looming.shared_scatter(sums, x[None])
+    return float(t[0] * np.sqrt(spread[0])), float(np.sqrt(spread[0])), float(q[0]), float(a[0])
 
 
 def _cov(blob: bytes) -> np.ndarray:

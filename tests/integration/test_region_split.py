@@ -105,12 +105,12 @@ class Uploader(threading.Thread):
             while not self.stop.is_set():
                 replies = query(self.s, keys.upload(v), body, 10.0)
                 got = [ok for _k, ok, _e in replies if ok]
-                if got and UploadAck.from_bytes(got[0]).error is None:
-                    ack = UploadAck.from_bytes(got[0])
+                ack = UploadAck.from_bytes(got[0]) if got else None
+                if ack is not None and ack.error is None:
                     self.acked += len(ack.accepted) + len(ack.duplicates)
                     break
-                self.refused += bool(got)
-                self.last_failure = UploadAck.from_bytes(got[0]).error if got else replies[:1]
+                self.refused += ack is not None
+                self.last_failure = replies[:1] if ack is None else ack.error
                 self.resent += 1
                 time.sleep(0.2)
             self.sent += 1

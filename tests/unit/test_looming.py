@@ -100,16 +100,29 @@ def test_the_passes_shared_error_is_measured_from_their_slopes(claim):
     n = 200
     sums = np.concatenate([sums_of(passes(rng, 30, claim=claim)) for _ in range(n)])
     x = np.zeros((n, 3))
-    # no prior: tau^2 (a + w0) = q, w0 = 4 a / 30
-    a = sums[:, 27] - sums[:, 5] / sums[:, 4]
-    q = looming.shared_error(sums, x, 0.0) * a * (1.0 + looming.SHARED_PRIOR_PASSES / 30)
-    tau2 = q.sum() / a.sum()  # q clipped at 0 on few landmarks: a small upward bias
+    q, a = looming.shared_scatter(sums, x)
+    tau2 = q.sum() / a.sum()
     se = np.sqrt(((q - tau2 * a) ** 2).sum()) / a.sum()
     assert abs(tau2 - TAU**2) < 4 * se, (tau2, se)
     assert se < 0.15 * TAU**2
     # a prior twice too small or large weighs as 4 of 34 passes: 0.90 and 1.35 TAU^2
     lo, hi = (np.median(looming.shared_error(sums, x, p)) for p in (TAU / 2, TAU * 2))
     assert 0.7 * TAU**2 < lo < TAU**2 < hi < 1.6 * TAU**2
+    # q and a are the passes' own slopes' scatter, as computed pass by pass
+    rays = passes(rng, 30, claim=claim)
+    a_, d_, r_, sr_, p_ = rays
+    h, w = box_ranges.ray_terms(a_, d_, r_, sr_, 0.5, PANEL)
+    raw = np.zeros((30, looming.RAW))
+    np.add.at(raw, p_.astype(np.int64), looming.raw_terms(h, w))
+    per = looming.pass_sums(raw)
+    one = looming.summed(np.zeros(len(r_), np.int64), p_, h, w)
+    x1 = np.array([[1.0, 3.0, 0.5]])
+    d_p = per[:, :4] @ np.append(x1, 1.0) / per[:, 4]
+    delta, var, _, _ = looming.offset(one, x1)
+    s_all = per[:, 4].sum()
+    q1 = (per[:, 4] * (d_p - delta[0]) ** 2).sum() - var[0] * s_all * 29
+    a1 = (per[:, 5] / per[:, 4]).sum() - per[:, 5].sum() / s_all
+    np.testing.assert_allclose(looming.shared_scatter(one, x1), [[q1], [a1]], rtol=1e-6)
     older = sums.copy()
     older[:, 17:] = np.nan  # sums of an older layout: the prior
     np.testing.assert_allclose(looming.shared_error(older, x, TAU), TAU**2)
