@@ -28,14 +28,18 @@ Detections of one image never share a landmark: each image's assignment is a
 small linear assignment problem (:func:`hdmap.mapping.assignment.min_cost_assignment`) on chi2.
 
 Pitfall (signs on one line of sight, open): two same-class signs one behind the other
-(the fleet evaluation's seed 0 signs 99 and 167, 10.6 m apart) end as one landmark at the
-nearer sign holding the farther one's rays. The farther sign is only seen from 40-65 m;
-under an offset the unit's other landmarks fix to about 0.1 m, its rays and box ranges
-(about 20 % sigma) fit either landmark, per ray and per track alike, and its young
-landmarks merge into the nearer one (docs/experiments/2026-12-group-check-tracks.md).
-Nothing here weighs "a new sign behind" against a link; a test on one track, the track's
-own triangulation against "an unmapped sign here", did not separate right links from
-wrong ones.
+(the fleet evaluation's seed 0 signs 99 and 167, 10.6 m apart and 1.3 degrees apart from
+the street that sees both at 42-59 m; 167 the nearer and seen only from there, 99 also
+head-on from a second street at 6-25 m). 167's landmark starts at 167 and ends between
+the two, confirmed, holding 99's rays, most of them brought by young landmarks merged into
+it: a quarter of the passes link none of 99's near rays, which start young landmarks with
+the pass's far rays of both signs. From the first street the rays and box ranges (about
+20 % sigma) fit either landmark, per ray and per track alike. Nothing here weighs "a new sign
+behind" against a link; a test on one track, the track's own triangulation against "an
+unmapped sign here", did not separate right links from wrong ones;
+``offset_hypothesis_margin`` 0 (the best-scored fit wins) removes the false landmark on the
+simulated receiver's logs but adds false landmarks on the phones'
+(docs/experiments/2026-12-line-of-sight-mixture.md, 2026-12-group-check-tracks.md).
 
 >>> import numpy as np
 >>> angles(np.array([[1.0, 1.0, 0.0]]))[0].round(4).tolist()
