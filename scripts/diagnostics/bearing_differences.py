@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from landmark_pairs import successors
+from landmark_pairs import labels, successors
 
 from hdmap.geo.geodesy import EnuFrame
 from schemas.logs import AssocGroup
@@ -37,9 +37,7 @@ for lid, cls, x in db.execute("SELECT id, cls, x FROM landmarks"):
 ids = np.array(list(lms))
 X = np.array([lms[i][1] for i in ids])
 report = json.loads((run / "fleet.json").read_text())
-label = {s["landmark"]: f"s{s['sign']}" for s in report["signs"] if s["found"]}
-for u in report["unpaired"]:
-    label[u["landmark"]] = f"U{u.get('obs_top_sign')}"
+label = labels(report)
 # collect links
 rows = defaultdict(list)  # (veh, pass, image) -> list of (lid, cls, lat, lon, h, dir, saz)
 for g in groups:

@@ -42,6 +42,15 @@ def successors(groups: list[AssocGroup]) -> dict[int, int]:
     return final
 
 
+def labels(report: dict) -> dict[int, str]:
+    """Per landmark id of a ``fleet.json``: ``sN`` paired with sign N, ``UN`` unpaired
+    whose linked rays mostly saw sign N."""
+    lab = {s["landmark"]: f"s{s['sign']}" for s in report["signs"] if s["found"]}
+    for u in report["unpaired"]:
+        lab[u["landmark"]] = f"U{u.get('obs_top_sign')}"
+    return lab
+
+
 def links_by_landmark(groups: list[AssocGroup]) -> tuple[dict, dict]:
     """Per final landmark id: its (vehicle, pass) keys and (vehicle, pass, image) keys."""
     final = successors(groups)

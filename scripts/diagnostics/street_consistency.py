@@ -8,10 +8,10 @@ link of the matcher's association log goes to the landmark that holds it at the 
 fresh ``LandmarkSums`` (default ``EstimatorConfig``, passes as clusters), then split by
 viewing azimuth into the rays within ``SPLIT_DEG`` (default 35) of their circular mean and
 the rest. Where both parts have 10+ passes, each part is solved alone and compared with the
-whole: ``chi2`` of the horizontal offset against the part's covariance plus a 0.25 m
-floor per axis. Prints the 25 largest (label, status, part, its passes, offset, the part's
-sigmas) and the paired landmarks' percentiles; labels: ``sN`` paired with sign N, ``UN``
-unpaired whose rays mostly saw sign N (``*``: confirmed).
+whole: ``chi2`` of the horizontal offset against the part's covariance plus the map floor
+the run applied. Prints the 25 largest (label, status, part, its passes, offset, the
+part's sigmas) and the paired landmarks' percentiles; labels: ``sN`` paired with sign N,
+``UN`` unpaired whose rays mostly saw sign N.
 """
 
 from __future__ import annotations
@@ -23,21 +23,11 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from landmark_pairs import successors
+from landmark_pairs import labels, successors
 
 from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
 from hdmap.mapping.estimator import EstimatorConfig, LandmarkSums, Rays
 from schemas.logs import AssocGroup
-
-FLOOR_M2 = np.eye(2) * 0.25**2
-
-
-def labels(run: Path) -> dict[int, str]:
-    rep = json.loads((run / "fleet.json").read_text())
-    lab = {s["landmark"]: f"s{s['sign']}" for s in rep["signs"] if s["found"]}
-    for u in rep["unpaired"]:
-        lab[u["landmark"]] = f"U{u.get('obs_top_sign')}" + ("*" if u["status"] == 1 else "")
-    return lab
 
 
 def rays_by_landmark(run: Path, world, keep: set[int]) -> dict[int, tuple]:
@@ -104,7 +94,9 @@ def main(root: Path, seed: int, split_deg: float) -> None:
     status = {
         lid: st for lid, st, n in pub.execute("SELECT id, status, n_passes FROM current") if n >= 50
     }
-    lab = labels(run)
+    report = json.loads((run / "fleet.json").read_text())
+    lab = labels(report)
+    floor = np.diag(np.square(report["map_floor"]["applied"]["sigma_m"][:2]))
     rows = []
     for lid, cols in rays_by_landmark(run, world, set(status)).items():
         origin, d, pk = cols[0], cols[1], cols[6]
@@ -123,7 +115,7 @@ def main(root: Path, seed: int, split_deg: float) -> None:
             if not oks:
                 continue
             dx = (xs - x)[:2]
-            cov = cs[:2, :2] + FLOOR_M2
+            cov = cs[:2, :2] + floor
             chi2 = float(dx @ np.linalg.solve(cov, dx))
             if chi2 > worst[0]:
                 sig = np.sqrt(np.linalg.eigvalsh(cov)).round(2).tolist()

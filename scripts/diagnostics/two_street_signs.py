@@ -117,7 +117,7 @@ def report(world, row: int, acc: SignRays, est: EstimatorConfig) -> None:
         f"{np.degrees(face) % 360:.0f} deg): {len(rays)} rays, {np.unique(pas).size} passes"
     )
     parts = (
-        ("all", np.abs(off) >= 0.0),
+        ("all", np.ones(off.shape, bool)),
         ("near facing", np.abs(off) <= 30.0),
         ("oblique", np.abs(off) > 30.0),
     )
