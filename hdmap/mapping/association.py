@@ -33,7 +33,9 @@ the street that sees both at 42-59 m; 167 the nearer and seen only from there, 9
 head-on from a second street at 6-25 m). 167's landmark starts at 167 and ends between
 the two, confirmed, holding 99's rays, most of them brought by young landmarks merged into
 it: a quarter of the passes link none of 99's near rays, which start young landmarks with
-the pass's far rays of both signs. From the first street the rays and box ranges (about
+the pass's far rays of both signs (association gives them to 99's landmark in nearly all of
+those passes; the group check takes them back, see ``MatchingConfig.group_check``).
+From the first street the rays and box ranges (about
 20 % sigma) fit either landmark, per ray and per track alike. Nothing here weighs "a new sign
 behind" against a link; a test on one track, the track's own triangulation against "an
 unmapped sign here", did not separate right links from wrong ones;

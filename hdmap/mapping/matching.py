@@ -171,7 +171,15 @@ class MatchingConfig:
     """The rays of one unit given to one landmark must meet near it: their own
     triangulation (origins moved by the unit's offset) against the landmark, chi-square
     (3 dof) under both covariances and the offset's. Rays of a neighbouring sign of the
-    class pass the per-ray gate one by one, but they meet at their own sign."""
+    class pass the per-ray gate one by one, but they meet at their own sign.
+
+    Pitfall: the triangulation assumes white noise. A unit's tracks of one sign from two
+    streets share the pass's heading error, which moves a far track's meeting point by its
+    range times the angle; together they then fail a right landmark (the fleet evaluation's
+    seed 0: 89 of 577 passes' groups of sign 99, 64 holding 99's rays only). Testing each
+    track alone, a heading estimated with the offset, or the rays' azimuth variance as a
+    shared rotation of the group moved the false landmarks elsewhere rather than removing
+    them (docs/experiments/2026-12-group-check-by-track.md)."""
     group_chi2: float = 16.27
     """Largest chi-square (3 dof; 16.27 = 99.9 %) of a group's triangulation against its
     landmark."""

@@ -176,3 +176,38 @@ def test_offset_hypotheses_align_a_lattice_of_identical_signs():
     assert np.all(right[3] >= 0.95), right[3]
     assert right[3].mean() > 0.99
     assert GateConfig().offset_hypotheses == 3
+
+
+def _score(res, cfg: GateConfig) -> float:
+    """A fit's score as the hypotheses are compared: the linked rays' margins
+    ``chi2_gate - chi2`` less the offset's chi-square under the pass-bias prior."""
+    linked = (res.landmark >= 0) & np.isfinite(res.chi2)
+    prior = np.array([cfg.pass_bias_sigma_m, cfg.pass_bias_sigma_m, cfg.vertical_bias_sigma_m])
+    return float(np.sum(cfg.chi2_gate - res.chi2[linked]) - np.sum((res.offset / prior) ** 2))
+
+
+def test_an_alternative_offset_replaces_the_first_fit_only_by_the_margin():
+    """Between the first fit (the wide gate's assignment, iterated) and the alternatives
+    (the longest track put on each candidate): an alternative is taken only when it
+    scores at least ``offset_hypothesis_margin`` above the first; with the margin at 0 the
+    best-scored fit is taken; with an unreachable margin the first fit always stays."""
+    base = GateConfig()
+    taken = 0
+    for seed in range(40):
+        rays, x, cov, _truth = _lattice_unit(seed)
+        first, default, best, never = (
+            associate(rays, x, cov, np.full(len(x), 4), replace(base, **kw))
+            for kw in (
+                {"offset_hypotheses": 0},
+                {},
+                {"offset_hypothesis_margin": 0.0},
+                {"offset_hypothesis_margin": 1e9},
+            )
+        )
+        assert np.array_equal(never.landmark, first.landmark)
+        assert _score(best, base) >= _score(first, base) - 1e-9
+        assert _score(best, base) >= _score(default, base) - 1e-9
+        if not np.array_equal(default.landmark, first.landmark):
+            taken += 1
+            assert _score(default, base) >= _score(first, base) + base.offset_hypothesis_margin
+    assert taken >= 2  # the lattice makes the first fit lose on some seeds
