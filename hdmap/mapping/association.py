@@ -34,14 +34,14 @@ head-on from a second street at 6-25 m). 167's landmark starts at 167 and ends b
 the two, confirmed, holding 99's rays, most of them brought by young landmarks merged into
 it: a quarter of the passes link none of 99's near rays, which start young landmarks with
 the pass's far rays of both signs (association gives them to 99's landmark in nearly all of
-those passes; the group check takes them back, see ``MatchingConfig.group_check``).
-From the first street the rays and box ranges (about
-20 % sigma) fit either landmark, per ray and per track alike. Nothing here weighs "a new sign
-behind" against a link; a test on one track, the track's own triangulation against "an
-unmapped sign here", did not separate right links from wrong ones;
-``offset_hypothesis_margin`` 0 (the best-scored fit wins) removes the false landmark on the
-simulated receiver's logs but adds false landmarks on the phones'
-(docs/experiments/2026-12-line-of-sight-mixture.md, 2026-12-group-check-tracks.md).
+those passes; the group check takes them back, see ``MatchingConfig.group_check``). From
+the first street the rays and box ranges (about 20 % sigma) fit either landmark, per ray
+and per track alike. Nothing here weighs "a new sign behind" against a link; a test on one
+track, the track's own triangulation against "an unmapped sign here", did not separate
+right links from wrong ones; ``offset_hypothesis_margin`` 0 (the best-scored fit wins)
+removes the false landmark on the simulated receiver's logs but adds false landmarks on
+the phones' (docs/experiments/2026-12-line-of-sight-mixture.md,
+2026-12-group-check-tracks.md, 2026-12-group-check-by-track.md).
 
 >>> import numpy as np
 >>> angles(np.array([[1.0, 1.0, 0.0]]))[0].round(4).tolist()

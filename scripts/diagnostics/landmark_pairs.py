@@ -51,6 +51,16 @@ def labels(report: dict) -> dict[int, str]:
     return lab
 
 
+def true_signs(run: Path) -> dict[tuple[str, int], int]:
+    """Per (vehicle, observation id) of a run directory's uploads (its ``truth.npz``, written
+    by the fleet evaluation) the true sign's id (-1: a false positive)."""
+    truth = np.load(run / "truth.npz")
+    return {
+        (str(v), int(o)): int(s)
+        for v, o, s in zip(truth["vehicle"], truth["obs_id"], truth["sign_id"], strict=True)
+    }
+
+
 def links_by_landmark(groups: list[AssocGroup]) -> tuple[dict, dict]:
     """Per final landmark id: its (vehicle, pass) keys and (vehicle, pass, image) keys."""
     final = successors(groups)

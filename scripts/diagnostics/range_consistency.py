@@ -25,7 +25,10 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from landmark_pairs import successors  # a sibling module: scripts run from their directory
+from landmark_pairs import (
+    successors,
+    true_signs,
+)  # a sibling module: scripts run from their directory
 
 from fleetsim.evaluation.fleet_eval import FleetEvalConfig, evaluation_world
 from fleetsim.truth import match_landmarks
@@ -40,11 +43,7 @@ PANEL_REL_SIGMA = 0.10
 def main(root: Path, seed: int, gnss: str, min_passes: int) -> None:
     run = root / f"seed-{seed}" / "run"
     world = evaluation_world(FleetEvalConfig(out=Path(tempfile.gettempdir()), seed=seed, gnss=gnss))
-    truth = np.load(run / "truth.npz")
-    true_sign = {
-        (str(v), int(o)): int(s)
-        for v, o, s in zip(truth["vehicle"], truth["obs_id"], truth["sign_id"], strict=True)
-    }
+    true_sign = true_signs(run)
     db = sqlite3.connect(f"file:{run / 'var/matcher-all/state.sqlite'}?mode=ro", uri=True)
     groups = [
         AssocGroup.from_bytes(b) for (b,) in db.execute("SELECT body FROM log_out ORDER BY gseq")
